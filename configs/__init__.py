@@ -1,0 +1,1 @@
+"""Experiment configs (ml_collections): `--config=configs/<name>.py[:b1k]`. All share `base.py`."""

@@ -1,0 +1,134 @@
+"""The shared base of every experiment config: all keys, with the demo-scale defaults.
+
+An experiment file (`configs/arm_focused.py`, ...) calls `get_config(arg)` and changes only the
+`loss` (and, for a few, the `data`) section. `arg` picks the scale:
+
+    ''    (no argument)  demo: the `demo` model on the embedded demo dataset, a CPU run of minutes.
+    'b1k'                full pi0 on a LeRobot BEHAVIOR-1K root given by `--config.data.root`.
+
+The config is locked by the entrypoint: every key a run can set exists here, and an unknown key on
+the command line is an error.
+"""
+
+import ml_collections
+from ml_collections import config_dict
+
+from pi0_armfix.action_space import ActionLayout
+
+SCALES = ("", "b1k")
+
+# The B1K R1Pro groups (pi0_armfix.action_space preset "b1k_r1pro"). Group weights name them all:
+# a missing key is an error, never a silent default.
+B1K_GROUPS = ("base", "torso", "left_arm", "left_gripper", "right_arm", "right_gripper")
+ARM_GROUPS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
+
+
+def group_weights(arm_weight: float = 1.0) -> dict[str, float]:
+    """Static weights of the B1K groups: arms and grippers at `arm_weight`, base and torso at 1."""
+    return {g: float(arm_weight) if g in ARM_GROUPS else 1.0 for g in B1K_GROUPS}
+
+
+def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> tuple[float, ...]:
+    """`[action_dim]` per-dimension weights from group weights: each dim its group's, 0 elsewhere."""
+    action_layout = ActionLayout.preset(layout)
+    vec = action_layout.membership() @ [weights[g] for g in action_layout.group_names]
+    return tuple(float(w) for w in vec)
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+    """All keys of a run. `arg`: '' (demo scale) or 'b1k' (full pi0 on a B1K LeRobot root)."""
+    scale = arg or ""
+    if scale not in SCALES:
+        raise ValueError(f"config argument {arg!r} is not a scale; use no argument (demo) or ':b1k'")
+
+    config = ml_collections.ConfigDict()
+    config.seed = 0
+
+    config.model = ml_collections.ConfigDict()
+    config.model.preset = "demo"  # tiny | demo | pi0
+    config.model.dtype = "float32"  # float32 | bfloat16 (activations; params stay float32)
+    config.model.pretrained = ""  # path to pretrained params ('' = random init)
+    config.model.action_horizon = 10
+    config.model.tokenizer = ""  # sentencepiece model file ('' = the demo's offline tokenizer)
+
+    config.loss = ml_collections.ConfigDict()
+    config.loss.strategy = "per_group"  # uniform|original|per_group|per_dimension|loss_balanced|uncertainty
+    config.loss.group_weights = group_weights(1.0)
+    config.loss.dimension_weights = ()  # per_dimension only: action_dim weights, 0 on padding
+    config.loss.delta_weighting = False
+    config.loss.weight_warmup_steps = 0  # group weights ramp 1.0 -> target (0 = off)
+    config.loss.ema_decay = 0.99  # loss_balanced: EMA of each group's unweighted loss
+    config.loss.w_min = 0.1  # loss_balanced: clamp of the adaptive weights
+    config.loss.w_max = 10.0
+    config.loss.min_log_var = -5.0  # uncertainty: lower clamp of the learned log-variances
+
+    config.layout = ml_collections.ConfigDict()
+    config.layout.preset = "b1k_r1pro"
+    # An explicit layout wins over the preset: groups {name: (start, stop)}, real_dim, action_dim.
+    config.layout.groups = config_dict.placeholder(dict)
+    config.layout.real_dim = config_dict.placeholder(int)
+    config.layout.action_dim = 32
+
+    config.data = ml_collections.ConfigDict()
+    config.data.root = ""  # '' = embedded demo dataset, generated on first use into a cache folder
+    config.data.format = "lerobot"  # lerobot | rlds
+    config.data.norm = "zscore"  # zscore | quantile
+    config.data.norm_stats = ""  # norm_stats.json (openpi format); '' = compute into the workdir
+    config.data.balanced_norm = False  # compute balanced stats (equal per-group motion) instead
+    config.data.balanced_max_scale = 10.0  # balanced stats: cap on each group's change of scale
+    # Phases (until_step, {source: weight}), sources `full` and `arm_heavy`; () = `full` throughout.
+    config.data.curriculum = ()
+    config.data.arm_heavy_episodes = ""  # JSON of filter_arm_heavy_episodes ('' = default thresholds)
+    config.data.delta_action_mask = ()  # action dims made relative to the state (() = absolute)
+    config.data.num_workers = 0  # grain worker processes (0 = in the main process)
+    config.data.prefetch = 2  # batches buffered ahead of the step
+
+    config.train = ml_collections.ConfigDict()
+    config.train.total_steps = 300
+    config.train.batch_size = 32  # global, over all processes
+    config.train.log_every = 10
+    config.train.checkpoint_every = 100
+    config.train.keep_checkpoints = 3
+
+    config.optim = ml_collections.ConfigDict()
+    config.optim.lr = 1e-3  # peak of the warmup-cosine schedule
+    config.optim.warmup_steps = 20
+    config.optim.end_lr_factor = 0.1  # final lr = lr * end_lr_factor
+    config.optim.b1 = 0.9
+    config.optim.b2 = 0.95
+    config.optim.eps = 1e-8
+    config.optim.weight_decay = 1e-4
+    config.optim.clip_norm = 1.0  # global-norm gradient clipping
+    config.optim.ema_decay = 0.0  # EMA of params (0 = off)
+
+    config.sharding = ml_collections.ConfigDict()
+    config.sharding.fsdp = 1  # size of the fsdp mesh axis (-1 = all devices); batch axis = the rest
+
+    config.eval = ml_collections.ConfigDict()
+    config.eval.every = 100  # 0 = no evaluation during training
+    config.eval.episodes = 4  # held out: the dataset's last N episodes, never trained on
+    config.eval.num_steps = 10  # Euler steps of sample_actions
+    config.eval.batch_size = 32
+    config.eval.max_chunks = 256  # chunks drawn from the held-out episodes per evaluation
+
+    if scale == "b1k":
+        config.model.preset = "pi0"
+        config.model.dtype = "bfloat16"
+        config.model.action_horizon = 50
+        config.model.tokenizer = config_dict.placeholder(str)  # PaliGemma's sentencepiece model
+        config.data.root = config_dict.placeholder(str)  # required: a LeRobot B1K root
+        config.data.num_workers = 8
+        config.data.prefetch = 4
+        config.train.total_steps = 30_000
+        config.train.batch_size = 32
+        config.train.log_every = 50
+        config.train.checkpoint_every = 1_000
+        config.optim.lr = 2.5e-5
+        config.optim.warmup_steps = 1_000
+        config.optim.b2 = 0.95
+        config.optim.weight_decay = 1e-10
+        config.optim.ema_decay = 0.99
+        config.sharding.fsdp = -1
+        config.eval.every = 2_000
+        config.eval.episodes = 20
+    return config

@@ -1,0 +1,10 @@
+"""Arms and grippers weighted 5x the base and torso (per_group): the stronger setting."""
+
+from configs import base
+
+
+def get_config(arg=None):
+    config = base.get_config(arg)
+    config.loss.strategy = "per_group"
+    config.loss.group_weights = base.group_weights(arm_weight=5.0)
+    return config
