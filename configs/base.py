@@ -46,9 +46,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
     config.model = ml_collections.ConfigDict()
     config.model.preset = "demo"  # tiny | demo | pi0
-    config.model.dtype = "float32"  # float32 | bfloat16 (activations; params stay float32)
+    config.model.dtype = ""  # '' = the preset's; float32 | bfloat16 (activations; params float32)
     config.model.pretrained = ""  # path to pretrained params ('' = random init)
-    config.model.action_horizon = 10
+    config.model.action_horizon = 0  # H of an action chunk; 0 = the preset's
     config.model.tokenizer = ""  # sentencepiece model file ('' = the demo's offline tokenizer)
 
     config.loss = ml_collections.ConfigDict()
@@ -113,8 +113,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
     if scale == "b1k":
         config.model.preset = "pi0"
-        config.model.dtype = "bfloat16"
-        config.model.action_horizon = 50
         config.model.tokenizer = config_dict.placeholder(str)  # PaliGemma's sentencepiece model
         config.data.root = config_dict.placeholder(str)  # required: a LeRobot B1K root
         config.data.num_workers = 8
