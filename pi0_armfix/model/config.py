@@ -1,0 +1,216 @@
+"""Model configuration: frozen dataclasses and the `pi0` / `demo` / `tiny` presets.
+
+The config is the only knob of the model. The `pi0` preset reproduces openpi's pi0 (PaliGemma =
+SigLIP So400m/14 + Gemma 2B, action expert = Gemma 300M) so that its parameter tree equals
+`shared/reference/openpi_param_tree.json["pi0"]`; `demo` trains on a laptop CPU; `tiny` is for unit
+tests. Every preset uses the same parameter names, only the sizes differ.
+
+`Pi0Config.to_dict()` / `Pi0Config.from_dict()` round-trip through JSON (the PyTorch mirror's
+`config.json`); `from_model_config(config.model)` builds one from the training config section.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+# The three camera slots of pi0 (openpi's IMAGE_KEYS); a key containing "wrist" is a wrist camera.
+IMAGE_KEYS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+# PaliGemma's sentencepiece vocabulary (openpi's PALIGEMMA_VOCAB_SIZE).
+PALIGEMMA_VOCAB_SIZE = 257_152
+DTYPES = ("float32", "bfloat16")
+
+
+@dataclasses.dataclass(frozen=True)
+class GemmaConfig:
+    """One expert of the Gemma transformer (attention is shared across experts, MLPs are not)."""
+
+    width: int
+    depth: int
+    mlp_dim: int
+    num_heads: int
+    num_kv_heads: int
+    head_dim: int
+
+
+@dataclasses.dataclass(frozen=True)
+class SiglipConfig:
+    """The SigLIP ViT image encoder (no pooling; a linear head maps to the prefix width)."""
+
+    width: int
+    depth: int
+    mlp_dim: int
+    num_heads: int
+    patch_size: int
+
+
+@dataclasses.dataclass(frozen=True)
+class AugmentConfig:
+    """Train-time image augmentation (openpi's pi0 recipe). Wrist cameras get colour jitter only.
+
+    Attributes:
+      crop_scale: side of the random crop as a fraction of the image side (then resized back);
+        1.0 disables cropping.
+      rotate_degrees: rotation angle drawn uniformly from [-rotate_degrees, rotate_degrees].
+      brightness, contrast, saturation: jitter strengths; factors are drawn from [1 - s, 1 + s].
+    """
+
+    crop_scale: float = 0.95
+    rotate_degrees: float = 5.0
+    brightness: float = 0.3
+    contrast: float = 0.4
+    saturation: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Pi0Config:
+    """Sizes and numerics of a pi0 model.
+
+    Attributes:
+      paligemma: the prefix expert (image + language tokens); its width is the token width of the
+        vision head and of the text embedding.
+      action_expert: the suffix expert (state token + action tokens). Shares depth, num_heads,
+        num_kv_heads and head_dim with `paligemma` (attention is joint).
+      siglip: the vision tower.
+      vocab_size: rows of the token embedding table.
+      action_dim: padded action / state width.
+      action_horizon: H, action tokens per chunk.
+      max_token_len: L, prompt tokens (padded / truncated).
+      image_resolution: (height, width) the cameras are resized (with padding) to.
+      image_keys: camera slots, in token order.
+      dtype: activation dtype, "float32" or "bfloat16". Parameters are always float32.
+      remat: rematerialize each scanned layer in the backward pass (saves activation memory).
+      augment: train-time augmentation.
+    """
+
+    paligemma: GemmaConfig
+    action_expert: GemmaConfig
+    siglip: SiglipConfig
+    vocab_size: int = PALIGEMMA_VOCAB_SIZE
+    action_dim: int = 32
+    action_horizon: int = 50
+    max_token_len: int = 48
+    image_resolution: tuple[int, int] = (224, 224)
+    image_keys: tuple[str, ...] = IMAGE_KEYS
+    dtype: str = "bfloat16"
+    remat: bool = True
+    augment: AugmentConfig = AugmentConfig()
+
+    def __post_init__(self):
+        object.__setattr__(self, "image_resolution", tuple(int(s) for s in self.image_resolution))
+        object.__setattr__(self, "image_keys", tuple(self.image_keys))
+        p, a, s = self.paligemma, self.action_expert, self.siglip
+        for field in ("depth", "num_heads", "num_kv_heads", "head_dim"):
+            if getattr(p, field) != getattr(a, field):
+                raise ValueError(
+                    f"paligemma.{field}={getattr(p, field)} != action_expert.{field}="
+                    f"{getattr(a, field)}: the two experts share every attention layer")
+        if p.num_heads % p.num_kv_heads:
+            raise ValueError(f"num_heads={p.num_heads} must be a multiple of num_kv_heads={p.num_kv_heads}")
+        if p.head_dim % 2:
+            raise ValueError(f"head_dim={p.head_dim} must be even (RoPE rotates pairs)")
+        if a.width % 2:
+            raise ValueError(f"action_expert.width={a.width} must be even (sin-cos time embedding)")
+        if s.width % s.num_heads:
+            raise ValueError(f"siglip.width={s.width} must be a multiple of siglip.num_heads={s.num_heads}")
+        if len(self.image_resolution) != 2 or any(r % s.patch_size for r in self.image_resolution):
+            raise ValueError(
+                f"image_resolution={self.image_resolution} must be (height, width), each a multiple "
+                f"of siglip.patch_size={s.patch_size}")
+        if not self.image_keys:
+            raise ValueError("image_keys must name at least one camera")
+        if self.dtype not in DTYPES:
+            raise ValueError(f"dtype={self.dtype!r} must be one of {DTYPES}")
+        for field in ("vocab_size", "action_dim", "action_horizon", "max_token_len"):
+            if getattr(self, field) <= 0:
+                raise ValueError(f"{field}={getattr(self, field)} must be positive")
+
+    @property
+    def num_image_tokens(self) -> int:
+        """Tokens per camera: (height / patch) * (width / patch)."""
+        h, w = self.image_resolution
+        return (h // self.siglip.patch_size) * (w // self.siglip.patch_size)
+
+    @property
+    def prefix_len(self) -> int:
+        return len(self.image_keys) * self.num_image_tokens + self.max_token_len
+
+    @property
+    def suffix_len(self) -> int:
+        return 1 + self.action_horizon
+
+    def replace(self, **changes) -> Pi0Config:
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready nested dict (tuples become lists)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Pi0Config:
+        """Inverse of `to_dict`; an unknown key is a ValueError naming it."""
+        nested = {"paligemma": GemmaConfig, "action_expert": GemmaConfig,
+                  "siglip": SiglipConfig, "augment": AugmentConfig}
+        kwargs = {}
+        for key, value in d.items():
+            sub = nested.get(key)
+            target = sub if sub is not None else cls
+            known = {f.name for f in dataclasses.fields(target)}
+            if sub is not None:
+                unknown = set(value) - known
+                if unknown:
+                    raise ValueError(f"unknown key(s) {sorted(unknown)} in model config field {key!r}")
+                value = sub(**value)
+            elif key not in {f.name for f in dataclasses.fields(cls)}:
+                raise ValueError(f"unknown model config key {key!r}")
+            kwargs[key] = value
+        return cls(**kwargs)
+
+
+GEMMA_2B = GemmaConfig(width=2048, depth=18, mlp_dim=16_384, num_heads=8, num_kv_heads=1, head_dim=256)
+GEMMA_300M = GemmaConfig(width=1024, depth=18, mlp_dim=4096, num_heads=8, num_kv_heads=1, head_dim=256)
+SIGLIP_SO400M_14 = SiglipConfig(width=1152, depth=27, mlp_dim=4304, num_heads=16, patch_size=14)
+
+_PRESETS = {
+    # openpi's pi0: 3 cameras x 256 tokens + 48 prompt tokens; 1 state + 50 action tokens.
+    "pi0": Pi0Config(
+        paligemma=GEMMA_2B, action_expert=GEMMA_300M, siglip=SIGLIP_SO400M_14,
+        vocab_size=PALIGEMMA_VOCAB_SIZE, action_horizon=50, max_token_len=48,
+        image_resolution=(224, 224), dtype="bfloat16", remat=True),
+    # Laptop CPU: 3 cameras x 16 tokens + 16 prompt tokens; 1 + 32 suffix tokens.
+    "demo": Pi0Config(
+        paligemma=GemmaConfig(width=128, depth=2, mlp_dim=256, num_heads=4, num_kv_heads=1, head_dim=32),
+        action_expert=GemmaConfig(width=64, depth=2, mlp_dim=128, num_heads=4, num_kv_heads=1, head_dim=32),
+        siglip=SiglipConfig(width=64, depth=2, mlp_dim=128, num_heads=4, patch_size=8),
+        vocab_size=512, action_horizon=32, max_token_len=16,
+        image_resolution=(32, 32), dtype="float32", remat=False),
+    # Unit tests: grouped-query attention with 2 query heads per kv head.
+    "tiny": Pi0Config(
+        paligemma=GemmaConfig(width=32, depth=2, mlp_dim=64, num_heads=4, num_kv_heads=2, head_dim=8),
+        action_expert=GemmaConfig(width=16, depth=2, mlp_dim=32, num_heads=4, num_kv_heads=2, head_dim=8),
+        siglip=SiglipConfig(width=16, depth=2, mlp_dim=32, num_heads=2, patch_size=8),
+        vocab_size=64, action_horizon=4, max_token_len=8,
+        image_resolution=(16, 16), dtype="float32", remat=False),
+}
+PRESETS = tuple(_PRESETS)
+
+
+def get_preset(name: str, **changes) -> Pi0Config:
+    """The named preset (`pi0`, `demo`, `tiny`), with top-level fields replaced by `changes`."""
+    if name not in _PRESETS:
+        raise ValueError(f"unknown model preset {name!r}; choose one of {PRESETS}")
+    return _PRESETS[name].replace(**changes)
+
+
+def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
+    """Builds the model config from the training config's `model` section.
+
+    Reads `preset`; `dtype` and `action_horizon` override the preset when set (non-empty / > 0).
+    """
+    changes = {}
+    if model_cfg.get("dtype"):
+        changes["dtype"] = model_cfg["dtype"]
+    if model_cfg.get("action_horizon"):
+        changes["action_horizon"] = int(model_cfg["action_horizon"])
+    return get_preset(model_cfg.get("preset", "demo"), **changes)
