@@ -1,0 +1,72 @@
+"""Scalar metrics of a run: `metrics.jsonl` (one JSON object per logged step) and TensorBoard.
+
+Only process 0 writes. A resumed run first drops the records of steps after its checkpoint (a
+killed run may have logged past it), so the file reads as if the run had never stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+
+import jax
+from etils import epath
+from tensorboardX import SummaryWriter
+
+METRICS_FILE = "metrics.jsonl"
+
+
+def read_metrics(path: epath.PathLike) -> list[dict]:
+    """All records of a `metrics.jsonl`, in file order."""
+    path = epath.Path(path)
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+class MetricsWriter:
+    """Appends `{"step": N, name: value, ...}` records and mirrors the numbers to TensorBoard.
+
+    Args:
+      workdir: the run folder; writes `metrics.jsonl` and `tensorboard/` in it.
+      resume_step: the step the run restarts from; records after it are dropped.
+    """
+
+    def __init__(self, workdir: epath.PathLike, resume_step: int = 0):
+        self._active = jax.process_index() == 0
+        if not self._active:
+            return
+        workdir = epath.Path(workdir)
+        self.path = workdir / METRICS_FILE
+        kept = [r for r in read_metrics(self.path) if r["step"] <= resume_step]
+        self.path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+        self._file = self.path.open("a")
+        self._tb = SummaryWriter(str(workdir / "tensorboard"))
+
+    def write(self, step: int, scalars: Mapping[str, float | int | str]) -> None:
+        """One record; strings are logged to the JSON file only."""
+        if not self._active:
+            return
+        record = {"step": int(step)}
+        for name, value in scalars.items():
+            record[name] = value if isinstance(value, str) else _json_number(value)
+        self._file.write(json.dumps(record) + "\n")
+        self._file.flush()
+        for name, value in record.items():
+            if name != "step" and not isinstance(value, str) and value is not None:
+                self._tb.add_scalar(name, value, step)
+        self._tb.flush()
+
+    def close(self) -> None:
+        if self._active:
+            self._file.close()
+            self._tb.close()
+
+
+def _json_number(value) -> float | int | None:
+    """Plain Python number; a non-finite float becomes None (JSON has no NaN)."""
+    if isinstance(value, int):
+        return value
+    value = float(value)
+    return value if math.isfinite(value) else None

@@ -1,0 +1,133 @@
+"""The train step: effective loss weights for this step, gradient, AdamW update, EMAs, metrics.
+
+The effective loss weights are a function of the step number and the train state, computed inside
+the step and passed to the model's `compute_loss` as loss kwargs:
+
+  per_group, uncertainty   group weights ramped 1.0 -> target over `loss.weight_warmup_steps`.
+  loss_balanced            the ramped weights x the clamped inverse EMA of the group losses (the
+                           EMA before this step's update, so a step never weighs by its own loss).
+  per_dimension            dimension weights ramped 1.0 -> target (0 on padding throughout).
+  uniform, original        no weights to ramp.
+
+The step's randomness (noise, flow time, augmentation) is `fold_in(key(seed), step)`: a function
+of the step alone, so a resumed run draws exactly what an uninterrupted run draws.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from pi0_armfix import loss as loss_lib
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.model import policy
+from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.training.state import TrainState
+
+
+def check_loss_config(loss_cfg: Mapping[str, Any], layout: ActionLayout) -> None:
+    """Raises ValueError (naming the `loss.*` key) for a loss section the step cannot run."""
+    strategy = loss_cfg["strategy"]
+    loss_lib.check_strategy(strategy, loss_cfg["delta_weighting"])
+    if strategy == "per_dimension":
+        layout.check_dimension_weights(loss_cfg["dimension_weights"], field="loss.dimension_weights")
+    elif strategy in ("per_group", "loss_balanced", "uncertainty"):
+        layout.check_group_weights(dict(loss_cfg["group_weights"]), field="loss.group_weights")
+    if loss_cfg["weight_warmup_steps"] < 0:
+        raise ValueError(f"loss.weight_warmup_steps = {loss_cfg['weight_warmup_steps']} must be >= 0")
+    if strategy == "loss_balanced":
+        if not 0.0 <= loss_cfg["ema_decay"] < 1.0:
+            raise ValueError(f"loss.ema_decay = {loss_cfg['ema_decay']} must be in [0, 1)")
+        if not 0.0 < loss_cfg["w_min"] <= loss_cfg["w_max"]:
+            raise ValueError(f"loss.w_min = {loss_cfg['w_min']} and loss.w_max = "
+                             f"{loss_cfg['w_max']} must satisfy 0 < w_min <= w_max")
+
+
+def loss_kwargs(loss_cfg: Mapping[str, Any], layout: ActionLayout, step: jax.Array,
+                loss_params: Mapping[str, jax.Array], balancer: Mapping[str, jax.Array]
+                ) -> dict[str, Any]:
+    """The keyword arguments of `loss.training_loss` for this step (weights as traced arrays)."""
+    strategy = loss_cfg["strategy"]
+    warmup = loss_cfg["weight_warmup_steps"]
+    kwargs: dict[str, Any] = dict(strategy=strategy, delta_weighting=loss_cfg["delta_weighting"])
+    if strategy == "per_dimension":
+        kwargs["dimension_weights"] = loss_lib.warmup_dimension_weights(
+            jnp.asarray(loss_cfg["dimension_weights"], jnp.float32), step, warmup, layout)
+    elif strategy in ("per_group", "loss_balanced", "uncertainty"):
+        weights = loss_lib.warmup_group_weights(dict(loss_cfg["group_weights"]), step, warmup)
+        if strategy == "loss_balanced":
+            static = jnp.stack([weights[g] for g in layout.group_names])
+            balanced = loss_lib.loss_balanced_weights(balancer["ema"], static, loss_cfg["w_min"],
+                                                      loss_cfg["w_max"])
+            weights = {g: balanced[i] for i, g in enumerate(layout.group_names)}
+        kwargs["group_weights"] = weights
+    if strategy == "uncertainty":
+        kwargs["log_vars"] = loss_params["log_vars"]
+        kwargs["min_log_var"] = loss_cfg["min_log_var"]
+    return kwargs
+
+
+def effective_group_weights(kwargs: Mapping[str, Any], layout: ActionLayout) -> jax.Array:
+    """What each group's error is multiplied by this step, `[G]`, for the metrics.
+
+    per_group / loss_balanced / per_dimension: the normalized static weight (mean over the group's
+    dims; the static weights have mean 1 over all action dims). uncertainty: w_g exp(-s_g), the
+    precision on the group's mean error. uniform / original: 1.
+    """
+    strategy = kwargs["strategy"]
+    if strategy == "uncertainty":
+        precision = jnp.exp(-jnp.maximum(kwargs["log_vars"], kwargs["min_log_var"]))
+        return jnp.stack([kwargs["group_weights"][g] for g in layout.group_names]) * precision
+    if strategy in ("uniform", "original"):
+        return jnp.ones((layout.num_groups,), jnp.float32)
+    dim_weights = loss_lib.static_dim_weights(strategy, layout, kwargs.get("group_weights"),
+                                              kwargs.get("dimension_weights"))
+    membership = jnp.asarray(layout.membership())
+    return dim_weights @ membership / membership.sum(0)
+
+
+def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Array,
+               model_config: Pi0Config, loss_cfg: Mapping[str, Any], layout: ActionLayout,
+               tx: optax.GradientTransformation, schedule: optax.Schedule, ema_decay: float
+               ) -> tuple[TrainState, dict[str, jax.Array]]:
+    """One optimizer step on the global `batch`.
+
+    Returns:
+      the new state and scalar metrics: `loss`, `grad_norm`, `lr`, `loss/<group>` (unweighted
+      group error over the valid timesteps), `weight/<group>` (see `effective_group_weights`).
+    """
+    rng = jax.random.fold_in(base_rng, state.step)
+
+    def loss_fn(trainable):
+        kwargs = loss_kwargs(loss_cfg, layout, state.step, trainable["loss_params"], state.balancer)
+        loss, aux = policy.compute_loss(trainable["params"], rng, batch, config=model_config,
+                                        layout=layout, train=True, **kwargs)
+        return loss, (aux, effective_group_weights(kwargs, layout))
+
+    (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)
+    updates, opt_state = tx.update(grads, state.opt_state, state.trainable)
+    trainable = optax.apply_updates(state.trainable, updates)
+
+    group_loss = jnp.stack([aux["group_loss"][g] for g in layout.group_names])
+    ema_params = state.ema_params
+    if ema_params is not None:
+        ema_params = jax.tree.map(lambda e, p: ema_decay * e + (1.0 - ema_decay) * p,
+                                  ema_params, trainable["params"])
+    balancer = state.balancer
+    if balancer:
+        ema, count = loss_lib.update_group_loss_ema(balancer["ema"], balancer["count"], group_loss,
+                                                    loss_cfg["ema_decay"])
+        balancer = {"ema": ema, "count": count}
+
+    metrics = {"loss": loss, "grad_norm": optax.global_norm(grads), "lr": schedule(state.step)}
+    for i, g in enumerate(layout.group_names):
+        metrics[f"loss/{g}"] = group_loss[i]
+        metrics[f"weight/{g}"] = weights[i]
+    new_state = state.replace(step=state.step + 1, params=trainable["params"],
+                              loss_params=trainable["loss_params"], opt_state=opt_state,
+                              ema_params=ema_params, balancer=balancer)
+    return new_state, metrics
