@@ -1,0 +1,114 @@
+"""Orbax checkpoints of a run (DESIGN §6): round trip, atomicity, clear errors."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import grain
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import pytest
+
+from pi0_armfix.training import checkpoint, sharding
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+NORM_STATS = {"norm_stats": {"actions": {"mean": [0.5, 1.0], "std": [2.0, 3.0]}}}
+
+
+def _state(value: float) -> dict:
+    return {"step": jnp.int32(value), "params": {"w": jnp.full((64, 32), value, jnp.float32)},
+            "balancer": {"ema": jnp.arange(6, dtype=jnp.float32) * value}}
+
+
+def _iterator():
+    return iter(grain.MapDataset.range(50).shuffle(seed=1).batch(2).to_iter_dataset())
+
+
+def _abstract(state, mesh):
+    return jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                        state, sharding.tree_shardings(state, mesh))
+
+
+def _config():
+    return ml_collections.ConfigDict({"loss": {"strategy": "per_group"}, "seed": 3})
+
+
+def test_restore_returns_the_saved_state_iterator_position_and_norm_stats(tmp_path):
+    ckpts = checkpoint.Checkpoints(tmp_path / "checkpoints", every=1, keep=2)
+    it = _iterator()
+    for _ in range(3):
+        next(it)
+    ckpts.save(3, _state(3.0), it, NORM_STATS, _config())
+    ckpts.wait()
+    expected_next = next(it)
+
+    restored_it = _iterator()
+    state, norm_stats = ckpts.restore(3, _abstract(_state(0.0), sharding.make_mesh(1)),
+                                      restored_it)
+    jax.tree.map(np.testing.assert_array_equal, state, _state(3.0))
+    assert norm_stats == NORM_STATS
+    np.testing.assert_array_equal(next(restored_it), expected_next)
+
+
+def test_only_the_latest_keep_checkpoints_are_kept(tmp_path):
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1, keep=2)
+    it = _iterator()
+    for step in (1, 2, 3):
+        ckpts.save(step, _state(step), it, NORM_STATS, _config())
+    ckpts.wait()
+    assert ckpts.all_steps() == [2, 3]
+    assert ckpts.latest_step() == 3
+
+
+def test_checkpoint_of_another_state_tree_is_a_clear_error(tmp_path):
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1)
+    ckpts.save(1, _state(1.0), _iterator(), NORM_STATS, _config())
+    ckpts.wait()
+    other = {"step": jnp.int32(0), "params": {"v": jnp.zeros((3,))}}
+    with pytest.raises(ValueError, match="does not match this run"):
+        ckpts.restore(1, _abstract(other, sharding.make_mesh(1)), _iterator())
+
+
+def test_restore_for_eval_reads_state_norm_stats_and_config_without_a_target(tmp_path):
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1)
+    ckpts.save(1, _state(2.0), _iterator(), NORM_STATS, _config())
+    ckpts.wait()
+    state, norm_stats, config = checkpoint.Checkpoints(tmp_path, read_only=True).restore_for_eval(
+        1, sharding.make_mesh(1))
+    np.testing.assert_array_equal(state["params"]["w"], _state(2.0)["params"]["w"])
+    assert norm_stats == NORM_STATS
+    assert config.loss.strategy == "per_group" and config.seed == 3
+
+
+def test_a_process_killed_while_finalizing_a_save_leaves_the_previous_checkpoint_intact(tmp_path):
+    # The child saves step 1, then dies inside orbax's atomic rename of step 2.
+    code = textwrap.dedent(f"""
+        import os, grain, jax.numpy as jnp, ml_collections
+        from orbax.checkpoint._src.path import atomicity
+        from pi0_armfix.training import checkpoint
+        it = iter(grain.MapDataset.range(50).batch(2).to_iter_dataset())
+        config = ml_collections.ConfigDict({{"seed": 0}})
+        ckpts = checkpoint.Checkpoints({str(tmp_path)!r}, every=1)
+        ckpts.save(1, {{"w": jnp.full((8,), 1.0)}}, it, {{}}, config)
+        ckpts.wait()
+        async def die(*args, **kwargs):
+            os._exit(9)
+        for cls in (atomicity.AtomicRenameTemporaryPath, atomicity.CommitFileTemporaryPath):
+            cls.finalize = die
+        ckpts.save(2, {{"w": jnp.full((8,), 2.0)}}, it, {{}}, config)
+        ckpts.wait()
+    """)
+    env = dict(os.environ, PYTHONPATH=REPO_ROOT, JAX_PLATFORMS="cpu")
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 9, result.stderr
+    assert any("tmp" in name for name in os.listdir(tmp_path)), os.listdir(tmp_path)
+
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1)
+    assert ckpts.latest_step() == 1
+    state, _ = ckpts.restore(1, _abstract({"w": jnp.zeros((8,))}, sharding.make_mesh(1)),
+                             iter(grain.MapDataset.range(50).batch(2).to_iter_dataset()))
+    np.testing.assert_array_equal(state["w"], np.full((8,), 1.0))
