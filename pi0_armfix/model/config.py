@@ -106,8 +106,10 @@ class Pi0Config:
                 raise ValueError(
                     f"paligemma.{field}={getattr(p, field)} != action_expert.{field}="
                     f"{getattr(a, field)}: the two experts share every attention layer")
-        if p.num_heads % p.num_kv_heads:
-            raise ValueError(f"num_heads={p.num_heads} must be a multiple of num_kv_heads={p.num_kv_heads}")
+        if p.num_heads % p.num_kv_heads or p.num_kv_heads == p.num_heads:
+            # openpi names full multi-head attention differently ("qkv_einsum"); pi0 uses GQA/MQA.
+            raise ValueError(f"num_heads={p.num_heads} must be a multiple of num_kv_heads="
+                             f"{p.num_kv_heads}, and larger (grouped-query attention)")
         if p.head_dim % 2:
             raise ValueError(f"head_dim={p.head_dim} must be even (RoPE rotates pairs)")
         if a.width % 2:

@@ -1,0 +1,237 @@
+"""Gemma transformer with several experts that share every attention layer (linen).
+
+Expert i has its own norms, projections and MLP; names of expert i > 0 carry the suffix `_i`
+(openpi's naming: `q_einsum` / `q_einsum_1`). All experts' tokens are concatenated for one joint
+attention per layer. Layers are one `nn.scan` over depth, so parameters are stacked on a leading
+depth axis and compile time does not grow with depth.
+
+Linen rather than NNX because `nn.scan` over a parameter-stacked block yields openpi's parameter
+tree (`layers/attn/q_einsum/w` with shape [depth, ...]) directly as a plain nested dict.
+
+Einsum axis names: B batch, T query length, S key length, N query heads, K kv heads,
+G query heads per kv head, H head dim, D width.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from pi0_armfix.model.config import GemmaConfig
+
+# Gemma's masked-logit value (finite, so fully masked rows stay NaN-free).
+_BIG_NEG = -2.3819763e38
+_ROPE_MAX_WAVELENGTH = 10_000
+
+
+def _name(name: str, expert: int) -> str:
+    return name if expert == 0 else f"{name}_{expert}"
+
+
+class RMSNorm(nn.Module):
+    """`x * rsqrt(mean(x^2) + 1e-6) * (1 + scale)`, statistics in float32, output in x.dtype."""
+
+    @nn.compact
+    def __call__(self, x):
+        scale = self.param("scale", nn.initializers.zeros_init(), (x.shape[-1],))
+        var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
+        normed = x * jnp.reciprocal(jnp.sqrt(var + 1e-6))
+        return (normed * (1 + scale)).astype(x.dtype)
+
+
+class Embedder(nn.Module):
+    """Token embedding table `input_embedding` [vocab, width]; lookups are scaled by sqrt(width)."""
+
+    vocab_size: int
+    width: int
+
+    def setup(self):
+        self.input_embedding = self.param(
+            "input_embedding", nn.initializers.normal(), (self.vocab_size, self.width))
+
+    def encode(self, tokens):
+        """[B, L] int -> [B, L, width] float32."""
+        return self.input_embedding[(tokens,)] * jnp.sqrt(self.width).astype(jnp.float32)
+
+
+class Einsum(nn.Module):
+    """One weight `w` of a fixed shape, applied with an einsum in the input's dtype."""
+
+    shape: tuple[int, ...]
+    init_fn: nn.initializers.Initializer
+
+    @nn.compact
+    def __call__(self, eqn: str, x):
+        w = self.param("w", self.init_fn, self.shape)
+        return jnp.einsum(eqn, x, w.astype(x.dtype))
+
+
+def apply_rope(x, positions):
+    """Half-split rotary embedding, base 10_000. x [B, T, N, H], positions [B, T] -> like x."""
+    head_dim = x.shape[-1]
+    freq_exponents = (2.0 / head_dim) * jnp.arange(head_dim // 2, dtype=jnp.float32)
+    timescale = _ROPE_MAX_WAVELENGTH**freq_exponents
+    radians = positions[..., None] / timescale[None, None, :]
+    radians = radians[..., None, :]  # [B, T, 1, H/2], broadcast over heads
+    sin, cos = jnp.sin(radians), jnp.cos(radians)
+    x1, x2 = jnp.split(x, 2, axis=-1)
+    return jnp.concatenate([x1 * cos - x2 * sin, x2 * cos + x1 * sin], axis=-1).astype(x.dtype)
+
+
+class Attention(nn.Module):
+    """Joint grouped-query attention over the concatenated tokens of all present experts."""
+
+    configs: Sequence[GemmaConfig]
+
+    @nn.compact
+    def __call__(self, xs, positions, attn_mask, kv_cache):
+        """Args:
+          xs: per expert [B, T_i, D_i] or None (expert absent in this call).
+          positions: [B, T] int, T = sum of present T_i.
+          attn_mask: [B, 1, T, S] bool, S = T + cached length.
+          kv_cache: None or (k, v), each [B, S - T, K, H] (after RoPE).
+
+        Returns:
+          per expert [B, T_i, D_i] or None, and this call's (k, v) [B, S, K, H].
+        """
+        cfg = self.configs[0]
+        dtype = next(x.dtype for x in xs if x is not None)
+        qs, ks, vs = [], [], []
+        for i, (x, config) in enumerate(zip(xs, self.configs)):
+            if x is None:
+                continue
+            q = Einsum(
+                shape=(config.num_heads, config.width, config.head_dim), name=_name("q_einsum", i),
+                init_fn=nn.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=(0,)),
+            )("BTD,NDH->BTNH", x)
+            k, v = Einsum(
+                shape=(2, config.num_kv_heads, config.width, config.head_dim),
+                name=_name("kv_einsum", i),
+                init_fn=nn.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=(0, 1)),
+            )("BSD,2KDH->2BSKH", x)
+            qs.append(q), ks.append(k), vs.append(v)
+        q, k, v = (jnp.concatenate(y, axis=1) for y in (qs, ks, vs))
+
+        q = apply_rope(q, positions) * jnp.asarray(cfg.head_dim**-0.5, dtype)
+        k = apply_rope(k, positions)
+        if kv_cache is not None:
+            k = jnp.concatenate([kv_cache[0], k], axis=1)
+            v = jnp.concatenate([kv_cache[1], v], axis=1)
+
+        batch, length = q.shape[:2]
+        q = q.reshape(batch, length, cfg.num_kv_heads, cfg.num_heads // cfg.num_kv_heads, cfg.head_dim)
+        logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k, preferred_element_type=jnp.float32)
+        logits = jnp.where(attn_mask[:, :, None, :, :], logits, _BIG_NEG)
+        probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
+        encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v)
+        encoded = encoded.reshape(batch, length, cfg.num_heads, cfg.head_dim)
+
+        out, start = [], 0
+        for i, (x, config) in enumerate(zip(xs, self.configs)):
+            if x is None:
+                out.append(None)
+                continue
+            end = start + x.shape[1]
+            out.append(Einsum(
+                shape=(config.num_heads, config.head_dim, config.width),
+                name=_name("attn_vec_einsum", i),
+                init_fn=nn.initializers.lecun_normal(in_axis=(-3, -2), out_axis=-1),
+            )("BTNH,NHD->BTD", encoded[:, start:end]))
+            start = end
+        return out, (k, v)
+
+
+class FeedForward(nn.Module):
+    """Gated GELU: `(gelu_tanh(x @ gating[0]) * (x @ gating[1])) @ linear`."""
+
+    width: int
+    mlp_dim: int
+
+    @nn.compact
+    def __call__(self, x):
+        gating = self.param(
+            "gating_einsum", nn.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=(0,)),
+            (2, self.width, self.mlp_dim)).astype(x.dtype)
+        linear = self.param(
+            "linear", nn.initializers.lecun_normal(in_axis=-2, out_axis=-1),
+            (self.mlp_dim, self.width)).astype(x.dtype)
+        hidden = nn.gelu(jnp.dot(x, gating[0]), approximate=True) * jnp.dot(x, gating[1])
+        return jnp.dot(hidden, linear)
+
+
+class Block(nn.Module):
+    """Pre-norm residual layer: joint attention, then each expert's own MLP."""
+
+    configs: Sequence[GemmaConfig]
+
+    @nn.compact
+    def __call__(self, xs, kv_cache, positions, attn_mask):
+        normed = [None if x is None else RMSNorm(name=_name("pre_attention_norm", i))(x)
+                  for i, x in enumerate(xs)]
+        attended, kv_cache = Attention(self.configs, name="attn")(normed, positions, attn_mask, kv_cache)
+        xs = [None if x is None else x + y for x, y in zip(xs, attended)]
+        out = []
+        for i, (x, config) in enumerate(zip(xs, self.configs)):
+            if x is not None:
+                y = RMSNorm(name=_name("pre_ffw_norm", i))(x)
+                x = x + FeedForward(config.width, config.mlp_dim, name=_name("mlp", i))(y)
+            out.append(x)
+        return out, kv_cache
+
+
+class Transformer(nn.Module):
+    """The `PaliGemma/llm` module: embedder of expert 0, scanned layers, one final norm per expert.
+
+    Attributes:
+      configs: one GemmaConfig per expert (equal depth / heads / head_dim).
+      vocab_size: rows of the embedding table.
+      dtype: activation dtype (params stay float32).
+      remat: rematerialize each layer in the backward pass.
+    """
+
+    configs: Sequence[GemmaConfig]
+    vocab_size: int
+    dtype: str
+    remat: bool
+
+    def setup(self):
+        self.embedder = Embedder(self.vocab_size, self.configs[0].width, name="embedder")
+        block = Block
+        if self.remat:
+            block = nn.remat(Block, prevent_cse=False, policy=jax.checkpoint_policies.nothing_saveable)
+        self.layers = nn.scan(
+            block, variable_axes={"params": 0}, split_rngs={"params": True},
+            in_axes=(0, nn.broadcast, nn.broadcast), length=self.configs[0].depth,
+        )(self.configs, name="layers")
+        self.final_norms = [RMSNorm(name=_name("final_norm", i)) for i in range(len(self.configs))]
+
+    def embed(self, tokens):
+        """[B, L] int -> [B, L, D_0] in `dtype`."""
+        return self.embedder.encode(tokens).astype(self.dtype)
+
+    def __call__(self, xs, positions, attn_mask, kv_cache=None):
+        """Runs all layers.
+
+        Args:
+          xs: per expert [B, T_i, D_i] or None.
+          positions: [B, T] int.
+          attn_mask: [B, T, S] bool (S = T + cached length).
+          kv_cache: None, or (k, v) each [depth, B, S - T, K, H] from a previous call.
+
+        Returns:
+          per expert final-normed outputs [B, T_i, D_i] (or None), and the (k, v) of this call,
+          each [depth, B, S, K, H].
+        """
+        xs = [None if x is None else x.astype(self.dtype) for x in xs]
+        xs, kv_cache = self.layers(xs, kv_cache, positions, attn_mask[:, None])
+        return [None if x is None else norm(x) for norm, x in zip(self.final_norms, xs)], kv_cache
+
+    def initialize(self):
+        """Touches every parameter (for `init` / `eval_shape`)."""
+        self.embed(jnp.zeros((1, 1), jnp.int32))
+        xs = [jnp.zeros((1, 1, c.width), self.dtype) for c in self.configs]
+        length = len(self.configs)
+        self(xs, jnp.zeros((1, length), jnp.int32), jnp.ones((1, length, length), bool))

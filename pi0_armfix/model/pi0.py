@@ -1,0 +1,165 @@
+"""The pi0 forward computation over a plain params dict (see the package docstring for the spec).
+
+Parameter tree (openpi's names):
+  PaliGemma/llm   the two-expert Gemma transformer (`gemma.Transformer`)
+  PaliGemma/img   the SigLIP tower (`siglip.SigLIP`)
+  state_proj, action_in_proj, action_time_mlp_in, action_time_mlp_out, action_out_proj
+                  dense layers {kernel [in, out], bias [out]}
+
+All functions take an observation already through `inputs.preprocess_observation`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.model.gemma import Transformer
+from pi0_armfix.model.siglip import SigLIP
+
+Params = Mapping[str, Any]
+
+# Time embedding periods: sensitivity over t in [0, 1].
+TIME_MIN_PERIOD = 4e-3
+TIME_MAX_PERIOD = 4.0
+DENSE_LAYERS = ("state_proj", "action_in_proj", "action_time_mlp_in", "action_time_mlp_out",
+                "action_out_proj")
+
+
+def transformer(config: Pi0Config) -> Transformer:
+    return Transformer(configs=(config.paligemma, config.action_expert), vocab_size=config.vocab_size,
+                       dtype=config.dtype, remat=config.remat)
+
+
+def vision_tower(config: Pi0Config) -> SigLIP:
+    return SigLIP(config=config.siglip, num_patches=config.num_image_tokens,
+                  out_width=config.paligemma.width, dtype=config.dtype, remat=config.remat)
+
+
+def dense_shapes(config: Pi0Config) -> dict[str, tuple[int, int]]:
+    """(in, out) features of each dense layer outside the two towers."""
+    width, action_dim = config.action_expert.width, config.action_dim
+    return {
+        "state_proj": (action_dim, width),
+        "action_in_proj": (action_dim, width),
+        "action_time_mlp_in": (2 * width, width),
+        "action_time_mlp_out": (width, width),
+        "action_out_proj": (width, action_dim),
+    }
+
+
+def dense(params: Params, x: jax.Array) -> jax.Array:
+    """x [..., in] @ kernel [in, out] + bias, in the promoted dtype of x and the params."""
+    return jnp.dot(x, params["kernel"]) + params["bias"]
+
+
+def posemb_sincos(t: jax.Array, dim: int, min_period: float = TIME_MIN_PERIOD,
+                  max_period: float = TIME_MAX_PERIOD) -> jax.Array:
+    """Sin-cos embedding of scalars t [B] -> [B, dim]: sin half, then cos half."""
+    fraction = jnp.linspace(0.0, 1.0, dim // 2)
+    period = min_period * (max_period / min_period) ** fraction
+    arg = jnp.einsum("i,j->ij", t, 1.0 / period * 2 * jnp.pi, precision=jax.lax.Precision.HIGHEST)
+    return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
+
+
+def make_attn_mask(input_mask: jax.Array, ar_mask: jax.Array) -> jax.Array:
+    """Block-causal mask: token i sees token j iff cumsum(ar)[j] <= cumsum(ar)[i], both valid.
+
+    Args:
+      input_mask: [B, N] bool, False for padding.
+      ar_mask: [N] (or [B, N]) bool, True where a new block starts that earlier tokens cannot see.
+    Returns:
+      [B, N, N] bool, [query, key].
+    """
+    ar_mask = jnp.broadcast_to(ar_mask, input_mask.shape)
+    cumsum = jnp.cumsum(ar_mask, axis=1)
+    causal = cumsum[:, None, :] <= cumsum[:, :, None]
+    valid = input_mask[:, None, :] & input_mask[:, :, None]
+    return causal & valid
+
+
+def embed_prefix(params: Params, observation: Mapping[str, Any], *, config: Pi0Config
+                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Camera tokens then prompt tokens, one bidirectional block.
+
+    Returns:
+      tokens [B, P, W] in `config.dtype`, input mask [B, P] bool, ar mask [P] bool (all False).
+    """
+    images = [observation["image"][key] for key in config.image_keys]
+    # One tower call for all cameras (weights are shared): [num_cameras * B, n, W].
+    image_tokens = vision_tower(config).apply(
+        {"params": params["PaliGemma"]["img"]}, jnp.concatenate(images, axis=0))
+    image_tokens = jnp.split(image_tokens, len(images), axis=0)
+    text_tokens = transformer(config).apply(
+        {"params": params["PaliGemma"]["llm"]}, observation["tokenized_prompt"], method="embed")
+    n = config.num_image_tokens
+    masks = [jnp.repeat(observation["image_mask"][key][:, None], n, axis=1) for key in config.image_keys]
+    tokens = jnp.concatenate([t.astype(config.dtype) for t in image_tokens] + [text_tokens], axis=1)
+    input_mask = jnp.concatenate(masks + [jnp.asarray(observation["tokenized_prompt_mask"], bool)], axis=1)
+    return tokens, input_mask, jnp.zeros((tokens.shape[1],), bool)
+
+
+def embed_suffix(params: Params, state: jax.Array, x_t: jax.Array, t: jax.Array, *, config: Pi0Config
+                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """State token then H action tokens (x_t mixed with the time embedding by a swish MLP).
+
+    Args:
+      state: [B, A]; x_t: [B, H, A] noisy actions; t: [B] flow time.
+    Returns:
+      tokens [B, 1 + H, E] float32, input mask [B, 1 + H] (all True), ar mask [1 + H]
+      (True for the state token and the first action token).
+    """
+    state_token = dense(params["state_proj"], state)[:, None, :]
+    action_tokens = dense(params["action_in_proj"], x_t)
+    time_emb = posemb_sincos(t, config.action_expert.width)
+    time_tokens = jnp.broadcast_to(time_emb[:, None, :], action_tokens.shape)
+    hidden = dense(params["action_time_mlp_in"], jnp.concatenate([action_tokens, time_tokens], axis=-1))
+    action_tokens = dense(params["action_time_mlp_out"], jax.nn.swish(hidden))
+    tokens = jnp.concatenate([state_token, action_tokens], axis=1)
+    horizon = x_t.shape[1]
+    ar_mask = jnp.asarray([True, True] + [False] * (horizon - 1))
+    return tokens, jnp.ones(tokens.shape[:2], bool), ar_mask
+
+
+def forward_velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: jax.Array, *,
+                     config: Pi0Config) -> jax.Array:
+    """One joint prefix + suffix pass. x_t [B, H, A], t [B] -> v [B, H, A] float32."""
+    prefix, prefix_mask, prefix_ar = embed_prefix(params, observation, config=config)
+    suffix, suffix_mask, suffix_ar = embed_suffix(params, observation["state"], x_t, t, config=config)
+    input_mask = jnp.concatenate([prefix_mask, suffix_mask], axis=1)
+    attn_mask = make_attn_mask(input_mask, jnp.concatenate([prefix_ar, suffix_ar]))
+    positions = jnp.cumsum(input_mask, axis=1) - 1
+    (_, suffix_out), _ = transformer(config).apply(
+        {"params": params["PaliGemma"]["llm"]}, [prefix, suffix], positions, attn_mask)
+    return dense(params["action_out_proj"], suffix_out[:, 1:]).astype(jnp.float32)
+
+
+def prefix_kv_cache(params: Params, observation: Mapping[str, Any], *, config: Pi0Config
+                    ) -> tuple[tuple[jax.Array, jax.Array], jax.Array]:
+    """Runs the prefix alone. Returns its (k, v), each [depth, B, P, K, Dh], and its mask [B, P]."""
+    prefix, prefix_mask, prefix_ar = embed_prefix(params, observation, config=config)
+    positions = jnp.cumsum(prefix_mask, axis=1) - 1
+    _, kv_cache = transformer(config).apply(
+        {"params": params["PaliGemma"]["llm"]}, [prefix, None], positions,
+        make_attn_mask(prefix_mask, prefix_ar))
+    return kv_cache, prefix_mask
+
+
+def cached_velocity(params: Params, state: jax.Array, kv_cache: tuple[jax.Array, jax.Array],
+                    prefix_mask: jax.Array, x_t: jax.Array, t: jax.Array, *, config: Pi0Config
+                    ) -> jax.Array:
+    """The suffix pass against a prefix KV cache; equals `forward_velocity`. -> v [B, H, A]."""
+    suffix, suffix_mask, suffix_ar = embed_suffix(params, state, x_t, t, config=config)
+    suffix_len = suffix.shape[1]
+    # Suffix queries see every valid prefix key, and the suffix under its own block-causal mask.
+    to_prefix = jnp.broadcast_to(prefix_mask[:, None, :], (prefix_mask.shape[0], suffix_len,
+                                                           prefix_mask.shape[1]))
+    attn_mask = jnp.concatenate([to_prefix, make_attn_mask(suffix_mask, suffix_ar)], axis=-1)
+    positions = jnp.sum(prefix_mask, axis=-1)[:, None] + jnp.cumsum(suffix_mask, axis=-1) - 1
+    (_, suffix_out), _ = transformer(config).apply(
+        {"params": params["PaliGemma"]["llm"]}, [None, suffix], positions, attn_mask, kv_cache)
+    return dense(params["action_out_proj"], suffix_out[:, 1:]).astype(jnp.float32)

@@ -1,0 +1,129 @@
+"""Public functional API of the pi0 policy over a plain nested-dict params pytree (openpi names).
+
+  init_params(config, rng) -> params
+  param_shapes(config) -> params of jax.ShapeDtypeStruct (no allocation)
+  velocity(params, observation, x_t, t, *, config) -> v [B, H, A]
+  compute_loss(params, rng, batch, *, config, layout, train, **loss_kwargs) -> (loss, aux)
+  sample_actions(params, rng, observation, *, config, num_steps=10, noise=None,
+                 use_kv_cache=True) -> actions [B, H, A]
+
+`observation` / `batch` are the dicts of CONTRACT.md (raw uint8 cameras at any resolution; the
+model converts, resizes and, for training, augments them). Parameters are float32; activations
+run in `config.dtype`. Flow-matching convention (DESIGN §3): t = 1 is noise, t = 0 the data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from pi0_armfix import loss as loss_lib
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.model import pi0
+from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.model.inputs import preprocess_observation
+
+Params = dict[str, Any]
+
+
+def init_params(config: Pi0Config, rng: jax.Array) -> Params:
+    """Random float32 parameters with openpi's tree structure and names."""
+    rng_llm, rng_img, rng_dense = jax.random.split(rng, 3)
+    llm = pi0.transformer(config).init(rng_llm, method="initialize")["params"]
+    image = jnp.zeros((1, *config.image_resolution, 3), jnp.float32)
+    img = pi0.vision_tower(config).init(rng_img, image)["params"]
+    params: Params = {"PaliGemma": {"llm": llm, "img": img}}
+    shapes = pi0.dense_shapes(config)
+    for key, name in zip(jax.random.split(rng_dense, len(shapes)), shapes):
+        fan_in, fan_out = shapes[name]
+        params[name] = {"kernel": jax.nn.initializers.lecun_normal()(key, (fan_in, fan_out), jnp.float32),
+                        "bias": jnp.zeros((fan_out,), jnp.float32)}
+    return params
+
+
+def param_shapes(config: Pi0Config) -> Params:
+    """The parameter tree as jax.ShapeDtypeStruct leaves, without allocating it."""
+    return jax.eval_shape(lambda: init_params(config, jax.random.key(0)))
+
+
+def velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: jax.Array, *,
+             config: Pi0Config) -> jax.Array:
+    """The predicted flow v(x_t, t) [B, H, A] float32 (eval preprocessing, one full forward).
+
+    Args:
+      observation: batch dict without actions. x_t: [B, H, A]. t: [B] in [0, 1].
+    """
+    observation = preprocess_observation(None, observation, config=config, train=False)
+    return pi0.forward_velocity(params, observation, x_t, t, config=config)
+
+
+def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, config: Pi0Config,
+                 layout: ActionLayout, train: bool, **loss_kwargs) -> tuple[jax.Array, dict[str, Any]]:
+    """Flow-matching loss on a batch.
+
+    t ~ Beta(1.5, 1) * 0.999 + 0.001 per sample, x_t = t * noise + (1 - t) * a, u = noise - a,
+    e = (v - u)^2 [B, H, A], reduced by `loss.training_loss(e, actions, action_is_pad,
+    layout=layout, **loss_kwargs)`.
+
+    Args:
+      rng: splits into augmentation, noise and time keys.
+      batch: CONTRACT.md batch with `actions` [B, H, A] and `action_is_pad` [B, H].
+      train: apply image augmentation.
+      **loss_kwargs: `strategy`, `group_weights`, ... of `loss.training_loss`.
+    Returns:
+      (scalar loss over valid timesteps, aux) with aux = {"group_loss": {group: scalar}}.
+    """
+    actions = jnp.asarray(batch["actions"], jnp.float32)
+    if actions.shape[1:] != (config.action_horizon, config.action_dim):
+        raise ValueError(f"batch['actions'] has shape {actions.shape}; the model expects "
+                         f"[B, action_horizon={config.action_horizon}, action_dim={config.action_dim}]")
+    rng_augment, rng_noise, rng_time = jax.random.split(rng, 3)
+    observation = preprocess_observation(rng_augment, batch, config=config, train=train)
+    noise = jax.random.normal(rng_noise, actions.shape)
+    t = jax.random.beta(rng_time, 1.5, 1.0, actions.shape[:1]) * 0.999 + 0.001
+    x_t = t[:, None, None] * noise + (1.0 - t[:, None, None]) * actions
+    v = pi0.forward_velocity(params, observation, x_t, t, config=config)
+    per_dim_loss = jnp.square(v - (noise - actions))
+    return loss_lib.training_loss(per_dim_loss, actions, jnp.asarray(batch["action_is_pad"], bool),
+                                  layout=layout, **loss_kwargs)
+
+
+def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any], *,
+                   config: Pi0Config, num_steps: int = 10, noise: jax.Array | None = None,
+                   use_kv_cache: bool = True) -> jax.Array:
+    """Integrates the flow from t = 1 (noise) to t = 0 with `num_steps` Euler steps.
+
+    Args:
+      rng: draws the initial noise (unused when `noise` is given).
+      observation: batch dict without actions.
+      noise: optional [B, H, A] starting point.
+      use_kv_cache: run the prefix once and reuse its keys / values at every step; False
+        recomputes the full prefix + suffix forward each step (same result, for checking).
+    Returns:
+      actions [B, H, A] float32 (normalized, padded like the training targets).
+    """
+    observation = preprocess_observation(None, observation, config=config, train=False)
+    batch_size = observation["state"].shape[0]
+    if noise is None:
+        noise = jax.random.normal(rng, (batch_size, config.action_horizon, config.action_dim))
+    dt = -1.0 / num_steps
+    if use_kv_cache:
+        kv_cache, prefix_mask = pi0.prefix_kv_cache(params, observation, config=config)
+
+        def flow(x_t, t):
+            return pi0.cached_velocity(params, observation["state"], kv_cache, prefix_mask, x_t, t,
+                                       config=config)
+    else:
+        def flow(x_t, t):
+            return pi0.forward_velocity(params, observation, x_t, t, config=config)
+
+    def step(_, carry):
+        x_t, t = carry
+        v = flow(x_t, jnp.broadcast_to(t, (batch_size,)))
+        return x_t + dt * v, t + dt
+
+    actions, _ = jax.lax.fori_loop(0, num_steps, step, (noise.astype(jnp.float32), jnp.float32(1.0)))
+    return actions
