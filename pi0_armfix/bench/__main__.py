@@ -1,0 +1,16 @@
+"""Dispatches `python -m pi0_armfix.bench NAME [args]` to `pi0_armfix.bench.NAME.main(argv)`."""
+
+import importlib
+import sys
+
+BENCHMARKS = ("data", "model", "train")
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) < 2 or argv[1] not in BENCHMARKS:
+        sys.exit(f"usage: python -m pi0_armfix.bench {{{'|'.join(BENCHMARKS)}}} [flags]")
+    importlib.import_module(f"pi0_armfix.bench.{argv[1]}").main([argv[0]] + argv[2:])
+
+
+if __name__ == "__main__":
+    main(sys.argv)

@@ -1,0 +1,256 @@
+"""Loss weighting strategies for flow matching on a grouped action space (DESIGN §3).
+
+Everything here is a pure, jit-able function of arrays. `strategy`, `layout` and `delta_weighting`
+are static (Python values); weights may be Python numbers or traced arrays (adaptive weights and
+the warmup schedule are computed inside the train step). Weights never carry gradient.
+
+Notation: `e[b, h, d] = (v - u)^2` is the per-dimension flow-matching error `[B, H, D]` with
+`D = layout.action_dim`; `a[b, h, d]` the clean normalized action chunk; G the number of groups.
+
+Strategies:
+  uniform        mean_d e  (upstream openpi pi0; padding dims included).
+  original       the navigation-biased temporal weighting of an earlier version of this fix:
+                 w_h = clip(0.2 + min(||a_h - a_{h-1}||, 0.5), 0.1, 3.0), normalized to mean 1 over
+                 the whole batch, times mean_d e. Kept for comparison only (its weights depend on the
+                 batch composition).
+  per_group      static weight per group, 0 on padding and ungrouped dims, optionally scaled per
+                 (sample, step, group) by delta weighting; all weights divided by one constant K so
+                 that the static weights have mean 1 over all D dims.
+  per_dimension  a fixed [D] weight vector, normalized the same way.
+  loss_balanced  per_group with the caller's effective group weights (static x clamped inverse EMA
+                 of the group losses, see `loss_balanced_weights`).
+  uncertainty    sum_g w_g exp(-s_g) L_g + s_g with learned log-variances s_g clamped from below
+                 (Kendall et al. 2018); L_g the group's mean error (optionally delta-weighted).
+
+Documented constant: with all group weights equal, no delta weighting and groups that cover the
+real dims, `per_group` equals the mean of e over the real dims exactly (K = real_dim / D).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+
+STRATEGIES = ("uniform", "original", "per_group", "per_dimension", "loss_balanced", "uncertainty")
+GROUP_WEIGHTED_STRATEGIES = ("per_group", "loss_balanced")
+DELTA_STRATEGIES = ("per_group", "per_dimension", "loss_balanced", "uncertainty")
+
+
+def check_strategy(strategy: str, delta_weighting: bool) -> None:
+    if strategy not in STRATEGIES:
+        raise ValueError(f"unknown loss strategy {strategy!r}; choose one of {list(STRATEGIES)}")
+    if delta_weighting and strategy not in DELTA_STRATEGIES:
+        raise ValueError(f"delta_weighting=True has no meaning for loss strategy {strategy!r}; "
+                         f"it applies to {list(DELTA_STRATEGIES)}")
+
+
+def _as_float32(x: Any) -> jax.Array:
+    x = jnp.asarray(x)
+    return x.astype(jnp.promote_types(x.dtype, jnp.float32))
+
+
+def group_weight_vector(layout: ActionLayout, group_weights: Mapping[str, Any]) -> jax.Array:
+    """Per-dimension static weights `[D]` from `{group: weight}`; 0 on padding and ungrouped dims."""
+    layout.check_group_weights(group_weights)
+    per_group = jnp.stack([_as_float32(group_weights[g]) for g in layout.group_names])
+    return jnp.asarray(layout.membership()) @ per_group
+
+
+def static_dim_weights(strategy: str, layout: ActionLayout, group_weights=None,
+                       dimension_weights=None) -> jax.Array:
+    """Normalized static weights `[D]` (mean 1 over all D dims) of a per_group-like strategy.
+
+    This is what a metric should report as the "effective weight" of a dim before delta weighting.
+    """
+    if strategy in GROUP_WEIGHTED_STRATEGIES:
+        if group_weights is None:
+            raise ValueError(f"loss strategy {strategy!r} needs group_weights "
+                             f"(one weight per group: {list(layout.group_names)})")
+        w = group_weight_vector(layout, group_weights)
+    elif strategy == "per_dimension":
+        if dimension_weights is None:
+            raise ValueError(f"loss strategy 'per_dimension' needs dimension_weights "
+                             f"({layout.action_dim} values)")
+        layout.check_dimension_weights(dimension_weights)
+        w = _as_float32(dimension_weights)
+    else:
+        raise ValueError(f"loss strategy {strategy!r} has no static dimension weights")
+    return w / jnp.mean(w)
+
+
+def delta_scale(actions: jax.Array, layout: ActionLayout) -> jax.Array:
+    """Per-sample, per-group motion scale `[B, H, G]` of delta weighting.
+
+    c = clip(0.2 + min(||Δa_g||, 0.5), 0.1, 3.0) with Δ over h inside the group's dims (Δ = 0 at
+    h = 0), normalized to mean 1 over h for each (sample, group), so a sample's weights do not
+    depend on the rest of the batch (batch size, composition, sharding).
+    """
+    a = jax.lax.stop_gradient(_as_float32(actions))
+    delta = a - jnp.concatenate([a[:, :1], a[:, :-1]], axis=1)
+    group_sq = jnp.einsum("bhd,dg->bhg", jnp.square(delta), jnp.asarray(layout.membership()))
+    c = jnp.clip(0.2 + jnp.minimum(jnp.sqrt(group_sq), 0.5), 0.1, 3.0)
+    return c / jnp.mean(c, axis=1, keepdims=True)
+
+
+def _delta_dim_scale(actions: jax.Array, layout: ActionLayout) -> jax.Array:
+    """Delta scale spread to dims `[B, H, D]`; dims outside every group keep scale 1."""
+    membership = jnp.asarray(layout.membership())
+    ungrouped = 1.0 - jnp.sum(membership, axis=-1)
+    return jnp.einsum("bhg,dg->bhd", delta_scale(actions, layout), membership) + ungrouped
+
+
+def original_temporal_weights(actions: jax.Array) -> jax.Array:
+    """Weights `[B, H]` of the `original` strategy, normalized to mean 1 over the whole batch."""
+    a = jax.lax.stop_gradient(_as_float32(actions))
+    delta = a - jnp.concatenate([a[:, :1], a[:, :-1]], axis=1)
+    w = jnp.clip(0.2 + jnp.minimum(jnp.linalg.norm(delta, axis=-1), 0.5), 0.1, 3.0)
+    return w / jnp.mean(w)
+
+
+def _group_means(x: jax.Array, layout: ActionLayout) -> jax.Array:
+    """Mean of `x` `[..., D]` over each group's dims -> `[..., G]`."""
+    membership = layout.membership()
+    return jnp.einsum("...d,dg->...g", x, jnp.asarray(membership / membership.sum(0)))
+
+
+def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strategy: str,
+                          layout: ActionLayout, group_weights: Mapping[str, Any] | None = None,
+                          dimension_weights: Any = None, delta_weighting: bool = False,
+                          log_vars: jax.Array | None = None, min_log_var: float = -5.0) -> jax.Array:
+    """Weighted loss per (sample, step).
+
+    Args:
+      per_dim_loss: e `[B, H, D]`.
+      actions: clean normalized target chunk `[B, H, D]` (for the motion-based weights).
+      strategy: one of `STRATEGIES`.
+      layout: the action layout; `D` must equal `layout.action_dim`.
+      group_weights: `{group: weight}` for per_group / loss_balanced (optional for uncertainty).
+      dimension_weights: `[D]` for per_dimension.
+      delta_weighting: scale each (b, h, g) by the group's per-sample normalized motion.
+      log_vars: `[G]` learned log-variances for uncertainty (these DO carry gradient).
+      min_log_var: lower clamp of the log-variances.
+    Returns:
+      `[B, H]` float32.
+    """
+    check_strategy(strategy, delta_weighting)
+    e = _as_float32(per_dim_loss)
+    if e.ndim != 3 or e.shape[-1] != layout.action_dim:
+        raise ValueError(f"per_dim_loss has shape {e.shape}; expected [B, H, {layout.action_dim}] "
+                         "(the layout's action_dim)")
+    if tuple(np.shape(actions)) != e.shape:
+        raise ValueError(f"actions shape {tuple(np.shape(actions))} != per_dim_loss shape {e.shape}")
+
+    if strategy == "uniform":
+        return jnp.mean(e, axis=-1)
+    if strategy == "original":
+        return original_temporal_weights(actions) * jnp.mean(e, axis=-1)
+    if delta_weighting:
+        e_scaled = jax.lax.stop_gradient(_delta_dim_scale(actions, layout)) * e
+    else:
+        e_scaled = e
+    if strategy == "uncertainty":
+        if log_vars is None or np.shape(log_vars) != (layout.num_groups,):
+            raise ValueError(f"loss strategy 'uncertainty' needs log_vars of shape "
+                             f"({layout.num_groups},), got {None if log_vars is None else np.shape(log_vars)}")
+        if group_weights is None:
+            weights = jnp.ones((layout.num_groups,), jnp.float32)
+        else:
+            layout.check_group_weights(group_weights)
+            weights = jnp.stack([_as_float32(group_weights[g]) for g in layout.group_names])
+        s = jnp.maximum(_as_float32(log_vars), min_log_var)
+        precision = jax.lax.stop_gradient(weights) * jnp.exp(-s)
+        return jnp.sum(precision * _group_means(e_scaled, layout), axis=-1) + jnp.sum(s)
+    w = jax.lax.stop_gradient(static_dim_weights(strategy, layout, group_weights, dimension_weights))
+    return jnp.mean(w * e_scaled, axis=-1)
+
+
+def masked_mean(x: jax.Array, valid: jax.Array | None) -> jax.Array:
+    """Mean of `x` `[B, H, ...]` over the entries where `valid` `[B, H]` is True (0 if none)."""
+    x = _as_float32(x)
+    if valid is None:
+        return jnp.mean(x, axis=(0, 1))
+    v = jnp.asarray(valid, x.dtype).reshape(valid.shape + (1,) * (x.ndim - 2))
+    return jnp.sum(x * v, axis=(0, 1)) / jnp.maximum(jnp.sum(v, axis=(0, 1)), 1.0)
+
+
+def per_group_losses(per_dim_loss: jax.Array, layout: ActionLayout,
+                     valid: jax.Array | None = None) -> dict[str, jax.Array]:
+    """Unweighted mean squared error of each group over the valid (b, h) entries, for metrics.
+
+    Args:
+      per_dim_loss: e `[B, H, D]`.
+      valid: `[B, H]` bool, True where the timestep is real (not `action_is_pad`); None = all.
+    Returns:
+      `{group: scalar}`.
+    """
+    means = masked_mean(_group_means(_as_float32(per_dim_loss), layout), valid)
+    return {g: means[i] for i, g in enumerate(layout.group_names)}
+
+
+def training_loss(per_dim_loss: jax.Array, actions: jax.Array, action_is_pad: jax.Array, *,
+                  layout: ActionLayout, strategy: str, group_weights=None, dimension_weights=None,
+                  delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0):
+    """The scalar training loss over valid timesteps, and the per-group unweighted losses.
+
+    Args:
+      per_dim_loss: e `[B, H, D]`; actions `[B, H, D]`; action_is_pad `[B, H]` bool.
+    Returns:
+      `(loss scalar, {"group_loss": {group: scalar}})`.
+    """
+    valid = jnp.logical_not(action_is_pad)
+    weighted = compute_weighted_loss(
+        per_dim_loss, actions, strategy=strategy, layout=layout, group_weights=group_weights,
+        dimension_weights=dimension_weights, delta_weighting=delta_weighting, log_vars=log_vars,
+        min_log_var=min_log_var)
+    return masked_mean(weighted, valid), {
+        "group_loss": per_group_losses(jax.lax.stop_gradient(per_dim_loss), layout, valid)}
+
+
+# ---------------------------------------------------------------------- schedules and adaptive state
+
+
+def warmup_fraction(step: Any, warmup_steps: int) -> jax.Array:
+    """Linear ramp 0 -> 1 over `warmup_steps` (1 from the start when warmup_steps == 0)."""
+    if warmup_steps <= 0:
+        return jnp.float32(1.0)
+    return jnp.clip(_as_float32(step) / warmup_steps, 0.0, 1.0)
+
+
+def warmup_group_weights(target: Mapping[str, Any], step: Any, warmup_steps: int) -> dict:
+    """Group weights ramped linearly from 1.0 to `target` over `warmup_steps`."""
+    frac = warmup_fraction(step, warmup_steps)
+    return {g: 1.0 + (_as_float32(w) - 1.0) * frac for g, w in target.items()}
+
+
+def warmup_dimension_weights(target: Any, step: Any, warmup_steps: int,
+                             layout: ActionLayout) -> jax.Array:
+    """Dimension weights `[D]` ramped from 1.0 on real dims (0 on padding, which is never trained)
+    to `target` over `warmup_steps`."""
+    start = jnp.asarray(layout.real_mask(), jnp.float32)
+    return start + (_as_float32(target) - start) * warmup_fraction(step, warmup_steps)
+
+
+def update_group_loss_ema(ema: jax.Array, count: jax.Array, group_losses: jax.Array,
+                          decay: float) -> tuple[jax.Array, jax.Array]:
+    """One EMA update of the group losses `[G]`; the first update takes the losses as they are
+    (no bias towards the zero initial state). Returns `(ema [G], count)`."""
+    group_losses = jax.lax.stop_gradient(_as_float32(group_losses))
+    updated = jnp.where(count > 0, decay * ema + (1.0 - decay) * group_losses, group_losses)
+    return updated, count + 1
+
+
+def loss_balanced_weights(ema: jax.Array, static: jax.Array, w_min: float,
+                          w_max: float, eps: float = 1e-8) -> jax.Array:
+    """Effective group weights `[G]` of `loss_balanced`: static x clamp(inverse EMA loss).
+
+    The inverse losses are normalized to mean 1 over groups before the clamp to [w_min, w_max], so
+    the clamp bounds the *relative* boost a group can get, whatever the loss scale.
+    """
+    inverse = 1.0 / jnp.maximum(jax.lax.stop_gradient(_as_float32(ema)), eps)
+    return _as_float32(static) * jnp.clip(inverse / jnp.mean(inverse), w_min, w_max)
