@@ -1,0 +1,1 @@
+"""Data sources, statistics, transforms and the input pipeline."""
