@@ -1,0 +1,67 @@
+"""`open_source(config.data, layout)`: the dataset a config names, behind one Source interface.
+
+Config keys read here (`config.data`):
+  root           dataset location; '' = the built-in demo dataset (generated on first use).
+  format         "lerobot" (v2.0 / v2.1 / v3.0, detected from meta/info.json) or "rlds"
+                 (a TFDS builder directory of array_record files, read with `tfds.data_source`).
+  cameras        optional {batch camera: stored camera name}; unset = automatic match
+                 (`pi0_armfix.data.cameras`).
+  state_indices  optional, LeRobot only: dims of `observation.state` to keep (B1K stores its full
+                 proprioception vector there; the baseline keeps 23 of its dims).
+  split          optional, RLDS only: the split to read (default "train").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data.episodes import EpisodeTable
+
+FORMATS = ("lerobot", "rlds")
+
+
+class Source(Protocol):
+    """What every data source provides. Episodes are named by their ids (`episode_index`)."""
+
+    num_episodes: int
+    episode_index: np.ndarray  # [E] int64 episode ids
+    episode_lengths: np.ndarray  # [E] int64 frames per episode
+    tasks: Sequence[str]  # [E] prompts
+    fps: float
+    cameras: Mapping[str, str]  # batch camera -> stored camera name
+
+    def iter_blocks(self, keys: Sequence[str] = ("actions", "state"),
+                    episodes: Sequence[int] | None = None) -> Iterator[dict[str, np.ndarray]]:
+        """Bounded-memory stream of `{key: [n, ...], "episode_index": [n] int64}` in episode order."""
+
+    def load_table(self, episodes: Sequence[int] | None = None, *,
+                   images: bool = True) -> EpisodeTable:
+        """The chosen episodes (None = all) as an EpisodeTable with lazy images."""
+
+
+def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
+    """The Source named by `config.data` (see the module docstring for its keys)."""
+    fmt = data_cfg.get("format", "lerobot")
+    if fmt not in FORMATS:
+        raise ValueError(f"data.format {fmt!r} is not supported; choose one of {list(FORMATS)}")
+    root = data_cfg.get("root", "")
+    cameras = dict(data_cfg.get("cameras") or {}) or None
+    if fmt == "rlds":
+        if not root:
+            raise ValueError("data.root is '' (the built-in demo dataset, a LeRobot dataset) but "
+                             "data.format is 'rlds'; set data.format='lerobot' or a data.root")
+        from pi0_armfix.data.rlds import RldsSource  # TFDS is slow to import; only load it here
+
+        return RldsSource(root, layout, split=data_cfg.get("split", "train"), cameras=cameras)
+    from pi0_armfix.data.lerobot import LeRobotSource
+
+    if not root:
+        from pi0_armfix.data.demo import demo_root
+
+        root = demo_root()
+    state_indices = data_cfg.get("state_indices") or None
+    return LeRobotSource(root, layout, cameras=cameras, state_indices=state_indices)

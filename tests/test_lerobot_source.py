@@ -1,0 +1,273 @@
+"""LeRobot source: every layout version and storage variant, and every bad input's message."""
+
+import json
+import pickle
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from ml_collections import ConfigDict
+
+from data_fixtures import (B1K_CAMERAS, identify_frame, make_episodes, write_dataset)
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data.cameras import match_cameras
+from pi0_armfix.data.lerobot import VERSIONS, LeRobotSource
+from pi0_armfix.data.sources import open_source
+
+LAYOUT = ActionLayout.preset("b1k_r1pro")
+
+
+def _concat(episodes, key, order=None):
+    order = range(len(episodes)) if order is None else order
+    return np.concatenate([episodes[i][key] for i in order])
+
+
+# ---------------------------------------------------------------------------- layouts and dtypes
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("version", VERSIONS)
+def test_reads_actions_state_and_tasks_of_every_version(tmp_path, version, dtype):
+    episodes = make_episodes(5, cameras={})
+    root = write_dataset(tmp_path / "ds", episodes, version, float_dtype=dtype,
+                         episodes_per_file=2, row_group_size=7)
+    source = LeRobotSource(root, LAYOUT)
+    table = source.load_table()
+
+    assert source.version == version and source.num_episodes == 5 and source.fps == 10
+    np.testing.assert_array_equal(source.episode_index, np.arange(5))
+    np.testing.assert_array_equal(source.episode_lengths, [len(e["actions"]) for e in episodes])
+    assert table.actions.dtype == np.float32 and table.state.dtype == np.float32
+    np.testing.assert_array_equal(table.actions, _concat(episodes, "actions").astype(dtype)
+                                  .astype(np.float32))
+    np.testing.assert_array_equal(table.state, _concat(episodes, "state").astype(dtype)
+                                  .astype(np.float32))
+    np.testing.assert_array_equal(table.episode_lengths, source.episode_lengths)
+    assert list(table.tasks) == [e["task"] for e in episodes]
+    assert table.images is None  # no cameras stored
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_iter_blocks_streams_stored_dtype_one_row_group_at_a_time(tmp_path, version):
+    episodes = make_episodes(4, cameras={})
+    root = write_dataset(tmp_path / "ds", episodes, version, float_dtype=np.float64,
+                         episodes_per_file=3, row_group_size=5)
+    blocks = list(LeRobotSource(root, LAYOUT).iter_blocks(("actions", "state")))
+
+    assert all(len(b["actions"]) <= 5 and b["actions"].dtype == np.float64 for b in blocks)
+    np.testing.assert_array_equal(np.concatenate([b["actions"] for b in blocks]),
+                                  _concat(episodes, "actions"))
+    np.testing.assert_array_equal(np.concatenate([b["state"] for b in blocks]),
+                                  _concat(episodes, "state"))
+    lengths = [len(e["actions"]) for e in episodes]
+    np.testing.assert_array_equal(np.concatenate([b["episode_index"] for b in blocks]),
+                                  np.repeat(np.arange(4), lengths))
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_reads_a_chosen_subset_of_episodes_in_the_order_given(tmp_path, version):
+    episodes = make_episodes(5, cameras={})
+    root = write_dataset(tmp_path / "ds", episodes, version, episodes_per_file=2)
+    table = LeRobotSource(root, LAYOUT).load_table([3, 0, 4])
+
+    np.testing.assert_array_equal(table.episode_index, [3, 0, 4])
+    np.testing.assert_array_equal(table.actions, _concat(episodes, "actions", [3, 0, 4])
+                                  .astype(np.float32))
+    assert list(table.tasks) == [episodes[i]["task"] for i in (3, 0, 4)]
+
+
+def test_reads_datasets_without_a_frame_index_column(tmp_path):
+    episodes = make_episodes(3, cameras={})
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1", frame_index=False)
+    data_file = next((root / "data").glob("*/*.parquet"))
+    assert "frame_index" not in pq.read_schema(data_file).names
+
+    table = LeRobotSource(root, LAYOUT).load_table()
+    np.testing.assert_array_equal(table.actions, _concat(episodes, "actions").astype(np.float32))
+
+
+def test_reads_fixed_size_list_columns(tmp_path):
+    episodes = make_episodes(2, cameras={})
+    root = write_dataset(tmp_path / "ds", episodes, "v3.0")
+    data_file = next((root / "data").glob("*/*.parquet"))
+    table = pq.read_table(data_file)
+    fixed = table.column("action").cast(pa.list_(pa.float32(), 23))
+    pq.write_table(table.set_column(table.schema.get_field_index("action"), "action", fixed),
+                   data_file)
+
+    actions = LeRobotSource(root, LAYOUT).load_table().actions
+    np.testing.assert_array_equal(actions, _concat(episodes, "actions").astype(np.float32))
+
+
+def test_state_indices_select_state_dims(tmp_path):
+    episodes = make_episodes(2, cameras={}, state_width=30)
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1")
+    table = LeRobotSource(root, LAYOUT, state_indices=[4, 0]).load_table()
+    np.testing.assert_array_equal(table.state, _concat(episodes, "state")[:, [4, 0]]
+                                  .astype(np.float32))
+
+
+# ---------------------------------------------------------------------------- images and videos
+
+
+@pytest.mark.parametrize("image_format", ["png", "jpeg"])
+@pytest.mark.parametrize("version", VERSIONS)
+def test_decodes_images_stored_in_parquet(tmp_path, version, image_format):
+    episodes = make_episodes(4)
+    root = write_dataset(tmp_path / "ds", episodes, version, image_format=image_format,
+                         episodes_per_file=2, row_group_size=4)
+    table = LeRobotSource(root, LAYOUT).load_table([2, 1, 3])
+    assert table.images.cameras == ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+
+    tolerance = 0 if image_format == "png" else 4
+    for frame in np.random.default_rng(0).permutation(table.num_frames):
+        position = int(table.episode_of_frame(np.array([frame]))[0])
+        episode, offset = int(table.episode_index[position]), frame - table.episode_starts[position]
+        images = table.images(int(frame))
+        for name, camera in zip(B1K_CAMERAS, table.images.cameras):
+            expected = episodes[episode]["images"][name][offset].astype(int)
+            assert images[camera].shape == (16, 16, 3) and images[camera].dtype == np.uint8
+            assert np.abs(images[camera].astype(int) - expected).max() <= tolerance
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_decodes_video_frames_by_timestamp(tmp_path, version):
+    episodes = make_episodes(4)
+    # v3.0: two episodes per mp4, so the second one starts at a non-zero from_timestamp.
+    root = write_dataset(tmp_path / "ds", episodes, version, image_format="video",
+                         episodes_per_file=2)
+    table = LeRobotSource(root, LAYOUT).load_table([1, 3, 2])
+
+    # Random order: forces seeks backwards and forwards, across episodes and files.
+    for frame in np.random.default_rng(0).permutation(table.num_frames):
+        position = int(table.episode_of_frame(np.array([frame]))[0])
+        episode, offset = int(table.episode_index[position]), frame - table.episode_starts[position]
+        images = table.images(int(frame))
+        for c, camera in enumerate(table.images.cameras):
+            length = len(episodes[episode]["actions"])
+            assert identify_frame(images[camera], episode, length, c) == offset
+
+
+def test_frame_images_survive_pickling_for_worker_processes(tmp_path):
+    episodes = make_episodes(2)
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1", image_format="video")
+    images = LeRobotSource(root, LAYOUT).load_table().images
+    images(3)  # opens a decoder, fills caches
+    clone = pickle.loads(pickle.dumps(images))
+    for camera in images.cameras:
+        np.testing.assert_array_equal(clone(5)[camera], images(5)[camera])
+
+
+def test_b1k_camera_names_map_to_batch_cameras_and_depth_is_ignored():
+    names = ["observation.images.rgb.head", "observation.images.depth.head",
+             "observation.images.rgb.left_wrist", "observation.images.rgb.right_wrist",
+             "observation.images.seg_instance_id.right_wrist"]
+    assert match_cameras(names, None, "ds") == {
+        "base_0_rgb": "observation.images.rgb.head",
+        "left_wrist_0_rgb": "observation.images.rgb.left_wrist",
+        "right_wrist_0_rgb": "observation.images.rgb.right_wrist"}
+
+
+def test_a_single_wrist_camera_feeds_the_left_wrist_slot():
+    assert match_cameras(["observation.images.base", "observation.images.wrist"], None, "ds") == {
+        "base_0_rgb": "observation.images.base", "left_wrist_0_rgb": "observation.images.wrist"}
+
+
+def test_data_cameras_replaces_the_automatic_match(tmp_path):
+    episodes = make_episodes(1)
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1")
+    source = LeRobotSource(root, LAYOUT, cameras={"base_0_rgb": "observation.images.rgb.left_wrist"})
+    assert source.cameras == {"base_0_rgb": "observation.images.rgb.left_wrist"}
+
+
+def test_two_cameras_for_one_batch_camera_is_an_error():
+    with pytest.raises(ValueError, match=r"all match batch camera 'base_0_rgb'.*data.cameras"):
+        match_cameras(["cam.head", "cam.base"], None, "ds")
+
+
+def test_data_cameras_naming_an_unknown_camera_is_an_error():
+    with pytest.raises(ValueError, match=r"data.cameras\['base_0_rgb'\] = 'nope'"):
+        match_cameras(["cam.head"], {"base_0_rgb": "nope"}, "ds")
+
+
+# ---------------------------------------------------------------------------- bad inputs
+
+
+def test_missing_info_json_is_an_error(tmp_path):
+    (tmp_path / "meta").mkdir()
+    with pytest.raises(ValueError, match=r"not a LeRobot dataset root: .*meta/info.json is missing"):
+        LeRobotSource(tmp_path, LAYOUT)
+
+
+def test_missing_action_feature_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(1, cameras={}), "v2.1")
+    info_path = root / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    del info["features"]["action"]
+    info_path.write_text(json.dumps(info))
+    with pytest.raises(ValueError, match=r"info.json: the dataset has no 'action' feature"):
+        LeRobotSource(root, LAYOUT)
+
+
+def test_missing_action_column_in_a_data_file_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2, cameras={}), "v2.1")
+    data_file = root / "data" / "chunk-000" / "episode_000001.parquet"
+    pq.write_table(pq.read_table(data_file).drop_columns(["action"]), data_file)
+    source = LeRobotSource(root, LAYOUT)
+    with pytest.raises(ValueError, match=r"episode_000001.parquet has no column\(s\) \['action'\]"):
+        source.load_table()
+
+
+def test_action_width_different_from_the_layout_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(1, cameras={}, action_width=14), "v3.0")
+    with pytest.raises(ValueError, match=r"\(feature 'action'\) has action width 14 but the "
+                                         r"layout's real_dim is 23"):
+        LeRobotSource(root, LAYOUT)
+
+
+def test_corrupt_parquet_file_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2, cameras={}), "v2.1")
+    data_file = root / "data" / "chunk-000" / "episode_000000.parquet"
+    data_file.write_bytes(b"not a parquet file at all")
+    source = LeRobotSource(root, LAYOUT)
+    with pytest.raises(ValueError, match=r"cannot read parquet file .*episode_000000.parquet"):
+        list(source.iter_blocks())
+
+
+def test_missing_video_file_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
+    video = next(root.glob("videos/chunk-000/observation.images.rgb.head/episode_000001.mp4"))
+    video.unlink()
+    source = LeRobotSource(root, LAYOUT)
+    with pytest.raises(ValueError, match=r"missing video file .*rgb.head/episode_000001.mp4"):
+        source.load_table()
+    assert source.load_table(images=False).num_episodes == 2
+
+
+def test_episode_out_of_range_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3, cameras={}), "v3.0")
+    with pytest.raises(ValueError, match=r"episode 7 is out of range: .* has 3 episodes"):
+        LeRobotSource(root, LAYOUT).load_table([0, 7])
+
+
+def test_unsupported_codebase_version_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(1, cameras={}), "v2.1")
+    info_path = root / "meta" / "info.json"
+    info_path.write_text(info_path.read_text().replace('"v2.1"', '"v1.6"'))
+    with pytest.raises(ValueError, match=r"codebase_version 'v1.6' is not supported"):
+        LeRobotSource(root, LAYOUT)
+
+
+# ---------------------------------------------------------------------------- the factory
+
+
+def test_open_source_detects_the_lerobot_version(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2, cameras={}), "v3.0")
+    source = open_source(ConfigDict({"root": str(root), "format": "lerobot"}), LAYOUT)
+    assert isinstance(source, LeRobotSource) and source.version == "v3.0"
+
+
+def test_open_source_rejects_an_unknown_format(tmp_path):
+    with pytest.raises(ValueError, match=r"data.format 'hdf5' is not supported"):
+        open_source(ConfigDict({"root": str(tmp_path), "format": "hdf5"}), LAYOUT)
