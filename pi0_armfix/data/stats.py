@@ -1,0 +1,416 @@
+"""Normalization statistics: streaming mean/std/q01/q99 and openpi's `norm_stats.json`.
+
+Statistics are taken over frames, each frame once, in one streaming pass with memory that does
+not grow with the dataset:
+
+- mean and std (population, ddof=0) are exact in float64: each block's mean and sum of squared
+  deviations are merged with Chan et al.'s pairwise update, so no sum of squares of large
+  numbers is ever formed.
+- q01 and q99 come from a per-dim histogram on a *dyadic* grid: bins of width `w = 2**k`, aligned
+  to multiples of `w`, `capacity = 2 * bins` of them per dim. When the data seen so far no longer
+  fits, the width doubles and neighbouring bins merge exactly (the grid stays aligned), so one pass
+  suffices and no frame is counted twice. The width starts at the smallest power of two with
+  `range / w <= bins` on the first block and only doubles once `range / w > capacity - 1`, so at
+  the end `w < 2 * range / bins` (`range` = max - min of the dim). A quantile is read from the
+  histogram by interpolating between the two order statistics numpy's `linear` method uses, each
+  placed inside its bin, so its error is below one bin: `|q - np.quantile| < 2 * range / bins`,
+  i.e. < 4.9e-4 of the dim's range with the default `bins = 4096`. A constant dim is exact.
+
+`norm_stats.json` is openpi's format, `{"norm_stats": {"state"|"actions": {"mean", "std", "q01",
+"q99"}}}`. openpi stores values padded to the model's action_dim; `load_norm_stats` reads padded
+and unpadded files alike (padding must be zeros), `save_norm_stats` writes the real width.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import queue
+import threading
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tqdm
+
+from pi0_armfix.data.episodes import EpisodeTable
+
+FIELDS = ("mean", "std", "q01", "q99")
+
+# Bins per dim of the quantile histogram: error < 2 / DEFAULT_BINS of the dim's range.
+DEFAULT_BINS = 4096
+# Frames per internal slice of a block: keeps the float64 temporaries in cache.
+_SLICE_FRAMES = 32768
+# |x| / w stays below 2**_MAX_BIN_BITS so that bin indices are exact integers in float64.
+_MAX_BIN_BITS = 50
+
+
+@dataclasses.dataclass(frozen=True)
+class NormStats:
+    """Per-dim normalization statistics of one array (`actions` or `state`); each `[D]` float64."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    q01: np.ndarray
+    q99: np.ndarray
+
+    @property
+    def width(self) -> int:
+        return len(self.mean)
+
+    def to_json(self) -> dict[str, list[float]]:
+        return {name: [float(v) for v in getattr(self, name)] for name in FIELDS}
+
+    def replace(self, **changes: np.ndarray) -> "NormStats":
+        return dataclasses.replace(self, **changes)
+
+
+class StreamingStats:
+    """Exact mean/std and histogram quantiles of a stream of `[n, D]` blocks (see module doc)."""
+
+    def __init__(self, width: int, bins: int = DEFAULT_BINS):
+        self.width = int(width)
+        self.bins = int(bins)
+        self.capacity = 2 * self.bins
+        self.count = 0
+        self.mean = np.zeros(self.width)
+        self.m2 = np.zeros(self.width)
+        self.min = np.full(self.width, np.inf)
+        self.max = np.full(self.width, -np.inf)
+        self.log2_width = np.zeros(self.width, np.int64)  # bin width of dim d is 2**log2_width[d]
+        self.base = np.zeros(self.width)  # grid index of column 0 (an integer, kept as float64)
+        self.counts = np.zeros((self.width, self.capacity), np.int64)
+
+    # ------------------------------------------------------------------ accumulation
+
+    def update(self, x: np.ndarray, what: str = "data") -> None:
+        """Adds the frames `x` `[n, D]`. `what` names the array in errors (non-finite values)."""
+        x = np.asarray(x)
+        if x.ndim != 2 or x.shape[1] != self.width:
+            raise ValueError(f"{what}: expected blocks of shape [n, {self.width}], got {x.shape}")
+        for start in range(0, len(x), _SLICE_FRAMES):
+            self._update_slice(x[start:start + _SLICE_FRAMES], what)
+
+    def _update_slice(self, x: np.ndarray, what: str) -> None:
+        n = len(x)
+        if n == 0:
+            return
+        x64 = x.astype(np.float64)
+        block_min, block_max = x64.min(0), x64.max(0)
+        if not (np.isfinite(block_min).all() and np.isfinite(block_max).all()):
+            bad = np.flatnonzero(~(np.isfinite(block_min) & np.isfinite(block_max)))
+            raise ValueError(f"{what} has non-finite values (NaN or inf) in dim(s) {bad.tolist()}")
+        block_mean = x64.sum(0) / n
+        deviation = x64 - block_mean
+        block_m2 = np.einsum("nd,nd->d", deviation, deviation)
+        self._merge_moments(n, block_mean, block_m2)
+        self.min = np.minimum(self.min, block_min)
+        self.max = np.maximum(self.max, block_max)
+        self._fit_grid()
+        # Flat bin index: (x / w - base) + d * (capacity + 1). x / w is exact (w a power of two);
+        # the extra column per dim catches a value that rounds up onto the top edge.
+        stride = self.capacity + 1
+        scaled = x64 * np.exp2(-self.log2_width.astype(np.float64))
+        scaled -= self.base - np.arange(self.width) * stride
+        flat = np.bincount(scaled.astype(np.intp).ravel(), minlength=self.width * stride)
+        flat = flat.reshape(self.width, stride)
+        flat[:, -2] += flat[:, -1]
+        self.counts += flat[:, :-1]
+
+    def _merge_moments(self, n: int, mean: np.ndarray, m2: np.ndarray) -> None:
+        total = self.count + n
+        delta = mean - self.mean
+        self.mean = self.mean + delta * (n / total)
+        self.m2 = self.m2 + m2 + delta * delta * (self.count * n / total)
+        self.count = total
+
+    def _fit_grid(self) -> None:
+        """Coarsens / re-bases the dims whose grid no longer covers [min, max]."""
+        for d in range(self.width):
+            lo, hi = self.min[d], self.max[d]
+            k = self.log2_width[d]
+            if self.counts[d].any():
+                if (self._grid_index(lo, k) >= self.base[d]
+                        and self._grid_index(hi, k) < self.base[d] + self.capacity):
+                    continue
+            else:
+                k = self._initial_log2_width(lo, hi)
+            while self._grid_index(hi, k) - self._grid_index(lo, k) >= self.capacity:
+                k += 1
+            self._regrid(d, k, self._grid_index(lo, k))
+
+    def _initial_log2_width(self, lo: float, hi: float) -> int:
+        magnitude = max(abs(lo), abs(hi))
+        floor_k = math.frexp(magnitude)[1] - _MAX_BIN_BITS if magnitude > 0 else -1074
+        if hi > lo:
+            return max(math.ceil(math.log2((hi - lo) / self.bins)), floor_k)
+        return floor_k
+
+    @staticmethod
+    def _grid_index(value: float, log2_width: int) -> float:
+        return math.floor(math.ldexp(value, -int(log2_width)))
+
+    def _regrid(self, d: int, log2_width: int, base: float) -> None:
+        """Moves dim d's counts onto the grid (2**log2_width, base): exact, bins only merge."""
+        old = self.counts[d].copy()
+        occupied = np.flatnonzero(old)
+        self.counts[d] = 0
+        if occupied.size:
+            shift = int(log2_width - self.log2_width[d])
+            index = np.floor((self.base[d] + occupied) / 2.0**shift) - base
+            np.add.at(self.counts[d], index.astype(np.intp), old[occupied])
+        self.log2_width[d] = log2_width
+        self.base[d] = base
+
+    def merge(self, other: "StreamingStats") -> None:
+        """Adds the frames seen by `other` (same width and bins), e.g. from another thread."""
+        if (other.width, other.bins) != (self.width, self.bins):
+            raise ValueError(f"cannot merge stats of width/bins {(other.width, other.bins)} into "
+                             f"{(self.width, self.bins)}")
+        if other.count == 0:
+            return
+        other_counts = [(other.log2_width[d], other.base[d], other.counts[d])
+                        for d in range(self.width)]
+        self._merge_moments(other.count, other.mean, other.m2)
+        self.min = np.minimum(self.min, other.min)
+        self.max = np.maximum(self.max, other.max)
+        for d in range(self.width):
+            k = max(self.log2_width[d], other.log2_width[d]) if self.counts[d].any() else \
+                other.log2_width[d]
+            while (self._grid_index(self.max[d], k) - self._grid_index(self.min[d], k)
+                   >= self.capacity):
+                k += 1
+            base = self._grid_index(self.min[d], k)
+            self._regrid(d, k, base)
+            other_k, other_base, counts = other_counts[d]
+            occupied = np.flatnonzero(counts)
+            index = np.floor((other_base + occupied) / 2.0**int(k - other_k)) - base
+            np.add.at(self.counts[d], index.astype(np.intp), counts[occupied])
+
+    # ------------------------------------------------------------------ results
+
+    def _bin_edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """Left edge of column 0 and bin width, `[D]` each."""
+        width = np.exp2(self.log2_width.astype(np.float64))
+        return self.base * width, width
+
+    def _order_statistic(self, rank: np.ndarray) -> np.ndarray:
+        """Estimate of the `rank`-th smallest value (0-based) of each dim, inside its bin."""
+        left, width = self._bin_edges()
+        cumulative = np.cumsum(self.counts, axis=1)
+        result = np.empty(self.width)
+        for d in range(self.width):
+            column = int(np.searchsorted(cumulative[d], rank[d], side="right"))
+            below = cumulative[d, column - 1] if column else 0
+            within = (rank[d] - below + 0.5) / self.counts[d, column]
+            result[d] = left[d] + (column + within) * width[d]
+        return np.clip(result, self.min, self.max)
+
+    def quantile(self, q: float) -> np.ndarray:
+        """`[D]` quantile `q` as `np.quantile(..., method="linear")`, error < one bin."""
+        if self.count == 0:
+            raise ValueError("no frames were seen: cannot compute quantiles")
+        position = q * (self.count - 1)
+        lower = math.floor(position)
+        fraction = position - lower
+        below = self._order_statistic(np.full(self.width, lower))
+        above = self._order_statistic(np.full(self.width, min(lower + 1, self.count - 1)))
+        return below + fraction * (above - below)
+
+    def fraction_below(self, value: np.ndarray) -> np.ndarray:
+        """`[D]` fraction of the frames `<= value[d]` (interpolated inside the bin)."""
+        left, width = self._bin_edges()
+        position = np.clip((np.asarray(value, np.float64) - left) / width, 0, self.capacity)
+        column = np.minimum(position.astype(np.intp), self.capacity - 1)
+        cumulative = np.cumsum(self.counts, axis=1)
+        rows = np.arange(self.width)
+        below = np.where(column > 0, cumulative[rows, np.maximum(column - 1, 0)], 0)
+        partial = self.counts[rows, column] * np.clip(position - column, 0, 1)
+        return (below + partial) / max(self.count, 1)
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(self.m2 / max(self.count, 1))
+
+    def result(self) -> NormStats:
+        if self.count == 0:
+            raise ValueError("no frames were seen: cannot compute normalization statistics")
+        return NormStats(mean=self.mean.copy(), std=self.std, q01=self.quantile(0.01),
+                         q99=self.quantile(0.99))
+
+
+# ---------------------------------------------------------------------- streaming over blocks
+
+Block = Mapping[str, np.ndarray]
+
+
+def table_blocks(table: EpisodeTable, keys: Sequence[str] = ("actions", "state"),
+                 block_frames: int = 65536) -> Iterator[dict[str, np.ndarray]]:
+    """Blocks of an in-memory table in the format of `Source.iter_blocks`: `{key: [n, ...],
+    "episode_index": [n] int64 (dataset episode index of each frame)}`."""
+    frame_episode = np.repeat(table.episode_index, table.episode_lengths)
+    for start in range(0, table.num_frames, block_frames):
+        stop = min(start + block_frames, table.num_frames)
+        block = {key: getattr(table, key)[start:stop] for key in keys}
+        block["episode_index"] = frame_episode[start:stop]
+        yield block
+
+
+def prefetched(blocks: Iterable[Block], depth: int = 2) -> Iterator[Block]:
+    """Reads `blocks` in a background thread, so that decoding (parquet, which releases the GIL)
+    overlaps with the numpy work of the consumer."""
+    buffer: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                buffer.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                pass
+        return False
+
+    def produce():
+        try:
+            for block in blocks:
+                if not put(block):
+                    return
+            put(done)
+        except BaseException as err:  # re-raised in the consumer
+            put(err)
+
+    thread = threading.Thread(target=produce, daemon=True)
+    thread.start()
+    try:
+        while (item := buffer.get()) is not done:
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
+
+def compute_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions", "state"), *,
+                  bins: int = DEFAULT_BINS, total_frames: int | None = None,
+                  transform: Callable[[Block], Block] | None = None,
+                  progress: bool = True) -> dict[str, StreamingStats]:
+    """One streaming pass over `blocks` (each `{key: [n, D]}`) -> an accumulator per key.
+
+    `transform` is applied to each block first (e.g. delta actions). `total_frames` only sizes the
+    progress bar. Memory: one block plus `[D, 2 * bins]` counts per key.
+    """
+    accumulators: dict[str, StreamingStats] = {}
+    with tqdm.tqdm(total=total_frames, unit="frame", unit_scale=True, desc="norm stats",
+                   disable=not progress) as bar:
+        for block in prefetched(blocks):
+            if transform is not None:
+                block = transform(block)
+            for key in keys:
+                values = np.asarray(block[key])
+                if key not in accumulators:
+                    accumulators[key] = StreamingStats(values.shape[-1], bins)
+                accumulators[key].update(values, what=key)
+            bar.update(len(block[keys[0]]))
+    missing = [key for key in keys if key not in accumulators]
+    if missing:
+        raise ValueError(f"no frames were seen: the data is empty (keys {missing})")
+    return accumulators
+
+
+def compute_norm_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions", "state"),
+                       **kwargs) -> dict[str, NormStats]:
+    """`compute_stats` -> `{key: NormStats}`."""
+    return {key: acc.result() for key, acc in compute_stats(blocks, keys, **kwargs).items()}
+
+
+# ---------------------------------------------------------------------- norm_stats.json
+
+def save_norm_stats(path: str | Path, stats: Mapping[str, NormStats]) -> None:
+    """Writes openpi's `norm_stats.json` (real widths, no padding)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"norm_stats": {key: value.to_json() for key, value in stats.items()}}
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2))
+    tmp.replace(path)
+
+
+def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None
+                    ) -> dict[str, NormStats]:
+    """Reads openpi's `norm_stats.json`.
+
+    Args:
+      path: the file.
+      widths: `{key: real width or None}` of the keys to read (e.g. `{"actions": 23}`): a padded
+        entry is cut to the width (see `fit_width`); None keeps the stored width. `widths=None`
+        reads every key at its stored width.
+
+    Raises:
+      ValueError naming the file and key for a missing file, bad JSON, a missing key or field,
+      fields of different lengths, non-finite values, a negative std, or a width mismatch.
+    """
+    path = Path(path)
+    try:
+        payload = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"norm stats file {path} does not exist") from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"norm stats file {path} is not valid JSON: {err}") from None
+    entries = payload.get("norm_stats") if isinstance(payload, dict) else None
+    if not isinstance(entries, dict):
+        raise ValueError(f"norm stats file {path} has no 'norm_stats' object (openpi format: "
+                         '{"norm_stats": {"state": {...}, "actions": {...}}})')
+    stats = {}
+    for key in (widths if widths is not None else entries):
+        where = f"norm stats file {path}, norm_stats[{key!r}]"
+        stats[key] = _parse_entry(entries.get(key), where, sorted(entries))
+        if widths is not None and widths[key] is not None:
+            stats[key] = fit_width(stats[key], widths[key], where)
+    return stats
+
+
+def _parse_entry(entry: Any, where: str, available: list[str]) -> NormStats:
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where} is missing (the file has {available})")
+    values = {}
+    for field in FIELDS:
+        if field not in entry:
+            raise ValueError(f"{where} has no {field!r} (needs {list(FIELDS)})")
+        try:
+            array = np.asarray(entry[field], np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}[{field!r}] is not a list of numbers") from None
+        if array.ndim != 1 or not np.isfinite(array).all():
+            raise ValueError(f"{where}[{field!r}] must be a flat list of finite numbers")
+        values[field] = array
+    lengths = {field: len(v) for field, v in values.items()}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"{where} has fields of different lengths {lengths}")
+    if (values["std"] < 0).any():
+        raise ValueError(f"{where}['std'] has negative values at dims "
+                         f"{np.flatnonzero(values['std'] < 0).tolist()}")
+    return NormStats(**values)
+
+
+def fit_width(stats: NormStats, width: int, where: str) -> NormStats:
+    """Cuts padded statistics (openpi pads to action_dim) to the data's `width`.
+
+    Raises:
+      ValueError naming `where` if the stats are narrower than the data, or if the dims past
+      `width` are not zero padding (then they are the statistics of other data).
+    """
+    if stats.width == width:
+        return stats
+    if stats.width < width:
+        raise ValueError(f"{where} has {stats.width} values but the data has {width} dims")
+    padding = np.stack([getattr(stats, field)[width:] for field in FIELDS])
+    if padding.any():
+        raise ValueError(f"{where} has {stats.width} values for {width} data dims and dims "
+                         f"{width}..{stats.width - 1} are not zero padding: the stats belong to "
+                         "other data")
+    return NormStats(*(getattr(stats, field)[:width] for field in FIELDS))

@@ -1,0 +1,191 @@
+"""Per-sample transforms in numpy: normalization, padding, action chunks, delta actions.
+
+Every function here works on any number of leading batch dims, so the pipeline applies them to a
+whole batch of frames at once (the chunk gather is one fancy-index, not a loop).
+
+Normalization (DESIGN §4), per dim, written as one affine map `y = (x - offset) * scale + shift`:
+  zscore:   (x - mean) / (std + eps)
+  quantile: (x - q01) / (q99 - q01 + eps) * 2 - 1
+A dim whose std (zscore) or q99 - q01 (quantile) is below `DEGENERATE` is passed through centred,
+`y = x - mean`: a constant dim (B1K torso dim 6) stays ~0 instead of being blown up by 1/eps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data.stats import NormStats
+
+NORM_MODES = ("zscore", "quantile")
+EPS = 1e-6  # openpi's epsilon in both normalizations
+DEGENERATE = 1e-6  # a spread below this is a constant dim: centred, not scaled
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalizer:
+    """`y = (x - offset) * scale + shift` per dim; each field `[D]` float32."""
+
+    offset: np.ndarray
+    scale: np.ndarray
+    shift: np.ndarray
+
+    @classmethod
+    def from_stats(cls, stats: NormStats, mode: str) -> "Normalizer":
+        if mode == "zscore":
+            spread = stats.std
+            offset, scale, shift = stats.mean, 1.0 / (stats.std + EPS), 0.0
+        elif mode == "quantile":
+            spread = stats.q99 - stats.q01
+            offset, scale, shift = stats.q01, 2.0 / (spread + EPS), -1.0
+        else:
+            raise ValueError(f"data.norm must be one of {NORM_MODES}, got {mode!r}")
+        degenerate = spread < DEGENERATE
+        offset = np.where(degenerate, stats.mean, offset)
+        scale = np.where(degenerate, 1.0, scale)
+        shift = np.where(degenerate, 0.0, np.broadcast_to(shift, degenerate.shape))
+        return cls(*(np.asarray(v, np.float32) for v in (offset, scale, shift)))
+
+    @property
+    def width(self) -> int:
+        return len(self.offset)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """`[..., D]` raw -> normalized float32."""
+        return ((np.asarray(x, np.float32) - self.offset) * self.scale + self.shift)
+
+    def inverse(self, y: np.ndarray) -> np.ndarray:
+        """`[..., D]` normalized -> raw float32 (the first D dims of a padded array)."""
+        y = np.asarray(y, np.float32)[..., :self.width]
+        return (y - self.shift) / self.scale + self.offset
+
+
+def pad_last(x: np.ndarray, width: int) -> np.ndarray:
+    """Zero-pads the last axis of `x` `[..., D]` to `[..., width]`."""
+    x = np.asarray(x)
+    if x.shape[-1] > width:
+        raise ValueError(f"cannot pad {x.shape[-1]} dims to {width}: the data is wider than "
+                         "layout.action_dim")
+    if x.shape[-1] == width:
+        return x
+    padding = [(0, 0)] * (x.ndim - 1) + [(0, width - x.shape[-1])]
+    return np.pad(x, padding)
+
+
+def chunk_indices(frames: np.ndarray, episode_starts: np.ndarray, horizon: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Frame indices of the action chunks starting at `frames`.
+
+    Args:
+      frames: `[...]` global frame indices of a table.
+      episode_starts: `[E + 1]` the table's episode offsets.
+      horizon: H.
+
+    Returns:
+      index: `[..., H]` int64, frame i + h clamped to the last frame of i's episode (a chunk never
+        crosses into the next episode).
+      is_pad: `[..., H]` bool, True where i + h ran past the episode's end.
+    """
+    frames = np.asarray(frames, np.int64)
+    episode = np.searchsorted(episode_starts, frames, side="right") - 1
+    last = np.asarray(episode_starts, np.int64)[episode + 1] - 1
+    wanted = frames[..., None] + np.arange(horizon)
+    return np.minimum(wanted, last[..., None]), wanted > last[..., None]
+
+
+# ---------------------------------------------------------------------- delta actions
+
+def delta_action_mask(value: Any, layout: ActionLayout) -> np.ndarray | None:
+    """`data.delta_action_mask` -> `[real_dim]` bool, or None when no dim is relative.
+
+    Accepted: `()` (absolute actions); a sequence of bools of length real_dim or action_dim
+    (padding dims False); or a sequence of dim indices.
+    """
+    if value is None or len(value) == 0:
+        return None
+    items = list(value)
+    if all(isinstance(v, (bool, np.bool_)) for v in items):
+        if len(items) not in (layout.real_dim, layout.action_dim):
+            raise ValueError(f"data.delta_action_mask has {len(items)} entries; expected "
+                             f"real_dim={layout.real_dim} or action_dim={layout.action_dim}")
+        mask = np.asarray(items, bool)
+        if mask[layout.real_dim:].any():
+            raise ValueError("data.delta_action_mask marks padding dims "
+                             f"{np.flatnonzero(mask[layout.real_dim:]) + layout.real_dim}")
+        mask = mask[:layout.real_dim]
+    elif all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in items):
+        bad = [v for v in items if not 0 <= v < layout.real_dim]
+        if bad:
+            raise ValueError(f"data.delta_action_mask has dims {bad} outside [0, real_dim="
+                             f"{layout.real_dim})")
+        mask = np.zeros(layout.real_dim, bool)
+        mask[items] = True
+    else:
+        raise ValueError(f"data.delta_action_mask must be bools (a mask) or ints (dim indices), "
+                         f"got {value!r}")
+    return mask if mask.any() else None
+
+
+def check_delta_state_layout(mask: np.ndarray, layout: ActionLayout,
+                             state_groups: Mapping[str, Sequence[int]] | None,
+                             state_width: int) -> None:
+    """Delta actions subtract state dim d from action dim d, so every group with a relative dim
+    must sit at the same slice in the state as in the actions.
+
+    Args:
+      mask: `[real_dim]` bool, the relative action dims.
+      layout: the action layout.
+      state_groups: `data.state_groups`, the state's `{group: (start, stop)}`; required.
+      state_width: S, the dataset's state width.
+
+    Raises:
+      ValueError naming the group whose state slice differs (B1K: the state puts both grippers
+      last, so `right_arm` is 14:21 in the state but 15:22 in the actions), or an ungrouped dim.
+    """
+    if not state_groups:
+        raise ValueError("data.delta_action_mask needs data.state_groups ({group: (start, stop)} "
+                         "of the state vector) to check that the state is in the action order; "
+                         "B1K's state is not (its grippers come last)")
+    for d in np.flatnonzero(mask):
+        group = layout.group_of_dim(int(d))
+        if group is None:
+            raise ValueError(f"data.delta_action_mask marks dim {d}, which is in no layout group")
+        if group not in state_groups:
+            raise ValueError(f"data.delta_action_mask marks dim {d} of group {group!r}, which "
+                             f"data.state_groups does not place (it has {sorted(state_groups)})")
+        action_slice = tuple(layout.groups[group])
+        state_slice = tuple(int(v) for v in state_groups[group])
+        if state_slice != action_slice:
+            raise ValueError(f"delta actions: group {group!r} is at {action_slice} in the actions "
+                             f"but at {state_slice} in the state (data.state_groups); the state "
+                             "must be in the action order for the dims of data.delta_action_mask")
+        if state_slice[1] > state_width:
+            raise ValueError(f"data.state_groups[{group!r}] = {state_slice} is outside the "
+                             f"dataset's state width {state_width}")
+
+
+def to_delta(actions: np.ndarray, state: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Makes the masked dims relative to the current state.
+
+    Args:
+      actions: `[..., H, A]` (chunks) or `[..., A]` (frames).
+      state: `[..., S]`, the current state, leading dims as `actions` without H.
+      mask: `[A]` bool, the relative dims.
+    """
+    return actions - _state_offset(actions, state, mask)
+
+
+def from_delta(actions: np.ndarray, state: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Inverse of `to_delta`: absolute actions from relative ones."""
+    return actions + _state_offset(actions, state, mask)
+
+
+def _state_offset(actions: np.ndarray, state: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """`state` on the masked dims, 0 elsewhere, broadcastable against `actions`."""
+    state = np.asarray(state)
+    offset = np.where(mask, pad_last(state[..., :len(mask)], len(mask)), 0).astype(actions.dtype)
+    return offset[..., None, :] if actions.ndim == state.ndim + 1 else offset
