@@ -65,13 +65,16 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.layout = ml_collections.ConfigDict()
     config.layout.preset = "b1k_r1pro"
     # An explicit layout wins over the preset: groups {name: (start, stop)}, real_dim, action_dim.
-    config.layout.groups = config_dict.placeholder(dict)
+    config.layout.groups = config_dict.placeholder(object)  # a dict; `object` makes it overridable
     config.layout.real_dim = config_dict.placeholder(int)
     config.layout.action_dim = 32
 
     config.data = ml_collections.ConfigDict()
     config.data.root = ""  # '' = embedded demo dataset, generated on first use into a cache folder
     config.data.format = "lerobot"  # lerobot | rlds
+    config.data.cameras = config_dict.placeholder(object)  # {batch camera: stored name}; None = auto
+    config.data.state_indices = ()  # LeRobot: dims of observation.state to keep (() = all)
+    config.data.split = "train"  # RLDS: the split to read
     config.data.norm = "zscore"  # zscore | quantile
     config.data.norm_stats = ""  # norm_stats.json (openpi format); '' = compute into the workdir
     config.data.balanced_norm = False  # compute balanced stats (equal per-group motion) instead
@@ -80,6 +83,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.curriculum = ()
     config.data.arm_heavy_episodes = ""  # JSON of filter_arm_heavy_episodes ('' = default thresholds)
     config.data.delta_action_mask = ()  # action dims made relative to the state (() = absolute)
+    config.data.state_groups = config_dict.placeholder(object)  # {group: (start, stop)} of the state
     config.data.num_workers = 0  # grain worker processes (0 = in the main process)
     config.data.prefetch = 2  # batches buffered ahead of the step
 
@@ -110,6 +114,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.num_steps = 10  # Euler steps of sample_actions
     config.eval.batch_size = 32
     config.eval.max_chunks = 256  # chunks drawn from the held-out episodes per evaluation
+    config.eval.velocity_groups = ("base",)  # displacement = the chunk's mean, not last - first
+    config.eval.gripper_groups = ("left_gripper", "right_gripper")  # for gripper_switch_recall
+    config.eval.plot_groups = ("left_arm", "right_arm", "left_gripper", "right_gripper")
 
     if scale == "b1k":
         config.model.preset = "pi0"
