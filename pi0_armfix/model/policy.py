@@ -9,11 +9,14 @@
 
 `observation` / `batch` are the dicts of CONTRACT.md (raw uint8 cameras at any resolution; the
 model converts, resizes and, for training, augments them). Parameters are float32; activations
-run in `config.dtype`. Flow-matching convention (DESIGN §3): t = 1 is noise, t = 0 the data.
+run in `config.dtype`. init_params, velocity and sample_actions are jit-compiled (config and the
+other non-array arguments static); compute_loss is traced by the caller's train step.
+Flow-matching convention (DESIGN §3): t = 1 is noise, t = 0 the data.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from typing import Any
 
@@ -29,6 +32,7 @@ from pi0_armfix.model.inputs import preprocess_observation
 Params = dict[str, Any]
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def init_params(config: Pi0Config, rng: jax.Array) -> Params:
     """Random float32 parameters with openpi's tree structure and names."""
     rng_llm, rng_img, rng_dense = jax.random.split(rng, 3)
@@ -49,6 +53,7 @@ def param_shapes(config: Pi0Config) -> Params:
     return jax.eval_shape(lambda: init_params(config, jax.random.key(0)))
 
 
+@functools.partial(jax.jit, static_argnames="config")
 def velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: jax.Array, *,
              config: Pi0Config) -> jax.Array:
     """The predicted flow v(x_t, t) [B, H, A] float32 (eval preprocessing, one full forward).
@@ -91,6 +96,7 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
                                   layout=layout, **loss_kwargs)
 
 
+@functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache"))
 def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any], *,
                    config: Pi0Config, num_steps: int = 10, noise: jax.Array | None = None,
                    use_kv_cache: bool = True) -> jax.Array:

@@ -1,0 +1,103 @@
+"""Loads openpi params checkpoints (e.g. pi0_base's `params/` directory) into a preset, strictly.
+
+openpi writes params with `orbax.checkpoint.PyTreeCheckpointer` as `{"params": nested dict}`;
+checkpoints saved during openpi training carry NNX's extra `value` level on every leaf. Both are
+read here. The checkpoint's tree is compared against the preset's parameter tree from the orbax
+metadata, before any array is read: every missing, unexpected or mis-shaped key is listed in one
+ValueError. Arrays are restored as float32.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.model.policy import Params, param_shapes
+
+_SEP = "/"
+
+
+def _flatten(tree: Mapping[str, Any], prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], Any]:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, prefix + (key,)))
+        else:
+            flat[prefix + (key,)] = value
+    return flat
+
+
+def _unflatten(flat: Mapping[tuple[str, ...], Any]) -> dict[str, Any]:
+    tree: dict[str, Any] = {}
+    for path, value in flat.items():
+        node = tree
+        for key in path[:-1]:
+            node = node.setdefault(key, {})
+        node[path[-1]] = value
+    return tree
+
+
+def check_tree(found: Mapping[tuple[str, ...], tuple[int, ...]],
+               expected: Mapping[tuple[str, ...], tuple[int, ...]], source: str) -> None:
+    """Raises one ValueError listing missing, unexpected and mis-shaped keys ("a/b/c")."""
+    missing = sorted(_SEP.join(p) for p in expected.keys() - found.keys())
+    unexpected = sorted(_SEP.join(p) for p in found.keys() - expected.keys())
+    misshaped = sorted(f"{_SEP.join(p)}: checkpoint {tuple(found[p])} != model {tuple(expected[p])}"
+                       for p in expected.keys() & found.keys() if tuple(found[p]) != tuple(expected[p]))
+    problems = [f"{title} ({len(keys)}): {', '.join(keys)}" for title, keys in
+                (("missing keys", missing), ("unexpected keys", unexpected),
+                 ("mis-shaped keys", misshaped)) if keys]
+    if problems:
+        raise ValueError(f"checkpoint {source} does not fit the model: " + "; ".join(problems))
+
+
+def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
+                    shardings: Mapping[str, Any] | None = None) -> Params:
+    """Restores an openpi params checkpoint whose tree equals `config`'s parameter tree.
+
+    Args:
+      path: the orbax directory (openpi's `.../params`).
+      config: the preset the params must fit (names and shapes, exactly).
+      shardings: optional tree of `jax.sharding.Sharding` like the params: restore each leaf as a
+        jax.Array with that sharding (each process reads only its shards). Default: numpy arrays.
+    Returns:
+      the nested params dict, float32 leaves.
+    """
+    directory = pathlib.Path(path).expanduser().resolve()
+    source = repr(str(directory))
+    if not directory.is_dir():
+        raise ValueError(f"pretrained checkpoint {source} is not a directory")
+    with ocp.PyTreeCheckpointer() as checkpointer:
+        try:
+            metadata = checkpointer.metadata(directory).item_metadata.tree
+        except (FileNotFoundError, ValueError) as e:
+            raise ValueError(f"pretrained checkpoint {source} is not an orbax checkpoint: {e}") from e
+        if set(metadata) != {"params"}:
+            raise ValueError(f"pretrained checkpoint {source} has top-level keys {sorted(metadata)}; "
+                             "an openpi params checkpoint has exactly ['params']")
+        flat_meta = _flatten(metadata)
+        # NNX training checkpoints end every path in "value"; strip it only when all paths do.
+        strip_value = all(p[-1] == "value" for p in flat_meta)
+        # Checkpoint path -> model path: drop the "params" root (and the "value" level).
+        to_model = {p: p[1:-1] if strip_value else p[1:] for p in flat_meta}
+        expected = {p: leaf.shape for p, leaf in _flatten(param_shapes(config)).items()}
+        check_tree({to_model[p]: leaf.shape for p, leaf in flat_meta.items()}, expected, source)
+
+        flat_shardings = _flatten(shardings) if shardings is not None else {}
+
+        def restore_args(p):
+            if shardings is None:
+                return ocp.RestoreArgs(restore_type=np.ndarray, dtype=np.float32)
+            return ocp.ArrayRestoreArgs(restore_type=jax.Array, dtype=np.float32,
+                                        sharding=flat_shardings[to_model[p]])
+
+        args = _unflatten({p: restore_args(p) for p in flat_meta})
+        restored = checkpointer.restore(directory, ocp.args.PyTreeRestore(restore_args=args))
+    return _unflatten({to_model[p]: leaf for p, leaf in _flatten(restored).items()})
