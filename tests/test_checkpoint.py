@@ -5,7 +5,6 @@ import subprocess
 import sys
 import textwrap
 
-import grain
 import jax
 import jax.numpy as jnp
 import ml_collections
@@ -23,8 +22,7 @@ def _state(value: float) -> dict:
             "balancer": {"ema": jnp.arange(6, dtype=jnp.float32) * value}}
 
 
-def _iterator():
-    return iter(grain.MapDataset.range(50).shuffle(seed=1).batch(2).to_iter_dataset())
+DATA_STATE = {"step": 3, "global_batch_size": 8, "seed": 0}
 
 
 def _abstract(state, mesh):
@@ -36,28 +34,19 @@ def _config():
     return ml_collections.ConfigDict({"loss": {"strategy": "per_group"}, "seed": 3})
 
 
-def test_restore_returns_the_saved_state_iterator_position_and_norm_stats(tmp_path):
+def test_restore_returns_the_saved_state_and_data_iterator_state(tmp_path):
     ckpts = checkpoint.Checkpoints(tmp_path / "checkpoints", every=1, keep=2)
-    it = _iterator()
-    for _ in range(3):
-        next(it)
-    ckpts.save(3, _state(3.0), it, NORM_STATS, _config())
+    ckpts.save(3, _state(3.0), DATA_STATE, NORM_STATS, _config())
     ckpts.wait()
-    expected_next = next(it)
-
-    restored_it = _iterator()
-    state, norm_stats = ckpts.restore(3, _abstract(_state(0.0), sharding.make_mesh(1)),
-                                      restored_it)
+    state, data_state = ckpts.restore(3, _abstract(_state(0.0), sharding.make_mesh(1)))
     jax.tree.map(np.testing.assert_array_equal, state, _state(3.0))
-    assert norm_stats == NORM_STATS
-    np.testing.assert_array_equal(next(restored_it), expected_next)
+    assert data_state == DATA_STATE
 
 
 def test_only_the_latest_keep_checkpoints_are_kept(tmp_path):
     ckpts = checkpoint.Checkpoints(tmp_path, every=1, keep=2)
-    it = _iterator()
     for step in (1, 2, 3):
-        ckpts.save(step, _state(step), it, NORM_STATS, _config())
+        ckpts.save(step, _state(step), DATA_STATE, NORM_STATS, _config())
     ckpts.wait()
     assert ckpts.all_steps() == [2, 3]
     assert ckpts.latest_step() == 3
@@ -65,16 +54,16 @@ def test_only_the_latest_keep_checkpoints_are_kept(tmp_path):
 
 def test_checkpoint_of_another_state_tree_is_a_clear_error(tmp_path):
     ckpts = checkpoint.Checkpoints(tmp_path, every=1)
-    ckpts.save(1, _state(1.0), _iterator(), NORM_STATS, _config())
+    ckpts.save(1, _state(1.0), DATA_STATE, NORM_STATS, _config())
     ckpts.wait()
     other = {"step": jnp.int32(0), "params": {"v": jnp.zeros((3,))}}
     with pytest.raises(ValueError, match="does not match this run"):
-        ckpts.restore(1, _abstract(other, sharding.make_mesh(1)), _iterator())
+        ckpts.restore(1, _abstract(other, sharding.make_mesh(1)))
 
 
 def test_restore_for_eval_reads_state_norm_stats_and_config_without_a_target(tmp_path):
     ckpts = checkpoint.Checkpoints(tmp_path, every=1)
-    ckpts.save(1, _state(2.0), _iterator(), NORM_STATS, _config())
+    ckpts.save(1, _state(2.0), DATA_STATE, NORM_STATS, _config())
     ckpts.wait()
     state, norm_stats, config = checkpoint.Checkpoints(tmp_path, read_only=True).restore_for_eval(
         1, sharding.make_mesh(1))
@@ -86,19 +75,18 @@ def test_restore_for_eval_reads_state_norm_stats_and_config_without_a_target(tmp
 def test_a_process_killed_while_finalizing_a_save_leaves_the_previous_checkpoint_intact(tmp_path):
     # The child saves step 1, then dies inside orbax's atomic rename of step 2.
     code = textwrap.dedent(f"""
-        import os, grain, jax.numpy as jnp, ml_collections
+        import os, jax.numpy as jnp, ml_collections
         from orbax.checkpoint._src.path import atomicity
         from pi0_armfix.training import checkpoint
-        it = iter(grain.MapDataset.range(50).batch(2).to_iter_dataset())
         config = ml_collections.ConfigDict({{"seed": 0}})
         ckpts = checkpoint.Checkpoints({str(tmp_path)!r}, every=1)
-        ckpts.save(1, {{"w": jnp.full((8,), 1.0)}}, it, {{}}, config)
+        ckpts.save(1, {{"w": jnp.full((8,), 1.0)}}, {{"step": 1}}, {{}}, config)
         ckpts.wait()
         async def die(*args, **kwargs):
             os._exit(9)
         for cls in (atomicity.AtomicRenameTemporaryPath, atomicity.CommitFileTemporaryPath):
             cls.finalize = die
-        ckpts.save(2, {{"w": jnp.full((8,), 2.0)}}, it, {{}}, config)
+        ckpts.save(2, {{"w": jnp.full((8,), 2.0)}}, {{"step": 2}}, {{}}, config)
         ckpts.wait()
     """)
     env = dict(os.environ, PYTHONPATH=REPO_ROOT, JAX_PLATFORMS="cpu")
@@ -109,6 +97,6 @@ def test_a_process_killed_while_finalizing_a_save_leaves_the_previous_checkpoint
 
     ckpts = checkpoint.Checkpoints(tmp_path, every=1)
     assert ckpts.latest_step() == 1
-    state, _ = ckpts.restore(1, _abstract({"w": jnp.zeros((8,))}, sharding.make_mesh(1)),
-                             iter(grain.MapDataset.range(50).batch(2).to_iter_dataset()))
+    state, data_state = ckpts.restore(1, _abstract({"w": jnp.zeros((8,))}, sharding.make_mesh(1)))
     np.testing.assert_array_equal(state["w"], np.full((8,), 1.0))
+    assert data_state == {"step": 1}

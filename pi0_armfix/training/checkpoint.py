@@ -1,7 +1,8 @@
 """Orbax checkpoints of a run: train state, data iterator, norm stats and config, in one step folder.
 
   <workdir>/checkpoints/<step>/state       TrainState (params, optimizer, EMA, loss-balancer state)
-                              /data        the Grain iterator's position, one JSON per process
+                              /data        the data iterator's state (`get_state()`, JSON): the
+                                           pipeline's sample order is a pure function of the step
                               /norm_stats  the run's normalization stats (openpi format)
                               /config      the run's config
 
@@ -16,7 +17,6 @@ import json
 from collections.abc import Mapping
 from typing import Any
 
-import grain
 import jax
 import ml_collections
 import orbax.checkpoint as ocp
@@ -48,7 +48,7 @@ class Checkpoints:
                 read_only=read_only, cleanup_tmp_directories=not read_only),
             item_handlers={
                 "state": ocp.StandardCheckpointHandler(),
-                "data": grain.checkpoint.CheckpointHandler(),
+                "data": ocp.JsonCheckpointHandler(),
                 "norm_stats": ocp.JsonCheckpointHandler(),
                 "config": ocp.JsonCheckpointHandler(),
             })
@@ -59,30 +59,29 @@ class Checkpoints:
     def all_steps(self) -> list[int]:
         return list(self._manager.all_steps())
 
-    def save(self, step: int, state: Any, data_iterator: Any, norm_stats: Mapping[str, Any],
-             config: ml_collections.ConfigDict, *, force: bool = False) -> bool:
+    def save(self, step: int, state: Any, data_state: Mapping[str, Any],
+             norm_stats: Mapping[str, Any], config: ml_collections.ConfigDict, *,
+             force: bool = False) -> bool:
         """Starts an asynchronous save of `step`; True if one was started (see `every`)."""
         return self._manager.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state),
-            data=grain.checkpoint.CheckpointSave(data_iterator),
+            data=ocp.args.JsonSave(dict(data_state)),
             norm_stats=ocp.args.JsonSave(dict(norm_stats)),
             config=ocp.args.JsonSave(json.loads(config.to_json_best_effort())),
         ), force=force)
 
-    def restore(self, step: int, abstract_state: Any, data_iterator: Any
-                ) -> tuple[Any, dict[str, Any]]:
-        """Restores the state (into the shardings of `abstract_state`, a tree of
-        ShapeDtypeStructs) and the iterator position of `step`. Returns `(state, norm_stats)`."""
+    def restore(self, step: int, abstract_state: Any) -> tuple[Any, dict[str, Any]]:
+        """The state of `step`, in the shardings of `abstract_state` (a tree of
+        ShapeDtypeStructs), and the data iterator's state. Returns `(state, data_state)`."""
         try:
             restored = self._manager.restore(step, args=ocp.args.Composite(
                 state=ocp.args.StandardRestore(abstract_state),
-                data=grain.checkpoint.CheckpointRestore(data_iterator),
-                norm_stats=ocp.args.JsonRestore(),
+                data=ocp.args.JsonRestore(),
             ))
         except (ValueError, KeyError, TypeError) as e:
             raise ValueError(f"checkpoint {self.directory / str(step)} does not match this run "
                              f"(different model, loss strategy or process count?): {e}") from e
-        return restored["state"], restored["norm_stats"]
+        return restored["state"], restored["data"]
 
     def restore_for_eval(self, step: int, mesh: jax.sharding.Mesh
                          ) -> tuple[dict[str, Any], dict[str, Any], ml_collections.ConfigDict]:
@@ -98,7 +97,8 @@ class Checkpoints:
             norm_stats=ocp.args.JsonRestore(),
             config=ocp.args.JsonRestore(),
         ))
-        return restored["state"], restored["norm_stats"], ml_collections.ConfigDict(restored["config"])
+        return (restored["state"], restored["norm_stats"],
+                ml_collections.ConfigDict(restored["config"]))
 
     def wait(self) -> None:
         """Blocks until the pending asynchronous save is finalized."""
