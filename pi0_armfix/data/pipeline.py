@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +48,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import motion as motion_lib
+from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
 from pi0_armfix.data.episodes import EpisodeTable
@@ -70,13 +71,6 @@ def split_episodes(episode_index: np.ndarray, num_heldout: int
     return episode_index[:cut], episode_index[cut:]
 
 
-def open_source(config: ConfigLike, layout: ActionLayout):
-    """The dataset of `config.data` (sources.py), validated against `layout`."""
-    from pi0_armfix.data import sources  # the sources import heavy readers (tfds) on demand
-
-    return sources.open_source(config["data"], layout)
-
-
 def training_episodes(config: ConfigLike, source) -> np.ndarray:
     """Dataset ids of the episodes the config trains on (all but the held-out ones)."""
     return split_episodes(source.episode_index, _num_heldout(config))[0]
@@ -85,7 +79,7 @@ def training_episodes(config: ConfigLike, source) -> np.ndarray:
 def heldout_table(config: ConfigLike, layout: ActionLayout, *, images: bool = True
                   ) -> EpisodeTable:
     """The held-out episodes (the dataset's last `eval.episodes`) for evaluation."""
-    source = open_source(config, layout)
+    source = sources.open_source(config["data"], layout)
     heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
     if not len(heldout):
         raise ValueError("eval.episodes is 0: there are no held-out episodes to evaluate on")
@@ -97,24 +91,33 @@ def _num_heldout(config: ConfigLike) -> int:
     return int(evaluation.get("episodes", 0))
 
 
-def _num_frames(source, episodes: np.ndarray) -> int | None:
-    """Frames of `episodes` for a progress bar, if the source knows its episode lengths."""
-    lengths = getattr(source, "episode_lengths", None)
-    if lengths is None:
-        return None
-    position = {int(e): p for p, e in enumerate(source.episode_index)}
-    return int(sum(lengths[position[int(e)]] for e in episodes))
+def training_blocks(config: ConfigLike, layout: ActionLayout,
+                    keys: Sequence[str] = ("actions", "state")
+                    ) -> tuple[Iterator[dict[str, np.ndarray]], int]:
+    """A stream of blocks (`Source.iter_blocks`) of the training episodes, and their frames."""
+    source = sources.open_source(config["data"], layout)
+    episodes = training_episodes(config, source)
+    return source.iter_blocks(keys, episodes), _num_frames(source, episodes)
+
+
+def _num_frames(source, episodes: np.ndarray) -> int:
+    """Frames of `episodes` (for a progress bar)."""
+    return int(source.episode_lengths[np.isin(source.episode_index, episodes)].sum())
 
 
 # ---------------------------------------------------------------------- normalization statistics
 
-def delta_block_transform(mask: np.ndarray | None
+def delta_block_transform(data_cfg: ConfigLike, layout: ActionLayout
                           ) -> Callable[[stats_lib.Block], stats_lib.Block] | None:
-    """Block transform that puts actions in the model's action space (relative dims)."""
+    """Block transform that puts actions in the model's action space (`data.delta_action_mask`
+    dims relative to the state; the state layout is checked on the first block), or None."""
+    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
     if mask is None:
         return None
 
     def apply(block: stats_lib.Block) -> stats_lib.Block:
+        transforms.check_delta_state_layout(mask, layout, data_cfg.get("state_groups"),
+                                            block["state"].shape[1])
         return {**block, "actions": transforms.to_delta(block["actions"], block["state"], mask)}
 
     return apply
@@ -126,16 +129,9 @@ def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, progress: bo
 
     Actions are in the model's action space: with `data.delta_action_mask`, the relative dims'
     statistics are those of `action - state` (frame by frame)."""
-    data = config["data"]
-    source = open_source(config, layout)
-    episodes = training_episodes(config, source)
-    mask = transforms.delta_action_mask(data.get("delta_action_mask"), layout)
-    if mask is not None:
-        transforms.check_delta_state_layout(mask, layout, data.get("state_groups"),
-                                            _state_width(source, episodes))
+    blocks, total = training_blocks(config, layout, ("actions", "state"))
     stats = stats_lib.compute_norm_stats(
-        source.iter_blocks(("actions", "state"), episodes),
-        total_frames=_num_frames(source, episodes), transform=delta_block_transform(mask),
+        blocks, total_frames=total, transform=delta_block_transform(config["data"], layout),
         progress=progress)
     layout.check_real_dim(stats["actions"].width, source="the dataset's actions")
     return stats
@@ -145,12 +141,23 @@ def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats
                    norm_mode: str = "zscore", *, progress: bool = True
                    ) -> motion_lib.MotionSummary:
     """Frame-to-frame motion of the training episodes, in `norm_mode` units of `action_stats`."""
-    source = open_source(config, layout)
-    episodes = training_episodes(config, source)
-    return motion_lib.compute_motion(
-        source.iter_blocks(("actions",), episodes), layout,
-        *motion_lib.normalized_units(action_stats, norm_mode),
-        total_frames=_num_frames(source, episodes), progress=progress)
+    blocks, total = training_blocks(config, layout, ("actions",))
+    return motion_lib.compute_motion(blocks, layout,
+                                     *motion_lib.normalized_units(action_stats, norm_mode),
+                                     total_frames=total, progress=progress)
+
+
+def balanced_dataset_norm_stats(config: ConfigLike, layout: ActionLayout, max_scale: float, *,
+                                progress: bool = True
+                                ) -> tuple[dict[str, stats_lib.NormStats],
+                                           list[motion_lib.BalanceReport]]:
+    """`dataset_norm_stats` with balanced action statistics (`motion.balanced_norm_stats`): two
+    streaming passes (statistics, then motion)."""
+    stats = dataset_norm_stats(config, layout, progress=progress)
+    summary = dataset_motion(config, layout, stats["actions"], progress=progress)
+    stats["actions"], reports = motion_lib.balanced_norm_stats(stats["actions"], summary, layout,
+                                                               max_scale)
+    return stats, reports
 
 
 def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *,
@@ -171,24 +178,17 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *,
         path = cache_path
     if path is not None:
         return stats_lib.load_norm_stats(path, {"actions": layout.real_dim, "state": None})
-    stats = dataset_norm_stats(config, layout, progress=progress)
     if data.get("balanced_norm"):
-        summary = dataset_motion(config, layout, stats["actions"], progress=progress)
-        stats["actions"], reports = motion_lib.balanced_norm_stats(
-            stats["actions"], summary, layout, float(data.get("balanced_max_scale", 10.0)))
+        stats, reports = balanced_dataset_norm_stats(
+            config, layout, float(data.get("balanced_max_scale", 10.0)), progress=progress)
         for report in reports:
             logging.info("balanced norm stats (%s): motion RMS before %s after %s",
                          report.mode, report.before, report.after)
+    else:
+        stats = dataset_norm_stats(config, layout, progress=progress)
     if cache_path is not None:
         stats_lib.save_norm_stats(cache_path, stats)
     return stats
-
-
-def _state_width(source, episodes: np.ndarray) -> int:
-    width = getattr(source, "state_width", None)
-    if width is None:
-        width = next(iter(source.iter_blocks(("state",), episodes[:1])))["state"].shape[1]
-    return int(width)
 
 
 # ---------------------------------------------------------------------- per-batch transform
@@ -455,7 +455,7 @@ def make_train_iterator(config: ConfigLike, layout: ActionLayout, *,
     """Training batches of `config` (see the module docstring). This process reads its slice
     `jax.process_index()` of `jax.process_count()` of every global batch."""
     data = config["data"]
-    source = open_source(config, layout)
+    source = sources.open_source(config["data"], layout)
     table = source.load_table(training_episodes(config, source), images=not actions_only)
     batches, curriculum = train_batches(
         table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,

@@ -45,6 +45,8 @@ DEFAULT_BINS = 4096
 _SLICE_FRAMES = 32768
 # |x| / w stays below 2**_MAX_BIN_BITS so that bin indices are exact integers in float64.
 _MAX_BIN_BITS = 50
+# Finest bin width 2**-1000 (1/w stays finite); a dim of zeros starts there and coarsens later.
+_MIN_LOG2_WIDTH = -1000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,10 +145,12 @@ class StreamingStats:
 
     def _initial_log2_width(self, lo: float, hi: float) -> int:
         magnitude = max(abs(lo), abs(hi))
-        floor_k = math.frexp(magnitude)[1] - _MAX_BIN_BITS if magnitude > 0 else -1074
+        k = _MIN_LOG2_WIDTH
+        if magnitude > 0:
+            k = max(k, math.frexp(magnitude)[1] - _MAX_BIN_BITS)
         if hi > lo:
-            return max(math.ceil(math.log2((hi - lo) / self.bins)), floor_k)
-        return floor_k
+            k = max(k, math.ceil(math.log2((hi - lo) / self.bins)))
+        return k
 
     @staticmethod
     def _grid_index(value: float, log2_width: int) -> float:

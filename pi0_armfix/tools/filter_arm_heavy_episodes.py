@@ -1,0 +1,70 @@
+"""Lists the arm-heavy training episodes, for the curriculum's `arm_heavy` source.
+
+    python -m pi0_armfix.tools.filter_arm_heavy_episodes --config=configs/arm_curriculum.py \
+        [--config.data.root=DIR] --output=arm_heavy.json \
+        [--arm_ratio_threshold=1.5] [--min_arm_movement=0.1] [--max_base_movement=X]
+
+Per episode, over its real frame pairs (never across an episode boundary), the frame-to-frame
+motion of each group in z-score units of the run's norm stats, relative to the group's mean over
+all analysed episodes (1 = typical). Arm groups: names containing "arm" or "gripper"; base groups:
+names containing "base". `arm_movement` / `base_movement` are the mean relative motion over the
+arm / base groups, `arm_to_base_ratio` their ratio; an episode is selected iff
+ratio >= arm_ratio_threshold, arm_movement >= min_arm_movement and (if given)
+base_movement <= max_base_movement. Full definitions: `pi0_armfix.data.motion`.
+
+Writes `{"episodes": [dataset episode ids], "per_episode": [...], "thresholds": {...}}`; set
+`--config.data.arm_heavy_episodes` to it. With that key '' the curriculum selects the same
+episodes on the fly with the default thresholds. Held-out episodes are never analysed.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import ml_collections
+from absl import app, flags
+from ml_collections import config_flags
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import motion as motion_lib
+from pi0_armfix.data import pipeline
+
+
+def run(config: ml_collections.ConfigDict, output: str | Path,
+        thresholds: motion_lib.ArmHeavyThresholds = motion_lib.ArmHeavyThresholds()
+        ) -> dict[str, Any]:
+    layout = ActionLayout.from_config(config.layout)
+    stats = pipeline.load_or_compute_norm_stats(config, layout)
+    summary = pipeline.dataset_motion(config, layout, stats["actions"])
+    selected, per_episode = motion_lib.arm_heavy_episodes(summary, layout, thresholds)
+    result = {"episodes": selected.tolist(), "per_episode": per_episode,
+              "thresholds": thresholds.to_json()}
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    thresholds = motion_lib.ArmHeavyThresholds(
+        arm_ratio_threshold=flags.FLAGS.arm_ratio_threshold,
+        min_arm_movement=flags.FLAGS.min_arm_movement,
+        max_base_movement=flags.FLAGS.max_base_movement)
+    result = run(flags.FLAGS.config, flags.FLAGS.output, thresholds)
+    total = len(result["per_episode"])
+    print(f"{len(result['episodes'])} of {total} training episodes are arm-heavy "
+          f"({thresholds.to_json()}); wrote {flags.FLAGS.output}")
+
+
+if __name__ == "__main__":
+    config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
+    flags.DEFINE_string("output", None, "JSON file to write", required=True)
+    flags.DEFINE_float("arm_ratio_threshold", 1.5, "minimum arm-to-base relative motion ratio")
+    flags.DEFINE_float("min_arm_movement", 0.1, "minimum relative arm motion")
+    flags.DEFINE_float("max_base_movement", None, "maximum relative base motion (unset = none)")
+    flags.mark_flag_as_required("config")
+    app.run(main)

@@ -1,0 +1,67 @@
+"""Balanced normalization statistics (DESIGN §4) -> openpi `norm_stats.json`.
+
+    python -m pi0_armfix.tools.recompute_balanced_norm_stats --config=configs/arm_focused.py \
+        [--config.data.root=DIR] --output=balanced_norm_stats.json [--max_scale=10]
+
+Per-dim means stay; each group's spread is multiplied by one factor so that every group's RMS of
+frame-to-frame motion within episodes, in normalized units, equals the median over the groups,
+the factor capped to [1/max_scale, max_scale] (`pi0_armfix.data.motion.balanced_norm_stats`),
+separately for z-score (std) and quantile (q01/q99) normalization, so the file serves either
+`data.norm`. Groups that move little next to their spread (the arms) get a smaller spread: their
+motion is amplified, not the imbalance (an earlier tool multiplied std by target/group_std, which
+does the opposite). Prints each group's motion RMS before and after. Two streaming passes over
+the training episodes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import ml_collections
+from absl import app, flags
+from ml_collections import config_flags
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import motion as motion_lib
+from pi0_armfix.data import pipeline
+from pi0_armfix.data import stats as stats_lib
+
+
+def run(config: ml_collections.ConfigDict, output: str | Path, max_scale: float | None = None
+        ) -> tuple[dict[str, stats_lib.NormStats], list[motion_lib.BalanceReport]]:
+    """max_scale: the cap on each group's change of scale; None = `data.balanced_max_scale`."""
+    layout = ActionLayout.from_config(config.layout)
+    if max_scale is None:
+        max_scale = float(config.data.get("balanced_max_scale", 10.0))
+    stats, reports = pipeline.balanced_dataset_norm_stats(config, layout, max_scale)
+    stats_lib.save_norm_stats(output, stats)
+    return stats, reports
+
+
+def format_reports(reports: list[motion_lib.BalanceReport]) -> str:
+    lines = []
+    for report in reports:
+        lines.append(f"{report.mode}: motion RMS per group (normalized units), target "
+                     f"{report.target:.4g}")
+        lines.append(f"  {'group':<16}{'before':>10}{'after':>10}{'spread x':>10}")
+        for group, before in report.before.items():
+            lines.append(f"  {group:<16}{before:>10.4g}{report.after[group]:>10.4g}"
+                         f"{report.scale_change[group]:>10.3g}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    _, reports = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.max_scale)
+    print(format_reports(reports))
+    print(f"wrote {flags.FLAGS.output}")
+
+
+if __name__ == "__main__":
+    config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
+    flags.DEFINE_string("output", None, "norm_stats.json to write", required=True)
+    flags.DEFINE_float("max_scale", None, "cap on each group's change of scale "
+                       "(unset = config.data.balanced_max_scale)")
+    flags.mark_flag_as_required("config")
+    app.run(main)
