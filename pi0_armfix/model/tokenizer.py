@@ -8,7 +8,7 @@ truncated to max_token_len.
 Which sentencepiece model (`make_tokenizer(config.model, prompts=...)`):
   * `model.tokenizer` set: that file (PaliGemma's `paligemma_tokenizer.model` for real runs;
     required with `model.pretrained`, whose embedding rows are PaliGemma's token ids);
-  * empty: a small model trained offline on the dataset's prompts with
+  * empty: a small BPE model trained offline on the dataset's prompts with
     `sentencepiece.SentencePieceTrainer` (deterministic; cached under `cache_dir` by a hash of the
     prompts and the vocabulary size, which never exceeds the preset's `vocab_size`).
 Training builds it once and passes it to the data pipeline, which applies it before batching.
@@ -68,7 +68,10 @@ class Tokenizer:
 
 
 def train_sentencepiece(prompts: Iterable[str], vocab_size: int) -> bytes:
-    """A small unigram sentencepiece model of the prompts, at most `vocab_size` pieces.
+    """A small BPE sentencepiece model of the prompts, at most `vocab_size` pieces.
+
+    BPE (not unigram) because on a few dozen prompts it still merges up to whole words, keeping
+    prompts short; unseen words fall back to characters.
 
     Normalization is the identity and "\\n" is a piece of its own, as in PaliGemma's tokenizer.
     """
@@ -78,7 +81,7 @@ def train_sentencepiece(prompts: Iterable[str], vocab_size: int) -> bytes:
     model = io.BytesIO()
     sentencepiece.SentencePieceTrainer.train(
         sentence_iterator=iter(corpus), model_writer=model, vocab_size=vocab_size,
-        hard_vocab_limit=False, model_type="unigram", character_coverage=1.0,
+        hard_vocab_limit=False, model_type="bpe", character_coverage=1.0,
         normalization_rule_name="identity", add_dummy_prefix=False, user_defined_symbols=["\n"],
         num_threads=1, minloglevel=2, **_SPECIAL_IDS)
     return model.getvalue()

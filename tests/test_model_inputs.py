@@ -1,0 +1,134 @@
+"""Model inputs: image conversion, resize-with-pad, augmentation, and the prompt tokenizer."""
+
+import jax
+import ml_collections
+import numpy as np
+import pytest
+
+from pi0_armfix.model import config as model_config
+from pi0_armfix.model.inputs import (fake_observation, image_to_float, preprocess_observation,
+                                     resize_with_pad)
+from pi0_armfix.model.tokenizer import Tokenizer, make_tokenizer, train_sentencepiece
+
+TINY = model_config.get_preset("tiny")
+PROMPTS = ["pick up the red cup", "navigate_to the kitchen", "open the fridge door\n",
+           "put the cup in the fridge"]
+
+
+def _preprocess(config, obs, seed):
+    return jax.jit(lambda o, r: preprocess_observation(r, o, config=config, train=True))(
+        obs, jax.random.key(seed))
+
+
+# ------------------------------------------------------------------------------ images
+
+
+def test_uint8_images_map_to_minus_one_one():
+    image = np.asarray([[[0, 255, 51]]], np.uint8)
+    np.testing.assert_allclose(image_to_float(image), [[[-1.0, 1.0, -0.6]]], atol=1e-6)
+
+
+def test_resize_with_pad_keeps_aspect_ratio_and_pads_black():
+    images = np.ones((1, 20, 40, 3), np.float32) * 0.5
+    out = np.asarray(resize_with_pad(images, 16, 16))
+    assert out.shape == (1, 16, 16, 3)
+    np.testing.assert_allclose(out[0, 4:12], 0.5, atol=1e-6)  # 20x40 -> 8x16, centred
+    np.testing.assert_array_equal(out[0, :4], -1.0)
+    np.testing.assert_array_equal(out[0, 12:], -1.0)
+
+
+def test_missing_camera_is_an_error_naming_it():
+    obs = fake_observation(TINY, 2)
+    del obs["image"]["left_wrist_0_rgb"]
+    with pytest.raises(ValueError, match="left_wrist_0_rgb"):
+        preprocess_observation(None, obs, config=TINY, train=False)
+
+
+def test_augmentation_is_deterministic_given_the_rng():
+    obs = fake_observation(TINY, 4, image_size=(24, 24))
+    first, again, other = (_preprocess(TINY, obs, s)["image"] for s in (0, 0, 1))
+    for key in TINY.image_keys:
+        np.testing.assert_array_equal(first[key], again[key])
+        assert not np.allclose(first[key], other[key])
+        assert first[key].shape == (4, *TINY.image_resolution, 3)
+        assert -1.0 <= float(first[key].min()) and float(first[key].max()) <= 1.0
+
+
+def test_wrist_cameras_get_no_crop_or_rotation():
+    """With colour jitter off, wrist images pass unchanged while the base camera moves."""
+    no_color = TINY.replace(augment=model_config.AugmentConfig(brightness=0.0, contrast=0.0,
+                                                               saturation=0.0))
+    obs = fake_observation(no_color, 2)
+    plain = preprocess_observation(None, obs, config=no_color, train=False)["image"]
+    augmented = _preprocess(no_color, obs, 0)["image"]
+    np.testing.assert_allclose(augmented["left_wrist_0_rgb"], plain["left_wrist_0_rgb"], atol=1e-6)
+    np.testing.assert_allclose(augmented["right_wrist_0_rgb"], plain["right_wrist_0_rgb"], atol=1e-6)
+    assert not np.allclose(augmented["base_0_rgb"], plain["base_0_rgb"], atol=1e-2)
+
+
+def test_color_jitter_changes_wrist_cameras():
+    obs = fake_observation(TINY, 2)
+    plain = preprocess_observation(None, obs, config=TINY, train=False)["image"]
+    augmented = _preprocess(TINY, obs, 0)["image"]
+    assert not np.allclose(augmented["left_wrist_0_rgb"], plain["left_wrist_0_rgb"], atol=1e-2)
+
+
+# ------------------------------------------------------------------------------ tokenizer
+
+
+def _model_cfg(**changes):
+    return ml_collections.ConfigDict(dict(dict(preset="demo", dtype="", action_horizon=0,
+                                               pretrained="", tokenizer=""), **changes))
+
+
+def test_offline_tokenizer_is_deterministic_and_cached(tmp_path):
+    assert train_sentencepiece(PROMPTS, 512) == train_sentencepiece(reversed(PROMPTS), 512)
+    make_tokenizer(_model_cfg(), prompts=PROMPTS, cache_dir=tmp_path)
+    cached = list((tmp_path / "tokenizers").glob("*.model"))
+    make_tokenizer(_model_cfg(), prompts=PROMPTS, cache_dir=tmp_path)
+    assert len(cached) == 1 and list((tmp_path / "tokenizers").glob("*.model")) == cached
+
+
+def test_tokens_are_bos_prompt_newline_then_padding(tmp_path):
+    tokenize = make_tokenizer(_model_cfg(), prompts=PROMPTS, cache_dir=tmp_path)
+    demo = model_config.get_preset("demo")
+    tokens, mask = tokenize("  navigate_to the\nkitchen ")
+    assert tokens.dtype == np.int32 and mask.dtype == bool
+    assert tokens.shape == mask.shape == (demo.max_token_len,)
+    n = int(mask.sum())
+    assert tokens[0] == 2  # BOS
+    assert tokenize.decode(tokens[1:], mask[1:]) == "navigate to the kitchen\n"
+    assert mask[:n].all() and not mask[n:].any() and (tokens[n:] == 0).all()
+    assert tokens.max() < demo.vocab_size
+
+
+def test_long_prompts_are_truncated_to_max_token_len(tmp_path):
+    tokenize = make_tokenizer(_model_cfg(), prompts=PROMPTS, cache_dir=tmp_path)
+    tokens, mask = tokenize(" ".join(PROMPTS * 4))
+    assert tokens.shape == (tokenize.max_len,) and mask.all()
+
+
+def test_tokenizer_file_is_used_when_configured(tmp_path):
+    path = tmp_path / "spm.model"
+    path.write_bytes(train_sentencepiece(["a completely different corpus"], 512))
+    tokenize = make_tokenizer(_model_cfg(tokenizer=str(path)))
+    expected = Tokenizer(path.read_bytes(), tokenize.max_len, vocab_size=512, source="test")
+    for got, want in zip(tokenize("different corpus"), expected("different corpus")):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_tokenizer_larger_than_the_embedding_is_rejected(tmp_path):
+    path = tmp_path / "spm.model"
+    path.write_bytes(train_sentencepiece(PROMPTS * 3, 512))
+    with pytest.raises(ValueError, match="vocab_size=16"):
+        Tokenizer(path.read_bytes(), 8, vocab_size=16, source=str(path))
+
+
+def test_pretrained_weights_require_their_tokenizer():
+    with pytest.raises(ValueError, match="model.tokenizer"):
+        make_tokenizer(_model_cfg(pretrained="/ckpt/params"), prompts=PROMPTS)
+
+
+def test_missing_tokenizer_file_is_named(tmp_path):
+    with pytest.raises(ValueError, match="nope.model"):
+        make_tokenizer(_model_cfg(tokenizer=str(tmp_path / "nope.model")))
