@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 import tqdm
-from absl import app, flags
+from absl import app, flags, logging
 from etils import epath
 from safetensors.torch import load_file, save_file
 
@@ -238,6 +238,8 @@ _NORM_STATS = flags.DEFINE_string("norm_stats", "", "norm_stats.json to ship ins
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    if not flags.FLAGS["verbosity"].present:
+        logging.set_verbosity(logging.WARNING)  # orbax logs a line per array read; the bar says it
     arrays, config, norm_stats = read_checkpoint(
         _CHECKPOINT.value, step=_STEP.value, ema=_EMA.value, preset=_PRESET.value,
         action_horizon=_ACTION_HORIZON.value, norm_stats=_NORM_STATS.value)
