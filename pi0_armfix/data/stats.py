@@ -224,7 +224,8 @@ class StreamingStats:
         return below + fraction * (above - below)
 
     def fraction_below(self, value: np.ndarray) -> np.ndarray:
-        """`[D]` fraction of the frames `<= value[d]` (interpolated inside the bin)."""
+        """`[D]` fraction of the frames `<= value[d]`, interpolated inside the bin that holds
+        `value[d]` (so off by at most that bin's share of the frames)."""
         left, width = self._bin_edges()
         position = np.clip((np.asarray(value, np.float64) - left) / width, 0, self.capacity)
         column = np.minimum(position.astype(np.intp), self.capacity - 1)

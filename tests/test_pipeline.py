@@ -1,0 +1,357 @@
+"""The Grain training pipeline: batch contents, determinism, sharding, resumption, held-out data."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from absl import flags
+
+from configs import base as base_config
+from data_fixtures import make_episodes, write_dataset
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import pipeline, transforms
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.cameras import BATCH_CAMERAS
+from pi0_armfix.data.episodes import EpisodeTable
+
+LAYOUT = ActionLayout.preset("b1k_r1pro")
+REPO = Path(__file__).resolve().parents[1]
+HORIZON = 4
+
+
+class ColourImages:
+    """Two of the three batch cameras; every pixel of frame f is f % 256 (picklable)."""
+
+    cameras = ("base_0_rgb", "left_wrist_0_rgb")
+
+    def __call__(self, frame):
+        return {camera: np.full((4, 5, 3), frame % 256, np.uint8) for camera in self.cameras}
+
+
+class CountingTokenizer:
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, prompt):
+        self.calls.append(prompt)
+        return np.array([len(prompt), 1, 0], np.int32), np.array([True, True, False])
+
+
+def frame_table(lengths=(7, 3, 12, 5, 9, 1, 6), seed=0) -> EpisodeTable:
+    """Actions whose dim 0 is the global frame index (so a batch tells which frames it holds)."""
+    rng = np.random.default_rng(seed)
+    starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    n = int(starts[-1])
+    actions = rng.normal(size=(n, 23)).astype(np.float32)
+    actions[:, 0] = np.arange(n)
+    return EpisodeTable(actions=actions, state=rng.normal(size=(n, 20)).astype(np.float32),
+                        episode_starts=starts, episode_index=np.arange(len(lengths)) + 100,
+                        tasks=[f"task {e % 2}" for e in range(len(lengths))],
+                        images=ColourImages())
+
+
+def table_stats(table):
+    return stats_lib.compute_norm_stats(stats_lib.table_blocks(table), progress=False)
+
+
+def batches_of(table, *, batch_size=8, steps=6, data=None, seed=0, process_index=0,
+               process_count=1, actions_only=True, tokenize=None):
+    data = {"norm": "zscore", **(data or {})}
+    dataset, _ = pipeline.train_batches(
+        table, LAYOUT, data, seed=seed, norm_stats=table_stats(table), action_horizon=HORIZON,
+        global_batch_size=batch_size, process_index=process_index, process_count=process_count,
+        tokenize=tokenize, actions_only=actions_only)
+    return [dataset[i] for i in range(steps)]
+
+
+def frames_of(table, batch):
+    """The frame index of each sample of a batch (dim 0 of its first action)."""
+    normalizer = transforms.Normalizer.from_stats(table_stats(table)["actions"], "zscore")
+    return np.rint(normalizer.inverse(batch["actions"][:, 0])[:, 0]).astype(int)
+
+
+def single_device_sharding():
+    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+
+
+def iterator_of(table, *, batch_size=8, seed=0, num_workers=0):
+    dataset, curriculum = pipeline.train_batches(
+        table, LAYOUT, {"norm": "zscore"}, seed=seed, norm_stats=table_stats(table),
+        action_horizon=HORIZON, global_batch_size=batch_size, actions_only=True)
+    return pipeline.TrainIterator(dataset, curriculum, sharding=single_device_sharding(),
+                                  global_batch_size=batch_size, seed=seed,
+                                  num_workers=num_workers)
+
+
+# ---------------------------------------------------------------------- batch contents
+
+def test_batch_has_the_contract_keys_shapes_and_dtypes():
+    table = frame_table()
+    batch = batches_of(table, steps=1, actions_only=False, tokenize=CountingTokenizer())[0]
+    assert batch["state"].shape == (8, 32) and batch["state"].dtype == np.float32
+    assert batch["actions"].shape == (8, HORIZON, 32) and batch["actions"].dtype == np.float32
+    assert batch["action_is_pad"].shape == (8, HORIZON) and batch["action_is_pad"].dtype == bool
+    assert batch["tokenized_prompt"].dtype == np.int32
+    assert batch["tokenized_prompt"].shape == batch["tokenized_prompt_mask"].shape == (8, 3)
+    assert batch["tokenized_prompt_mask"].dtype == bool
+    assert set(batch["image"]) == set(batch["image_mask"]) == set(BATCH_CAMERAS)
+    for camera in BATCH_CAMERAS:
+        assert batch["image"][camera].shape == (8, 4, 5, 3)
+        assert batch["image"][camera].dtype == np.uint8
+        assert batch["image_mask"][camera].dtype == bool
+
+
+def test_actions_only_batch_has_no_images_or_prompt():
+    batch = batches_of(frame_table(), steps=1)[0]
+    assert set(batch) == {"state", "actions", "action_is_pad"}
+
+
+def test_actions_are_normalized_padded_chunks_of_the_sampled_frame():
+    table = frame_table()
+    stats = table_stats(table)
+    action_norm = transforms.Normalizer.from_stats(stats["actions"], "zscore")
+    state_norm = transforms.Normalizer.from_stats(stats["state"], "zscore")
+    for batch in batches_of(table, steps=4):
+        frames = frames_of(table, batch)
+        index, is_pad = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
+        np.testing.assert_allclose(batch["actions"][..., :23], action_norm(table.actions[index]),
+                                   atol=1e-5)
+        np.testing.assert_array_equal(batch["actions"][..., 23:], 0)
+        np.testing.assert_array_equal(batch["action_is_pad"], is_pad)
+        np.testing.assert_allclose(batch["state"][:, :20], state_norm(table.state[frames]),
+                                   atol=1e-5)
+        np.testing.assert_array_equal(batch["state"][:, 20:], 0)
+
+
+def test_missing_camera_is_zeros_and_masked_and_images_follow_the_frame():
+    table = frame_table()
+    batch = batches_of(table, steps=1, actions_only=False, tokenize=CountingTokenizer())[0]
+    frames = frames_of(table, batch)
+    assert not batch["image_mask"]["right_wrist_0_rgb"].any()
+    assert (batch["image"]["right_wrist_0_rgb"] == 0).all()
+    assert batch["image_mask"]["base_0_rgb"].all()
+    np.testing.assert_array_equal(batch["image"]["base_0_rgb"][:, 0, 0, 0], frames % 256)
+
+
+def test_each_prompt_is_tokenized_once_and_matches_its_episode():
+    table = frame_table()
+    tokenize = CountingTokenizer()
+    batch = batches_of(table, steps=3, actions_only=False, tokenize=tokenize)[-1]
+    assert sorted(tokenize.calls) == ["task 0", "task 1"]
+    episodes = table.episode_of_frame(frames_of(table, batch))
+    np.testing.assert_array_equal(batch["tokenized_prompt"][:, 0],
+                                  [len(table.tasks[e]) for e in episodes])
+
+
+def test_training_batches_need_a_tokenizer_and_images():
+    table = frame_table()
+    with pytest.raises(ValueError, match="tokenize"):
+        batches_of(table, actions_only=False)
+    table.images = None
+    with pytest.raises(ValueError, match="no camera"):
+        batches_of(table, actions_only=False, tokenize=CountingTokenizer())
+
+
+def test_delta_actions_are_relative_to_the_current_state():
+    table = frame_table()
+    table.state = np.concatenate([table.actions[:, :20] + 0.5], axis=1)
+    data = {"delta_action_mask": list(range(7, 14)),
+            "state_groups": {"left_arm": (7, 14)}}
+    stats = stats_lib.compute_norm_stats(
+        stats_lib.table_blocks(table), progress=False,
+        transform=pipeline.delta_block_transform(data, LAYOUT))
+    dataset, _ = pipeline.train_batches(table, LAYOUT, {"norm": "zscore", **data}, seed=0,
+                                        norm_stats=stats, action_horizon=HORIZON,
+                                        global_batch_size=8, actions_only=True)
+    batch = dataset[0]
+    raw = transforms.Normalizer.from_stats(stats["actions"], "zscore").inverse(batch["actions"])
+    frames = np.rint(raw[:, 0, 0]).astype(int)
+    index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
+    expected = table.actions[index][..., 7:14] - table.state[frames][:, None, 7:14]
+    np.testing.assert_allclose(raw[..., 7:14], expected, atol=1e-4)
+
+
+def test_delta_actions_with_a_mismatched_state_layout_fail_before_any_batch():
+    data = {"norm": "zscore", "delta_action_mask": list(range(15, 22)),
+            "state_groups": {"right_arm": (14, 21)}}
+    with pytest.raises(ValueError, match="'right_arm' is at"):
+        batches_of(frame_table(), data=data)
+
+
+# ---------------------------------------------------------------------- order
+
+def test_an_epoch_visits_every_frame_once():
+    table = frame_table()
+    batches = batches_of(table, batch_size=5, steps=table.num_frames // 5)
+    frames = np.concatenate([frames_of(table, b) for b in batches])
+    assert len(np.unique(frames)) == len(frames)
+
+
+def test_same_seed_same_batches_other_seed_other_batches():
+    table = frame_table()
+    first, again = batches_of(table), batches_of(table)
+    other = batches_of(table, seed=1)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a["actions"], b["actions"])
+    assert any((a["actions"] != c["actions"]).any() for a, c in zip(first, other))
+
+
+def test_processes_read_disjoint_halves_of_each_global_batch():
+    table = frame_table()
+    whole = batches_of(table, batch_size=8)
+    halves = [batches_of(table, batch_size=8, process_index=p, process_count=2) for p in (0, 1)]
+    for step, batch in enumerate(whole):
+        for key in batch:
+            np.testing.assert_array_equal(
+                np.concatenate([halves[0][step][key], halves[1][step][key]]), batch[key])
+
+
+def test_global_batch_must_split_over_processes():
+    with pytest.raises(ValueError, match="train.batch_size = 9"):
+        batches_of(frame_table(), batch_size=9, process_count=2)
+
+
+def test_resumed_iterator_continues_exactly():
+    table = frame_table()
+    run = iterator_of(table)
+    for _ in range(5):
+        next(run)
+    state = json.loads(json.dumps(run.get_state()))
+    expected = [np.asarray(next(run)["actions"]) for _ in range(3)]
+    resumed = iterator_of(table)
+    resumed.set_state(state)
+    assert resumed.step == 5
+    for want in expected:
+        np.testing.assert_array_equal(np.asarray(next(resumed)["actions"]), want)
+
+
+def test_state_of_another_batch_size_is_rejected():
+    run = iterator_of(frame_table(), batch_size=8)
+    with pytest.raises(ValueError, match="global_batch_size = 4"):
+        run.set_state({"step": 3, "global_batch_size": 4, "seed": 0})
+
+
+def test_worker_processes_give_the_same_batches():
+    flags.FLAGS.mark_as_parsed()  # grain's multiprocessing reads absl flags
+    table = frame_table()
+    in_process, workers = iterator_of(table), iterator_of(table, num_workers=2)
+    try:
+        for _ in range(4):
+            np.testing.assert_array_equal(np.asarray(next(workers)["actions"]),
+                                          np.asarray(next(in_process)["actions"]))
+    finally:
+        workers.close()
+
+
+def test_global_arrays_are_sharded_over_the_batch_axis():
+    script = textwrap.dedent("""
+        import numpy as np, jax
+        from tests.test_pipeline import frame_table, table_stats, LAYOUT
+        from pi0_armfix.data import pipeline
+        table = frame_table()
+        dataset, curriculum = pipeline.train_batches(
+            table, LAYOUT, {"norm": "zscore"}, seed=0, norm_stats=table_stats(table),
+            action_horizon=4, global_batch_size=8, actions_only=True)
+        mesh = jax.make_mesh((4,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        it = pipeline.TrainIterator(dataset, curriculum, sharding=sharding,
+                                    global_batch_size=8, seed=0)
+        batch = next(it)
+        assert batch["actions"].shape == (8, 4, 32), batch["actions"].shape
+        assert batch["actions"].sharding == sharding
+        assert len(batch["actions"].addressable_shards) == 4
+        np.testing.assert_array_equal(np.asarray(batch["actions"]), dataset[0]["actions"])
+        print("ok")
+    """)
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4",
+           "JAX_PLATFORMS": "cpu", "PYTHONPATH": f"{REPO}:{REPO / 'tests'}"}
+    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip().endswith("ok")
+
+
+# ---------------------------------------------------------------------- config-level entry points
+
+@pytest.fixture(scope="module")
+def lerobot_config(tmp_path_factory):
+    episodes = make_episodes(6, min_length=10, max_length=16)
+    for e, episode in enumerate(episodes):
+        episode["actions"][:, 0] = e  # dim 0 names the episode
+    root = write_dataset(tmp_path_factory.mktemp("lerobot") / "ds", episodes, "v2.1")
+    config = base_config.get_config()
+    config.data.root = str(root)
+    config.eval.episodes = 2
+    return config
+
+
+def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config, tmp_path):
+    layout = ActionLayout.from_config(lerobot_config.layout)
+    heldout = pipeline.heldout_table(lerobot_config, layout)
+    np.testing.assert_array_equal(heldout.episode_index, [4, 5])
+    stats = pipeline.load_or_compute_norm_stats(lerobot_config, layout,
+                                                cache_path=tmp_path / "norm_stats.json")
+    run = pipeline.make_train_iterator(lerobot_config, layout, norm_stats=stats,
+                                       action_horizon=HORIZON, global_batch_size=8,
+                                       sharding=single_device_sharding(),
+                                       tokenize=CountingTokenizer())
+    normalizer = transforms.Normalizer.from_stats(
+        stats_lib.fit_width(stats["actions"], 23, "actions"), "zscore")
+    seen = set()
+    for _ in range(12):
+        batch = next(run)
+        assert batch["image"]["base_0_rgb"].shape == (8, 16, 16, 3)
+        seen |= set(np.rint(normalizer.inverse(np.asarray(batch["actions"])[:, 0])[:, 0]).tolist())
+    assert seen == {0, 1, 2, 3}
+
+
+def test_norm_stats_are_computed_once_then_read_from_the_cache(lerobot_config, tmp_path):
+    layout = ActionLayout.from_config(lerobot_config.layout)
+    cache = tmp_path / "norm_stats.json"
+    computed = pipeline.load_or_compute_norm_stats(lerobot_config, layout, cache_path=cache,
+                                                   progress=False)
+    assert cache.is_file()
+    stats_lib.save_norm_stats(cache, {k: v.replace(mean=v.mean + 1) for k, v in computed.items()})
+    cached = pipeline.load_or_compute_norm_stats(lerobot_config, layout, cache_path=cache)
+    np.testing.assert_allclose(cached["actions"].mean, computed["actions"].mean + 1)
+
+
+def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
+    layout = ActionLayout.from_config(lerobot_config.layout)
+    stats = pipeline.dataset_norm_stats(lerobot_config, layout, progress=False)
+    source = pipeline.sources.open_source(lerobot_config.data, layout)
+    training = source.load_table(source.episode_index[:4], images=False)
+    np.testing.assert_allclose(stats["actions"].mean, training.actions.mean(0, dtype=np.float64),
+                               rtol=1e-6, atol=1e-9)
+    assert stats["actions"].q99[0] <= 3  # dim 0 is the episode: 4 and 5 are held out
+
+
+def test_a_padded_norm_stats_file_serves_the_real_width(lerobot_config, tmp_path):
+    layout = ActionLayout.from_config(lerobot_config.layout)
+    stats = pipeline.dataset_norm_stats(lerobot_config, layout, progress=False)
+    padded = {k: stats_lib.NormStats(*(np.pad(getattr(v, f), (0, 32 - v.width))
+                                       for f in stats_lib.FIELDS)) for k, v in stats.items()}
+    path = tmp_path / "padded.json"
+    stats_lib.save_norm_stats(path, padded)
+    config = lerobot_config.copy_and_resolve_references()
+    config.data.norm_stats = str(path)
+    loaded = pipeline.load_or_compute_norm_stats(config, layout)
+    assert loaded["actions"].width == 23 and loaded["state"].width == 32
+    run = pipeline.make_train_iterator(config, layout, norm_stats=loaded, action_horizon=HORIZON,
+                                       global_batch_size=4, sharding=single_device_sharding(),
+                                       actions_only=True)
+    assert next(run)["state"].shape == (4, 32)
+
+
+def test_too_many_held_out_episodes_is_an_error(lerobot_config):
+    config = lerobot_config.copy_and_resolve_references()
+    config.eval.episodes = 6
+    with pytest.raises(ValueError, match="eval.episodes = 6"):
+        pipeline.heldout_table(config, ActionLayout.from_config(config.layout))
