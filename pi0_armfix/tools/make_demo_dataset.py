@@ -1,0 +1,34 @@
+"""Writes the B1K-like demo dataset (LeRobot v2.1, see `pi0_armfix.data.demo`) to a new folder.
+
+  python -m pi0_armfix.tools.make_demo_dataset --output=/tmp/demo [--episodes=100] [--seed=0]
+
+Training on it: `--config.data.root=/tmp/demo` (an empty data.root uses the cached default demo).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from absl import app, flags
+
+from pi0_armfix.data import demo
+
+_OUTPUT = flags.DEFINE_string("output", None, "New folder to write the dataset into.",
+                              required=True)
+_EPISODES = flags.DEFINE_integer("episodes", demo.DemoSpec.num_episodes, "Number of episodes.")
+_SEED = flags.DEFINE_integer("seed", demo.DemoSpec.seed, "Generator seed.")
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    if _EPISODES.value < 1:
+        raise ValueError(f"--episodes must be >= 1, got {_EPISODES.value}")
+    spec = dataclasses.replace(demo.DemoSpec(), num_episodes=_EPISODES.value, seed=_SEED.value)
+    root = demo.write_demo_dataset(_OUTPUT.value, spec)
+    size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
+    print(f"wrote {spec.num_episodes} episodes to {root} ({size / 2**20:.1f} MiB)")
+
+
+if __name__ == "__main__":
+    app.run(main)
