@@ -149,6 +149,18 @@ def test_decodes_video_frames_by_timestamp(tmp_path, version):
             assert identify_frame(images[camera], episode, length, c) == offset
 
 
+def test_decodes_av1_videos_as_lerobot_encodes_them(tmp_path):
+    episodes = make_episodes(3)
+    root = write_dataset(tmp_path / "ds", episodes, "v3.0", image_format="video",
+                         video_codec="libsvtav1", episodes_per_file=2)
+    table = LeRobotSource(root, LAYOUT).load_table()
+    for frame in np.random.default_rng(1).permutation(table.num_frames):
+        position = int(table.episode_of_frame(np.array([frame]))[0])
+        offset = frame - table.episode_starts[position]
+        length = len(episodes[position]["actions"])
+        assert identify_frame(table.images(int(frame))["base_0_rgb"], position, length, 0) == offset
+
+
 def test_frame_images_survive_pickling_for_worker_processes(tmp_path):
     episodes = make_episodes(2)
     root = write_dataset(tmp_path / "ds", episodes, "v2.1", image_format="video")

@@ -97,6 +97,8 @@ _BASE, _TORSO_DIMS, _ARM = slice(0, 3), slice(3, 6), {"left": slice(7, 14), "rig
 _GRIPPER = {"left": 14, "right": 22}
 _STATE_ARM = {"left": slice(7, 14), "right": slice(14, 21)}
 _STATE_WIDTH = {"left": 21, "right": 22}
+# A navigation phase ends here even if the target is not reached (it is, within ~10 s).
+_MAX_NAV_SECONDS = 30
 
 
 @dataclasses.dataclass(frozen=True)
@@ -252,7 +254,7 @@ class _Episode:
         velocity, noise = np.zeros(3), np.zeros(3)
         limit = np.array([spec.max_speed, spec.max_speed, spec.max_yaw_rate])
         accel = np.array([spec.linear_accel, spec.linear_accel, spec.yaw_accel]) * self.dt
-        for _ in range(int(30 * spec.fps)):
+        for _ in range(_MAX_NAV_SECONDS * spec.fps):
             rel = self._relative_target()
             distance, bearing = float(np.hypot(*rel)), math.atan2(rel[1], rel[0])
             arrived = distance < spec.arrive_radius
@@ -339,20 +341,21 @@ class _Episode:
             for arm in ("left", "right"):
                 actions[t, _ARM[arm]] = row["arm"][arm]
                 actions[t, _GRIPPER[arm]] = row["gripper"][arm]
-        # State: joints and base velocity follow the previous action with a first-order lag;
-        # finger gaps follow the gripper (open 0.1, closed on the object's width).
-        measured = np.concatenate([actions[:, 0:7], actions[:, _ARM["left"]],
-                                   actions[:, _ARM["right"]]], axis=1)
-        gaps = np.array([[0.1 if r["gripper"][a] > 0 else r["width"][a] for a in ("left", "right")]
-                         for r in self.rows])
-        target = np.concatenate([measured, gaps], axis=1)
-        state = np.empty_like(target)
-        state[0] = target[0]
-        state[0, 0:3] = 0.0
+        # State (baseline order): what the robot measures, i.e. the previous action through a
+        # first-order lag; finger gaps are 0.1 open and the held object's width closed.
+        measured = np.zeros((n, 23))
+        measured[:, 0:7] = actions[:, 0:7]  # base velocity, torso
+        for arm in ("left", "right"):
+            measured[:, _STATE_ARM[arm]] = actions[:, _ARM[arm]]
+            measured[:, _STATE_WIDTH[arm]] = [0.1 if r["gripper"][arm] > 0 else r["width"][arm]
+                                              for r in self.rows]
         lag = np.full(23, 0.5)
-        lag[21:] = 0.35
+        lag[[_STATE_WIDTH["left"], _STATE_WIDTH["right"]]] = 0.35
+        state = np.empty_like(measured)
+        state[0] = measured[0]
+        state[0, _BASE] = 0.0  # episodes start at rest
         for t in range(1, n):
-            state[t] = state[t - 1] + lag * (target[t - 1] - state[t - 1])
+            state[t] = state[t - 1] + lag * (measured[t - 1] - state[t - 1])
         return actions.astype(np.float32), state.astype(np.float32)
 
     def images(self) -> dict[str, np.ndarray]:
