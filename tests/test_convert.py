@@ -5,7 +5,6 @@ import os
 import subprocess
 import sys
 
-import grain
 import jax
 import ml_collections
 import numpy as np
@@ -46,8 +45,8 @@ def _write_run_checkpoint(workdir, params, step=5):
     state = state.replace(ema_params=jax.tree.map(lambda x: 0.5 * x, params))
     config = ml_collections.ConfigDict({"model": {"preset": "tiny", "dtype": "", "action_horizon": 0}})
     checkpoints = Checkpoints(os.path.join(workdir, "checkpoints"), every=1)
-    iterator = iter(grain.MapDataset.range(8).batch(2).to_iter_dataset())
-    checkpoints.save(step, state, iterator, NORM_STATS, config, force=True)
+    data_state = {"step": step, "global_batch_size": 2, "seed": 0}
+    checkpoints.save(step, state, data_state, NORM_STATS, config, force=True)
     checkpoints.wait()
     checkpoints.close()
 
