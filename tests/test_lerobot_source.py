@@ -263,6 +263,12 @@ def test_episode_out_of_range_is_an_error(tmp_path):
         LeRobotSource(root, LAYOUT).load_table([0, 7])
 
 
+def test_loading_no_episodes_is_an_error(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2, cameras={}), "v2.1")
+    with pytest.raises(ValueError, match=r"load_table needs at least one episode"):
+        LeRobotSource(root, LAYOUT).load_table([])
+
+
 def test_unsupported_codebase_version_is_an_error(tmp_path):
     root = write_dataset(tmp_path / "ds", make_episodes(1, cameras={}), "v2.1")
     info_path = root / "meta" / "info.json"

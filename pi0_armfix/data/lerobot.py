@@ -17,7 +17,8 @@ and every column in `features`):
                `file_index`); task strings in `meta/tasks.parquet`.
 
 Frame columns: `action` and `observation.state` (float32 or float64 lists), `timestamp` (seconds from
-the episode start), `frame_index` (may be missing), `episode_index`, `index`, `task_index`. Image
+the episode start), `frame_index` (may be missing), `episode_index`, `index`, `task_index`; an
+episode's rows are read in stored order, which LeRobot writes in frame order. Image
 features are stored in parquet as structs `{bytes, path}` holding PNG or JPEG bytes; video features
 are mp4 files whose frame for a row is the one at the row's timestamp (plus the episode's
 `from_timestamp` in v3.0).
@@ -727,6 +728,8 @@ class LeRobotSource:
         """Actions and state of the chosen episodes in memory; images lazy (None if `images` is
         False or the dataset has no matched camera)."""
         positions = self.positions(episodes)
+        if not positions:
+            raise ValueError(f"{self.root}: load_table needs at least one episode")
         chosen = [self._episodes[p] for p in positions]
         videos = images and any(kind == "video" for kind in self._camera_kind.values())
         if videos:

@@ -186,6 +186,8 @@ class RldsSource:
     def load_table(self, episodes: Sequence[int] | None = None, *,
                    images: bool = True) -> EpisodeTable:
         positions = self._positions(episodes)
+        if not positions:
+            raise ValueError(f"{self.root}: load_table needs at least one episode")
         blocks = list(self.iter_blocks(_KEYS, positions))
         lengths = [len(b["actions"]) for b in blocks]
         starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
