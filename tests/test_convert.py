@@ -107,6 +107,11 @@ def test_openpi_params_folder_converts_with_its_norm_stats(tmp_path, params):
         np.testing.assert_array_equal(model.state_dict()[torch_name(name)].numpy(), value)
 
 
+def test_openpi_params_subfolder_itself_is_accepted(tmp_path, params):
+    _write_openpi_checkpoint(str(tmp_path), params)
+    assert convert.locate(str(tmp_path / "params")) == ("openpi", tmp_path)
+
+
 def test_strict_key_check_lists_missing_unexpected_and_mis_shaped_names(tmp_path, params):
     arrays = _flat(params)
     del arrays["action_out_proj/bias"]

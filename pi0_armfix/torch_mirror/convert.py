@@ -9,7 +9,7 @@
     run's config; its `model` section gives the model config) and `norm_stats`;
   * an openpi checkpoint (a released one such as pi0_base, or a step of an openpi run): a folder
     holding `params/` (an orbax PyTree `{"params": ...}`; NNX's trailing "value" keys are dropped)
-    and `assets/<asset_id>/norm_stats.json`. It carries no model config: `--preset` (default pi0)
+    and `assets/<asset_id>/norm_stats.json`, or that `params/` folder itself. It carries no model config: `--preset` (default pi0)
     and `--action_horizon` say which one.
 
 The output folder gets
@@ -64,6 +64,8 @@ def locate(checkpoint: str, step: int | None = None) -> tuple[str, epath.Path]:
         raise CheckpointError(f"checkpoint folder {path} does not exist")
     if (path / "params").is_dir():
         return "openpi", path
+    if path.name == "params" and (path / "_METADATA").exists():  # openpi's own restore_params path
+        return "openpi", path.parent
     if (path / "state").is_dir():
         return "run", path
     manager_dir = path / "checkpoints" if (path / "checkpoints").is_dir() else path
