@@ -410,9 +410,10 @@ class LeRobotWriter:
         meta.mkdir(parents=True, exist_ok=True)
         (meta / "info.json").write_text(json.dumps(self._info(), indent=4))
         tasks = sorted(self._tasks.items(), key=lambda kv: kv[1])
-        stats = {key: _merge_stats([r["stats"][key] for r in self._records])
-                 for key in (ACTION, STATE)}
-        (meta / "stats.json").write_text(json.dumps(stats, indent=4))
+        if self.version != "v2.1":  # v2.1 replaced stats.json by per-episode statistics
+            stats = {key: _merge_stats([r["stats"][key] for r in self._records])
+                     for key in (ACTION, STATE)}
+            (meta / "stats.json").write_text(json.dumps(stats, indent=4))
         if self.version == "v3.0":
             self._write_v3_meta(tasks)
         else:
