@@ -41,8 +41,10 @@ FIELDS = ("mean", "std", "q01", "q99")
 
 # Bins per dim of the quantile histogram: error < 2 / DEFAULT_BINS of the dim's range.
 DEFAULT_BINS = 4096
-# Frames per internal slice of a block: keeps the float64 temporaries in cache.
-_SLICE_FRAMES = 32768
+# Values per internal slice of a block (its float64 buffers stay in cache).
+_SLICE_VALUES = 1 << 20
+# Column reductions handle this many rows per vectorized step (see `_column_reduce`).
+_ROW_GROUP = 64
 # |x| / w stays below 2**_MAX_BIN_BITS so that bin indices are exact integers in float64.
 _MAX_BIN_BITS = 50
 # Finest bin width 2**-1000 (1/w stays finite); a dim of zeros starts there and coarsens later.
@@ -69,6 +71,30 @@ class NormStats:
         return dataclasses.replace(self, **changes)
 
 
+def _column_reduce(ufunc: np.ufunc, x: np.ndarray) -> np.ndarray:
+    """`ufunc.reduce(x, axis=0)` of `[n, D]`: numpy reduces a narrow C-ordered array one short
+    row at a time, so rows are first combined `_ROW_GROUP` at a time as one long row (~8x faster
+    for D = 23)."""
+    n, width = x.shape
+    head = n - n % _ROW_GROUP
+    parts = [ufunc.reduce(x[head:], axis=0)] if head < n else []
+    if head:
+        wide = ufunc.reduce(x[:head].reshape(-1, _ROW_GROUP * width), axis=0)
+        parts.append(ufunc.reduce(wide.reshape(_ROW_GROUP, width), axis=0))
+    return ufunc.reduce(np.stack(parts), axis=0)
+
+
+def _column_sum_of_squares(x: np.ndarray) -> np.ndarray:
+    """`(x * x).sum(0)` of `[n, D]` float64, vectorized as `_column_reduce`."""
+    n, width = x.shape
+    head = n - n % _ROW_GROUP
+    total = np.einsum("nd,nd->d", x[head:], x[head:])
+    if head:
+        wide = x[:head].reshape(-1, _ROW_GROUP * width)
+        total += np.einsum("nk,nk->k", wide, wide).reshape(_ROW_GROUP, width).sum(0)
+    return total
+
+
 class StreamingStats:
     """Exact mean/std and histogram quantiles of a stream of `[n, D]` blocks (see module doc)."""
 
@@ -84,6 +110,13 @@ class StreamingStats:
         self.log2_width = np.zeros(self.width, np.int64)  # bin width of dim d is 2**log2_width[d]
         self.base = np.zeros(self.width)  # grid index of column 0 (an integer, kept as float64)
         self.counts = np.zeros((self.width, self.capacity), np.int64)
+        self._gridded = False  # whether the grid was set from the data yet
+        # Reused per-slice buffers: fresh large temporaries would cost a page fault per page.
+        self._slice_frames = max(_ROW_GROUP, _SLICE_VALUES // max(self.width, 1) // _ROW_GROUP
+                                 * _ROW_GROUP)
+        self._x64 = np.empty((self._slice_frames, self.width))
+        self._work = np.empty((self._slice_frames, self.width))
+        self._index = np.empty((self._slice_frames, self.width), np.intp)
 
     # ------------------------------------------------------------------ accumulation
 
@@ -92,31 +125,32 @@ class StreamingStats:
         x = np.asarray(x)
         if x.ndim != 2 or x.shape[1] != self.width:
             raise ValueError(f"{what}: expected blocks of shape [n, {self.width}], got {x.shape}")
-        for start in range(0, len(x), _SLICE_FRAMES):
-            self._update_slice(x[start:start + _SLICE_FRAMES], what)
+        for start in range(0, len(x), self._slice_frames):
+            self._update_slice(x[start:start + self._slice_frames], what)
 
     def _update_slice(self, x: np.ndarray, what: str) -> None:
         n = len(x)
         if n == 0:
             return
-        x64 = x.astype(np.float64)
-        block_min, block_max = x64.min(0), x64.max(0)
+        block_min, block_max = _column_reduce(np.minimum, x), _column_reduce(np.maximum, x)
         if not (np.isfinite(block_min).all() and np.isfinite(block_max).all()):
             bad = np.flatnonzero(~(np.isfinite(block_min) & np.isfinite(block_max)))
             raise ValueError(f"{what} has non-finite values (NaN or inf) in dim(s) {bad.tolist()}")
-        block_mean = x64.sum(0) / n
-        deviation = x64 - block_mean
-        block_m2 = np.einsum("nd,nd->d", deviation, deviation)
-        self._merge_moments(n, block_mean, block_m2)
+        x64, work, index = self._x64[:n], self._work[:n], self._index[:n]
+        np.copyto(x64, x)
+        block_mean = _column_reduce(np.add, x64) / n
+        np.subtract(x64, block_mean, out=work)
+        self._merge_moments(n, block_mean, _column_sum_of_squares(work))
         self.min = np.minimum(self.min, block_min)
         self.max = np.maximum(self.max, block_max)
         self._fit_grid()
         # Flat bin index: (x / w - base) + d * (capacity + 1). x / w is exact (w a power of two);
         # the extra column per dim catches a value that rounds up onto the top edge.
         stride = self.capacity + 1
-        scaled = x64 * np.exp2(-self.log2_width.astype(np.float64))
-        scaled -= self.base - np.arange(self.width) * stride
-        flat = np.bincount(scaled.astype(np.intp).ravel(), minlength=self.width * stride)
+        np.multiply(x64, np.exp2(-self.log2_width.astype(np.float64)), out=work)
+        np.subtract(work, self.base - np.arange(self.width) * stride, out=work)
+        np.copyto(index, work, casting="unsafe")  # truncation = floor: the values are >= 0
+        flat = np.bincount(index.ravel(), minlength=self.width * stride)
         flat = flat.reshape(self.width, stride)
         flat[:, -2] += flat[:, -1]
         self.counts += flat[:, :-1]
@@ -130,18 +164,19 @@ class StreamingStats:
 
     def _fit_grid(self) -> None:
         """Coarsens / re-bases the dims whose grid no longer covers [min, max]."""
-        for d in range(self.width):
+        if self._gridded:
+            inverse_width = np.exp2(-self.log2_width.astype(np.float64))
+            covered = ((np.floor(self.min * inverse_width) >= self.base)
+                       & (np.floor(self.max * inverse_width) < self.base + self.capacity))
+        else:
+            covered = np.zeros(self.width, bool)
+        for d in np.flatnonzero(~covered):
             lo, hi = self.min[d], self.max[d]
-            k = self.log2_width[d]
-            if self.counts[d].any():
-                if (self._grid_index(lo, k) >= self.base[d]
-                        and self._grid_index(hi, k) < self.base[d] + self.capacity):
-                    continue
-            else:
-                k = self._initial_log2_width(lo, hi)
+            k = self.log2_width[d] if self._gridded else self._initial_log2_width(lo, hi)
             while self._grid_index(hi, k) - self._grid_index(lo, k) >= self.capacity:
                 k += 1
             self._regrid(d, k, self._grid_index(lo, k))
+        self._gridded = True
 
     def _initial_log2_width(self, lo: float, hi: float) -> int:
         magnitude = max(abs(lo), abs(hi))
@@ -167,31 +202,6 @@ class StreamingStats:
             np.add.at(self.counts[d], index.astype(np.intp), old[occupied])
         self.log2_width[d] = log2_width
         self.base[d] = base
-
-    def merge(self, other: "StreamingStats") -> None:
-        """Adds the frames seen by `other` (same width and bins), e.g. from another thread."""
-        if (other.width, other.bins) != (self.width, self.bins):
-            raise ValueError(f"cannot merge stats of width/bins {(other.width, other.bins)} into "
-                             f"{(self.width, self.bins)}")
-        if other.count == 0:
-            return
-        other_counts = [(other.log2_width[d], other.base[d], other.counts[d])
-                        for d in range(self.width)]
-        self._merge_moments(other.count, other.mean, other.m2)
-        self.min = np.minimum(self.min, other.min)
-        self.max = np.maximum(self.max, other.max)
-        for d in range(self.width):
-            k = max(self.log2_width[d], other.log2_width[d]) if self.counts[d].any() else \
-                other.log2_width[d]
-            while (self._grid_index(self.max[d], k) - self._grid_index(self.min[d], k)
-                   >= self.capacity):
-                k += 1
-            base = self._grid_index(self.min[d], k)
-            self._regrid(d, k, base)
-            other_k, other_base, counts = other_counts[d]
-            occupied = np.flatnonzero(counts)
-            index = np.floor((other_base + occupied) / 2.0**int(k - other_k)) - base
-            np.add.at(self.counts[d], index.astype(np.intp), counts[occupied])
 
     # ------------------------------------------------------------------ results
 

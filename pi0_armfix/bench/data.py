@@ -1,0 +1,199 @@
+"""Data benchmark: `python -m pi0_armfix.bench data [--frames=5000000] [flags]`.
+
+dataset   a LeRobot v3.0 root of `--frames` frames (23-D float32 actions and state, episodes of
+          `--episode_frames` on average, `--episodes_per_file` per parquet file, as LeRobot
+          writes them), generated once into `<cache>/bench-lerobot-v3-<frames>` (`--cache_dir`,
+          else $PI0_ARMFIX_CACHE, else ~/.cache/pi0_armfix). B1K-like values: base velocity
+          commands, random-walk joints, grippers at +-1, a constant torso dim.
+stats     `compute_norm_stats`' work (mean/std/q01/q99 of actions and state, one streaming pass
+          from parquet through `LeRobotSource.iter_blocks`) in a fresh child process; prints
+          frames/s (wall and per CPU second: other load on the machine shows as the gap) and the
+          child's peak RSS (VmHWM, imports included). Targets: >= 2M frames/s on 2 cores, < 1 GB.
+pipeline  the training iterator in `actions_only` mode (normalized, padded action chunks and
+          state, no images): `--batch_size` x `--horizon` chunks per step as global jax.Arrays on
+          one CPU device; samples/s over `--steps` steps after `--warmup`. Target >= 20k/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data.lerobot import LeRobotWriter
+
+_LAYOUT = "b1k_r1pro"
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m pi0_armfix.bench data")
+    parser.add_argument("--part", choices=("all", "stats", "pipeline"), default="all")
+    parser.add_argument("--frames", type=int, default=5_000_000)
+    parser.add_argument("--episode_frames", type=int, default=500)
+    parser.add_argument("--episodes_per_file", type=int, default=1000)
+    parser.add_argument("--cache_dir", default="")
+    parser.add_argument("--batch_size", type=int, default=256)
+    parser.add_argument("--horizon", type=int, default=50)
+    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--num_workers", type=int, default=0)
+    parser.add_argument("--stats_child", default="", help=argparse.SUPPRESS)
+    return parser.parse_args(argv[1:])
+
+
+# ---------------------------------------------------------------------- dataset
+
+def _episode(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """B1K-like [n, 23] float32 actions and state."""
+    t = np.arange(n)[:, None]
+    actions = np.zeros((n, 23), np.float32)
+    actions[:, 0:3] = 0.3 * np.sin(t / rng.uniform(20, 60) + rng.uniform(0, 6, 3))
+    actions[:, 3:6] = rng.normal(size=3) * 0.4
+    for arm in (slice(7, 14), slice(15, 22)):
+        actions[:, arm] = rng.normal(size=7) * 0.5 + np.cumsum(
+            rng.normal(size=(n, 7)) * 0.01, axis=0)
+    for gripper in (14, 22):
+        actions[:, gripper] = np.where((t[:, 0] // rng.integers(50, 300)) % 2, 1.0, -1.0)
+    state = actions + rng.normal(size=actions.shape).astype(np.float32) * 0.01
+    return actions, state
+
+
+def bench_root(frames: int, episode_frames: int, episodes_per_file: int,
+               cache_dir: str = "") -> Path:
+    """The benchmark dataset, generated on first use (atomically: written aside, then renamed)."""
+    cache = Path(cache_dir or os.environ.get("PI0_ARMFIX_CACHE") or
+                 Path.home() / ".cache" / "pi0_armfix")
+    root = cache / f"bench-lerobot-v3-{frames}-{episode_frames}-{episodes_per_file}"
+    if (root / "meta" / "info.json").is_file():
+        return root
+    cache.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=cache))
+    rng = np.random.default_rng(0)
+    start = time.perf_counter()
+    written = 0
+    with LeRobotWriter(staging / "dataset", version="v3.0", fps=30,
+                       episodes_per_file=episodes_per_file, row_group_size=65536) as writer:
+        while written < frames:
+            n = min(int(rng.integers(episode_frames // 2, 3 * episode_frames // 2)),
+                    frames - written)
+            actions, state = _episode(rng, max(n, 2))
+            writer.add_episode(actions, state, task="tidy up the kitchen")
+            written += len(actions)
+    os.rename(staging / "dataset", root)
+    staging.rmdir()
+    print(f"generated {written:,} frames into {root} in {time.perf_counter() - start:.0f} s")
+    return root
+
+
+# ---------------------------------------------------------------------- stats
+
+def _peak_rss_mib() -> float:
+    """This process's RSS high-water mark. /proc's VmHWM, unlike `ru_maxrss`, is not inherited
+    across exec from the (large) parent."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _stats_child(root: str) -> None:
+    """Runs in the child: one stats pass; prints timing and memory as JSON."""
+    from pi0_armfix.data import stats as stats_lib
+    from pi0_armfix.data.lerobot import LeRobotSource
+
+    source = LeRobotSource(root, ActionLayout.preset(_LAYOUT))
+    frames = int(source.episode_lengths.sum())
+    rss_before = _peak_rss_mib()
+    cpu, start = _cpu_seconds(), time.perf_counter()
+    stats_lib.compute_norm_stats(source.iter_blocks(("actions", "state")), total_frames=frames,
+                                 progress=False)
+    print(json.dumps({"frames": frames, "seconds": time.perf_counter() - start,
+                      "cpu_seconds": _cpu_seconds() - cpu, "peak_rss_mib": _peak_rss_mib(),
+                      "rss_before_mib": rss_before}))
+
+
+def bench_stats(root: Path) -> dict[str, float]:
+    """Runs `_stats_child` in a fresh process (its memory is the stats' alone)."""
+    result = subprocess.run([sys.executable, "-m", "pi0_armfix.bench", "data",
+                             f"--stats_child={root}"], capture_output=True, text=True,
+                            check=True)
+    child = json.loads(result.stdout.strip().splitlines()[-1])
+    return {**child, "frames_per_s": child["frames"] / child["seconds"],
+            "frames_per_cpu_s": child["frames"] / child["cpu_seconds"]}
+
+
+# ---------------------------------------------------------------------- pipeline
+
+def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup: int,
+                   num_workers: int) -> dict[str, float]:
+    import jax
+    import ml_collections
+
+    from pi0_armfix.data import pipeline
+    from pi0_armfix.data import stats as stats_lib
+
+    config = ml_collections.ConfigDict({
+        "seed": 0, "eval": {"episodes": 0},
+        "data": {"root": str(root), "format": "lerobot", "norm": "zscore", "curriculum": (),
+                 "num_workers": num_workers, "prefetch": 2}})
+    layout = ActionLayout.preset(_LAYOUT)
+    stats_path = root / "bench_norm_stats.json"
+    if not stats_path.is_file():
+        stats_lib.save_norm_stats(stats_path, pipeline.dataset_norm_stats(config, layout))
+    stats = stats_lib.load_norm_stats(stats_path)
+    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    start = time.perf_counter()
+    iterator = pipeline.make_train_iterator(config, layout, norm_stats=stats,
+                                            action_horizon=horizon, global_batch_size=batch_size,
+                                            sharding=sharding, actions_only=True)
+    setup = time.perf_counter() - start
+    try:
+        for _ in range(warmup):
+            jax.block_until_ready(next(iterator))
+        start = time.perf_counter()
+        for _ in range(steps):
+            jax.block_until_ready(next(iterator))
+        seconds = time.perf_counter() - start
+    finally:
+        iterator.close()
+    return {"samples_per_s": steps * batch_size / seconds, "steps": steps,
+            "batch_size": batch_size, "setup_s": setup}
+
+
+def main(argv: list[str]) -> None:
+    args = _parse(argv)
+    if args.stats_child:
+        _stats_child(args.stats_child)
+        return
+    root = bench_root(args.frames, args.episode_frames, args.episodes_per_file, args.cache_dir)
+    print(f"dataset: {root} (LeRobot v3.0, {args.frames:,} frames, {os.cpu_count()} cores)")
+    if args.part in ("all", "stats"):
+        stats = bench_stats(root)
+        print(f"stats:    {stats['frames']:,} frames (actions + state, 23-D) in "
+              f"{stats['seconds']:.2f} s = {stats['frames_per_s'] / 1e6:.2f} M frames/s "
+              f"(target >= 2; {stats['cpu_seconds']:.2f} CPU s, "
+              f"{stats['frames_per_cpu_s'] / 1e6:.2f} M frames per CPU s); peak RSS "
+              f"{stats['peak_rss_mib']:.0f} MiB (target < 1 GB; {stats['rss_before_mib']:.0f} "
+              f"MiB before the pass); load average {os.getloadavg()[0]:.1f}")
+    if args.part in ("all", "pipeline"):
+        result = bench_pipeline(root, args.batch_size, args.horizon, args.steps, args.warmup,
+                                args.num_workers)
+        print(f"pipeline: {result['samples_per_s']:,.0f} samples/s (target >= 20,000): "
+              f"batches of {result['batch_size']} normalized, padded chunks of "
+              f"{args.horizon} x 32 + state as jax.Arrays, no images, "
+              f"{args.num_workers} workers; setup (table load) {result['setup_s']:.1f} s")
