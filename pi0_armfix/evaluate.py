@@ -1,0 +1,307 @@
+"""Held-out evaluation with actions sampled by the policy: is an arm stagnating? (DESIGN §7)
+
+During training (every `eval.every` steps) and offline on a checkpoint:
+
+    python -m pi0_armfix.evaluate --workdir=runs/arm_focused [--step=N] [--params=ema|params]
+
+The held-out set is the dataset's last `eval.episodes` episodes (never trained on); up to
+`eval.max_chunks` chunks start at evenly spaced frames of them, the same chunks at every
+evaluation, and the policy samples each chunk from the same noise (`eval.num_steps` Euler steps),
+so two evaluations differ only by the params. Per group g (normalized units):
+
+  err/<g>                MSE of the sampled chunk against the true chunk.
+  motion_gain/<g>        least-squares slope of predicted on true displacement; 1 = moves as far
+                         as the data, 0 = stagnation (the headline stagnation measure).
+  motion_ratio/<g>       ratio of displacement magnitudes (inflated by sampling noise).
+  gripper_switch_recall  fraction of the data's gripper open/close switches the policy makes too.
+
+A displacement is the chunk's last valid action minus its first (the current one); for a velocity
+group (`eval.velocity_groups`, the base) it is the chunk's mean. A gripper switch is a crossing of
+the midpoint of the dim's 1%/99% quantiles between two consecutive steps, counted per (chunk, dim,
+direction). Figures: predicted vs true trajectories of the chunks that move the `eval.plot_groups`
+most, and the per-group loss curves of `metrics.jsonl`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import ml_collections
+import numpy as np
+from absl import app, flags
+from etils import epath
+from tqdm import tqdm
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import pipeline, sources, transforms
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import policy
+from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.training import checkpoint, plots
+from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import sharding as sharding_lib
+
+TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
+
+
+# ---------------------------------------------------------------------- metrics
+
+def _last_valid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`x[n, last valid h]` -> `[N, D]` (the tail of a chunk at an episode end is padding)."""
+    last = np.maximum(valid.sum(axis=1) - 1, 0)
+    return x[np.arange(len(x)), last]
+
+
+def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """How far a chunk moves, `[N, D]`: last valid action minus the first (the current one) on
+    position dims; the mean over the valid steps on velocity dims (a velocity is a motion already).
+
+    Args:
+      chunk: `[N, H, D]`; valid: `[N, H]` bool; velocity: `[D]` bool.
+    """
+    position = _last_valid(chunk, valid) - chunk[:, 0]
+    w = valid[..., None].astype(chunk.dtype)
+    mean = (chunk * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
+    return np.where(velocity, mean, position)
+
+
+def _switches(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray) -> np.ndarray:
+    """`[N, D, 2]` bool: whether the chunk crosses `threshold` upwards / downwards between two
+    consecutive valid steps (a gripper opening / closing)."""
+    above = chunk > threshold
+    both_valid = (valid[:, 1:] & valid[:, :-1])[..., None]
+    up = (~above[:, :-1] & above[:, 1:] & both_valid).any(axis=1)
+    down = (above[:, :-1] & ~above[:, 1:] & both_valid).any(axis=1)
+    return np.stack([up, down], axis=-1)
+
+
+def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
+                  layout: ActionLayout, velocity_groups: Sequence[str],
+                  gripper_groups: Sequence[str], gripper_threshold: np.ndarray
+                  ) -> dict[str, float]:
+    """Stagnation metrics of sampled chunks against the true ones (see the module docstring).
+
+    Args:
+      predicted, true: `[N, H, D]` normalized action chunks.
+      valid: `[N, H]` bool, False on the padded tail of a chunk at an episode end.
+      velocity_groups: groups whose actions are velocities.
+      gripper_groups: groups whose dims are open/close commands.
+      gripper_threshold: `[D]` the open/close boundary of each dim, normalized units.
+    Returns:
+      `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group, `gripper_switch_recall`;
+      NaN where the data gives nothing to measure (no motion, no switch).
+    """
+    velocity = np.zeros(layout.action_dim, bool)
+    for g in velocity_groups:
+        velocity[layout.group_dims(g)] = True
+    dp = displacement(predicted, valid, velocity)
+    dt = displacement(true, valid, velocity)
+    sq_err = np.square(predicted - true)
+    w = valid[..., None].astype(np.float64)
+    metrics = {}
+    for g in layout.group_names:
+        dims = layout.group_dims(g)
+        metrics[f"err/{g}"] = float((sq_err[..., dims] * w).sum() / max(w.sum() * len(dims), 1.0))
+        true_motion = float(np.sum(dt[:, dims] ** 2))
+        metrics[f"motion_gain/{g}"] = (float(np.sum(dp[:, dims] * dt[:, dims]) / true_motion)
+                                       if true_motion > 0 else float("nan"))
+        true_norm = float(np.linalg.norm(dt[:, dims], axis=-1).sum())
+        metrics[f"motion_ratio/{g}"] = (
+            float(np.linalg.norm(dp[:, dims], axis=-1).sum() / true_norm)
+            if true_norm > 0 else float("nan"))
+    dims = np.concatenate([layout.group_dims(g) for g in gripper_groups] + [np.zeros(0, int)])
+    true_switch = _switches(true[..., dims], valid, gripper_threshold[dims])
+    pred_switch = _switches(predicted[..., dims], valid, gripper_threshold[dims])
+    num_true = int(true_switch.sum())
+    metrics["gripper_switch_recall"] = (float((true_switch & pred_switch).sum() / num_true)
+                                        if num_true else float("nan"))
+    return metrics
+
+
+def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_devices: int
+                      ) -> None:
+    """Raises ValueError naming the `eval.*` key the evaluation cannot run with."""
+    for field in ("velocity_groups", "gripper_groups", "plot_groups"):
+        unknown = [g for g in eval_cfg[field] if g not in layout.groups]
+        if unknown:
+            raise ValueError(f"eval.{field} names {unknown}, which are not groups of the layout "
+                             f"({list(layout.group_names)})")
+    if eval_cfg["batch_size"] <= 0 or eval_cfg["batch_size"] % num_devices:
+        raise ValueError(f"eval.batch_size = {eval_cfg['batch_size']} must be a positive multiple "
+                         f"of the number of devices ({num_devices})")
+    if eval_cfg["max_chunks"] < eval_cfg["batch_size"]:
+        raise ValueError(f"eval.max_chunks = {eval_cfg['max_chunks']} must be at least "
+                         f"eval.batch_size = {eval_cfg['batch_size']}")
+    if eval_cfg["num_steps"] <= 0:
+        raise ValueError(f"eval.num_steps = {eval_cfg['num_steps']} must be positive")
+
+
+# ---------------------------------------------------------------------- the evaluator
+
+class Evaluator:
+    """Samples the fixed held-out chunks with given params and measures them.
+
+    Built once per run (reads the held-out episodes, compiles the sampler on first use).
+
+    Args:
+      config: the run config (`data`, `eval`, `seed`).
+      layout, model_config: the run's action layout and model.
+      norm_stats: the run's `{"actions", "state"}` statistics.
+      tokenize: the run's prompt tokenizer.
+      mesh: the run's mesh; params_sharding: NamedShardings of the params.
+    """
+
+    def __init__(self, config: ml_collections.ConfigDict, layout: ActionLayout,
+                 model_config: model_config_lib.Pi0Config,
+                 norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
+                 mesh: jax.sharding.Mesh, params_sharding: Any):
+        eval_cfg = config.eval
+        check_eval_config(eval_cfg, layout, mesh.size)
+        self.layout = layout
+        self.eval_cfg = eval_cfg
+        table = pipeline.heldout_table(config, layout)
+        transform = pipeline.BatchTransform(
+            table, layout, norm_stats=norm_stats, norm_mode=config.data.norm,
+            action_horizon=model_config.action_horizon,
+            delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
+            tokenize=tokenize)
+        batch_size = eval_cfg.batch_size
+        num_chunks = min(eval_cfg.max_chunks, table.num_frames) // batch_size * batch_size
+        if num_chunks == 0:
+            raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) have "
+                             f"{table.num_frames} frames, fewer than eval.batch_size = "
+                             f"{batch_size}")
+        frames = np.linspace(0, table.num_frames - 1, num_chunks).round().astype(np.int64)
+        self.batches = [transform(frames[i:i + batch_size])
+                        for i in range(0, num_chunks, batch_size)]
+        actions = transform.action_norm.width
+        stats = stats_lib.fit_width(norm_stats["actions"], actions, "norm stats 'actions'")
+        self.gripper_threshold = transforms.pad_last(
+            transform.action_norm((stats.q01 + stats.q99) / 2), layout.action_dim)
+        self.batch_sharding = sharding_lib.batch_sharding(mesh)
+        self.seed = int(config.seed)
+        self._sample = jax.jit(
+            functools.partial(policy.sample_actions, config=model_config,
+                              num_steps=eval_cfg.num_steps),
+            in_shardings=(params_sharding, None, self.batch_sharding),
+            out_shardings=sharding_lib.replicated(mesh))
+
+    def _global(self, x: np.ndarray) -> jax.Array:
+        """This process's rows of a host batch `x` as a global array."""
+        per_process = len(x) // jax.process_count()
+        start = jax.process_index() * per_process
+        return jax.make_array_from_process_local_data(self.batch_sharding,
+                                                      x[start:start + per_process], x.shape)
+
+    def sample(self, params: Any) -> np.ndarray:
+        """Sampled chunks `[N, H, D]` of all held-out chunks (the same noise every call)."""
+        predicted = []
+        for i, batch in enumerate(tqdm(self.batches, desc="eval", leave=False,
+                                       disable=jax.process_index() != 0)):
+            observation = jax.tree.map(self._global, {k: v for k, v in batch.items()
+                                                      if k not in ("actions", "action_is_pad")})
+            rng = jax.random.fold_in(jax.random.key(self.seed), i)
+            predicted.append(np.asarray(self._sample(params, rng, observation)))
+        return np.concatenate(predicted)
+
+    def __call__(self, params: Any) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+        """Returns the metrics, and the predicted and true chunks `[N, H, D]`."""
+        predicted = self.sample(params)
+        true = np.concatenate([b["actions"] for b in self.batches])
+        valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
+        metrics = chunk_metrics(
+            predicted, true, valid, layout=self.layout,
+            velocity_groups=self.eval_cfg.velocity_groups,
+            gripper_groups=self.eval_cfg.gripper_groups,
+            gripper_threshold=self.gripper_threshold)
+        return metrics, predicted, true
+
+    def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
+             title: str) -> None:
+        """Trajectory figure of the chunks whose `eval.plot_groups` move most in the data."""
+        dims = np.concatenate([self.layout.group_dims(g) for g in self.eval_cfg.plot_groups])
+        valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
+        motion = np.linalg.norm(displacement(true, valid, np.zeros(true.shape[-1], bool))[:, dims],
+                                axis=-1)
+        rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
+        plots.plot_trajectories(predicted[rows], true[rows], self.layout,
+                                self.eval_cfg.plot_groups, path, title)
+
+
+def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
+    """A table: one row per group (err, motion gain, motion ratio), then the gripper recall."""
+    lines = [f"{'group':<16}{'err':>10}{'motion_gain':>13}{'motion_ratio':>14}"]
+    for g in layout.group_names:
+        lines.append(f"{g:<16}{metrics[f'err/{g}']:>10.4f}{metrics[f'motion_gain/{g}']:>13.3f}"
+                     f"{metrics[f'motion_ratio/{g}']:>14.3f}")
+    lines.append(f"gripper_switch_recall {metrics['gripper_switch_recall']:.3f}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- offline entrypoint
+
+def norm_stats_from_json(payload: Mapping[str, Any]) -> dict[str, stats_lib.NormStats]:
+    """`{"norm_stats": {key: {mean, std, q01, q99}}}` (as checkpointed) -> `{key: NormStats}`."""
+    return {key: stats_lib.NormStats(**{f: np.asarray(entry[f], np.float64)
+                                        for f in stats_lib.FIELDS})
+            for key, entry in payload["norm_stats"].items()}
+
+
+def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
+                        params_name: str = "ema"
+                        ) -> tuple[int, dict[str, float], ActionLayout]:
+    """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
+    writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
+    the run kept them, else the params) or "params". Returns `(step, metrics, layout)`."""
+    workdir = epath.Path(workdir)
+    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
+    step = ckpts.latest_step() if step is None else step
+    if step is None or step not in ckpts.all_steps():
+        raise ValueError(f"{workdir / 'checkpoints'} has no checkpoint "
+                         f"{'at all' if step is None else f'of step {step}'} "
+                         f"(steps: {ckpts.all_steps()})")
+    mesh = sharding_lib.make_mesh(1)
+    state, norm_stats, config = ckpts.restore_for_eval(step, mesh)
+    layout = ActionLayout.from_config(config.layout)
+    model_config = model_config_lib.from_model_config(config.model)
+    params = state["ema_params"] if params_name == "ema" and state.get("ema_params") else \
+        state["params"]
+    tokenize = tokenizer_lib.make_tokenizer(
+        config.model, prompts=sources.open_source(config.data, layout).tasks)
+    with jax.set_mesh(mesh):
+        evaluator = Evaluator(config, layout, model_config, norm_stats_from_json(norm_stats),
+                              tokenize, mesh=mesh,
+                              params_sharding=sharding_lib.tree_shardings(params, mesh))
+        metrics, predicted, true = evaluator(params)
+    out = workdir / "eval" / f"step_{step}"
+    out.mkdir(parents=True, exist_ok=True)
+    evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
+                   "vs true (solid)")
+    plots.plot_group_losses(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE), layout,
+                            out / "group_losses.png")
+    return step, metrics, layout
+
+
+def main(argv: Sequence[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    FLAGS = flags.FLAGS
+    try:
+        step, metrics, layout = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params)
+    except ValueError as e:
+        raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
+    print(f"step {step}, held-out chunks sampled by the policy:")
+    print(format_metrics(metrics, layout))
+    print(f"figures in {epath.Path(FLAGS.workdir) / 'eval' / f'step_{step}'}")
+
+
+if __name__ == "__main__":
+    flags.DEFINE_string("workdir", None, "run folder (holds checkpoints/)", required=True)
+    flags.DEFINE_integer("step", None, "checkpoint step (default: the latest)")
+    flags.DEFINE_enum("params", "ema", ["ema", "params"],
+                      "the EMA params (when the run kept them) or the raw params")
+    app.run(main)

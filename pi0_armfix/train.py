@@ -1,0 +1,293 @@
+"""Trains a pi0 policy: `python -m pi0_armfix.train --config=configs/arm_focused.py`.
+
+    python -m pi0_armfix.train --config=configs/<name>.py[:b1k] [--workdir=DIR] [--config.a.b=v ...]
+
+Without `--workdir` the run folder is `runs/<name>[_<arg>]`. A run folder that holds checkpoints
+is resumed from the latest one: params, optimizer, EMA, loss-balancer state and data position, so
+a resumed run ends bitwise where an uninterrupted one would (on the same devices).
+
+Everything a user can get wrong (config, layout, data, checkpoint) fails before the first step.
+A non-finite loss stops the run with the step that produced it; checkpoints are only written
+after every loss since the previous one was checked finite, so the last one stays good.
+
+The run folder:
+  checkpoints/<step>/   orbax: state, data iterator, norm stats, config
+  norm_stats.json       the run's normalization stats (computed on first start, reused on resume)
+  metrics.jsonl         training records every `train.log_every` steps, evaluation records every
+                        `eval.every`; tensorboard/ mirrors them
+  plots/                group_losses.png, trajectories_<step>.png
+  config.json           the config of the latest start
+
+Logged training metrics (means over the steps since the previous record): `loss`,
+`loss/<group>` (unweighted), `weight/<group>` (effective), `grad_norm`; and `lr`, `phase`
+(curriculum phase of the last step), `steps_per_sec` and `data_wait` (fraction of the wall time
+spent waiting for the next batch). A record equals an uninterrupted run's when
+`train.checkpoint_every` is a multiple of `train.log_every` (the defaults).
+
+Multi-process (one process per host, or several CPU processes on one host, see launch/):
+    --coordinator_address=HOST:PORT --num_processes=N --process_id=I
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import ml_collections
+import numpy as np
+from absl import app, flags, logging
+from etils import epath
+from ml_collections import config_flags
+from tqdm import tqdm
+
+from pi0_armfix import evaluate
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import pipeline, sources
+from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import policy, pretrained
+from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.training import checkpoint, plots
+from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import optimizer as optimizer_lib
+from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix.training import state as state_lib
+from pi0_armfix.training import step as step_lib
+
+
+class NonFiniteLossError(RuntimeError):
+    """The loss of a step is NaN or infinite."""
+
+
+def check_train_config(train: Mapping[str, Any]) -> None:
+    for field in ("total_steps", "log_every", "checkpoint_every", "keep_checkpoints"):
+        if int(train[field]) <= 0:
+            raise ValueError(f"train.{field} = {train[field]} must be positive")
+
+
+def _check_finite(window: Sequence[tuple[int, Mapping[str, jax.Array]]]) -> None:
+    """Raises NonFiniteLossError naming the first step of `window` whose loss or gradient norm is
+    not finite (a non-finite gradient would have poisoned the params it updated)."""
+    values = jax.device_get([(m["loss"], m["grad_norm"]) for _, m in window])
+    for (step, _), (loss, grad_norm) in zip(window, values):
+        if not (np.isfinite(loss) and np.isfinite(grad_norm)):
+            raise NonFiniteLossError(
+                f"step {step} has loss {float(loss)} and gradient norm {float(grad_norm)}: "
+                f"stopping. The last checkpoint (before step {step}) is intact; lower optim.lr or "
+                "raise optim.warmup_steps, then resume from it")
+
+
+def _summarize(window: Sequence[tuple[int, Mapping[str, jax.Array]]]) -> dict[str, float]:
+    """Means over the window of the step metrics; `lr` of the last step."""
+    values = jax.device_get([m for _, m in window])
+    record = {name: float(np.mean([v[name] for v in values])) for name in values[-1]}
+    record["lr"] = float(values[-1]["lr"])
+    return record
+
+
+def _init_state(config: ml_collections.ConfigDict, model_config, layout: ActionLayout, tx,
+                state_shardings, params_shardings) -> state_lib.TrainState:
+    """The step-0 state: pretrained params (`model.pretrained`) or a random init, sharded."""
+    create = functools.partial(state_lib.create_train_state, tx=tx, loss_cfg=config.loss,
+                               layout=layout, ema_decay=config.optim.ema_decay)
+    if config.model.pretrained:
+        params = pretrained.load_pretrained(config.model.pretrained, model_config,
+                                            shardings=params_shardings)
+        return jax.jit(create, in_shardings=(params_shardings,),
+                       out_shardings=state_shardings)(params)
+    init = lambda rng: create(policy.init_params(model_config, rng))  # noqa: E731
+    return jax.jit(init, out_shardings=state_shardings)(jax.random.key(config.seed))
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
+    """Runs (or resumes) training in `workdir`; returns the last training record (on process 0;
+    {} on the others)."""
+    workdir = epath.Path(workdir)
+    is_main = jax.process_index() == 0
+
+    # Everything a user can get wrong fails here, before any step.
+    layout = ActionLayout.from_config(config.layout)
+    model_config = model_config_lib.from_model_config(config.model)
+    if model_config.action_dim != layout.action_dim:
+        raise ValueError(f"layout.action_dim = {layout.action_dim} but the model preset "
+                         f"{config.model.preset!r} has action_dim {model_config.action_dim}")
+    step_lib.check_loss_config(config.loss, layout)
+    check_train_config(config.train)
+    if config.data.root is None:
+        raise ValueError("data.root is unset: the b1k scale needs --config.data.root=<LeRobot "
+                         "B1K root> ('' = the built-in demo dataset)")
+    total_steps = config.train.total_steps
+    tx, schedule = optimizer_lib.make_optimizer(config.optim, total_steps)
+    mesh = sharding_lib.make_mesh(config.sharding.fsdp)
+    sharding_lib.check_batch_size(config.train.batch_size, mesh, "train.batch_size")
+    batch_sharding = sharding_lib.batch_sharding(mesh)
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    norm_stats = pipeline.load_or_compute_norm_stats(
+        config, layout, cache_path=workdir / "norm_stats.json", progress=is_main)
+    tokenize = tokenizer_lib.make_tokenizer(
+        config.model, prompts=sources.open_source(config.data, layout).tasks)
+    train_iter = pipeline.make_train_iterator(
+        config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
+        global_batch_size=config.train.batch_size, sharding=batch_sharding, tokenize=tokenize)
+
+    abstract_state = jax.eval_shape(
+        lambda: state_lib.create_train_state(
+            policy.param_shapes(model_config), tx=tx, loss_cfg=config.loss, layout=layout,
+            ema_decay=config.optim.ema_decay))
+    state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
+    evaluator = None
+    if config.eval.every > 0:
+        evaluator = evaluate.Evaluator(config, layout, model_config, norm_stats, tokenize,
+                                       mesh=mesh, params_sharding=state_shardings.params)
+    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", every=config.train.checkpoint_every,
+                                   keep=config.train.keep_checkpoints)
+    norm_stats_json = {"norm_stats": {k: v.to_json() for k, v in norm_stats.items()}}
+    if is_main:
+        (workdir / "config.json").write_text(config.to_json_best_effort(indent=2))
+
+    with jax.set_mesh(mesh):
+        start = ckpts.latest_step() or 0
+        if start:
+            state, data_state = ckpts.restore(start, jax.tree.map(
+                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                abstract_state, state_shardings))
+            train_iter.set_state(data_state)
+            _say(f"resumed from {ckpts.directory / str(start)}")
+        else:
+            state = _init_state(config, model_config, layout, tx, state_shardings,
+                                state_shardings.params)
+        train_step = jax.jit(
+            functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
+                              model_config=model_config, loss_cfg=config.loss, layout=layout,
+                              tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay),
+            in_shardings=(state_shardings, batch_sharding),
+            out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
+            donate_argnums=0)
+
+        writer = metrics_lib.MetricsWriter(workdir, resume_step=start)
+        window: list[tuple[int, Mapping[str, jax.Array]]] = []
+        checked = 0  # window entries known to be finite
+        phase = train_iter.phase
+        wait, window_start = 0.0, time.perf_counter()
+        try:
+            with tqdm(total=total_steps, initial=start, desc="train", unit="step",
+                      disable=not is_main, dynamic_ncols=True) as bar:
+                for step in range(start + 1, total_steps + 1):  # `step` steps done after this one
+                    fetch_start = time.perf_counter()
+                    batch = next(train_iter)
+                    wait += time.perf_counter() - fetch_start
+                    if train_iter.phase != phase:
+                        phase = train_iter.phase
+                        _say(f"curriculum phase {phase} from step {step - 1}: "
+                             f"{train_iter.curriculum.phases[phase].weights}")
+                    state, step_metrics = train_step(state, batch)
+                    window.append((step, step_metrics))
+                    bar.update()
+
+                    last = step == total_steps
+                    if step % config.train.log_every == 0 or last:
+                        _check_finite(window[checked:])
+                        elapsed = time.perf_counter() - window_start
+                        record = {**_summarize(window), "phase": phase,
+                                  "steps_per_sec": len(window) / elapsed,
+                                  "data_wait": wait / elapsed}
+                        writer.write(step, record)
+                        bar.set_postfix(loss=f"{record['loss']:.4f}", phase=phase)
+                        window, checked = [], 0
+                        wait, window_start = 0.0, time.perf_counter()
+                    if step % config.train.checkpoint_every == 0 or last:
+                        _check_finite(window[checked:])
+                        checked = len(window)
+                        ckpts.save(step, state, train_iter.get_state(), norm_stats_json, config,
+                                   force=last)
+                    if evaluator is not None and (step % config.eval.every == 0 or last):
+                        _evaluate(evaluator, state, step, writer, workdir, layout)
+                        window_start = time.perf_counter()
+        finally:
+            ckpts.wait()
+            ckpts.close()
+            writer.close()
+            train_iter.close()
+    if not is_main:
+        return {}
+    records = metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)
+    plots.plot_group_losses(records, layout, _plots_dir(workdir) / "group_losses.png")
+    return [r for r in records if "loss" in r][-1]
+
+
+def _say(message: str) -> None:
+    """A line on the console of process 0 that does not break the progress bar."""
+    if jax.process_index() == 0:
+        tqdm.write(message)
+
+
+def _plots_dir(workdir: epath.Path) -> epath.Path:
+    path = workdir / "plots"
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: int,
+              writer: metrics_lib.MetricsWriter, workdir: epath.Path,
+              layout: ActionLayout) -> None:
+    params = state.ema_params if state.ema_params is not None else state.params
+    metrics, predicted, true = evaluator(params)
+    writer.write(step, metrics)
+    _say(f"step {step} held-out evaluation (sampled actions):\n"
+         + evaluate.format_metrics(metrics, layout))
+    if jax.process_index() == 0:
+        evaluator.plot(predicted, true, _plots_dir(workdir) / f"trajectories_{step}.png",
+                       f"step {step}: predicted (dashed) vs true (solid), held-out chunks")
+
+
+def format_record(record: Mapping[str, float], layout: ActionLayout) -> str:
+    """The final per-group losses and weights as a table."""
+    lines = [f"{'group':<16}{'loss':>10}{'weight':>10}"]
+    for g in layout.group_names:
+        lines.append(f"{g:<16}{record[f'loss/{g}']:>10.4f}{record[f'weight/{g}']:>10.3f}")
+    lines.append(f"{'total (weighted)':<16}{record['loss']:>10.4f}")
+    return "\n".join(lines)
+
+
+def default_workdir(config_filename: str) -> str:
+    """`runs/<config file stem>[_<arg>]` for `--config=configs/<stem>.py[:<arg>]`."""
+    path, _, arg = config_filename.partition(":")
+    return str(epath.Path("runs") / (epath.Path(path).stem + (f"_{arg}" if arg else "")))
+
+
+FLAGS = flags.FLAGS
+config_flags.DEFINE_config_file("config", None, "experiment config: configs/<name>.py[:b1k]",
+                                lock_config=True)
+flags.DEFINE_string("workdir", None, "run folder (default runs/<config name>); resumed when it "
+                    "holds checkpoints")
+flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (multi-process runs)")
+flags.DEFINE_integer("num_processes", 1, "number of processes (multi-process runs)")
+flags.DEFINE_integer("process_id", 0, "index of this process (multi-process runs)")
+flags.mark_flag_as_required("config")
+
+
+def main(argv: Sequence[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    if not FLAGS["verbosity"].present:  # orbax logs every file it writes at INFO
+        logging.set_verbosity(logging.WARNING)
+    if FLAGS.num_processes > 1:
+        jax.distributed.initialize(FLAGS.coordinator_address, FLAGS.num_processes,
+                                   FLAGS.process_id)
+    config = FLAGS.config
+    workdir = FLAGS.workdir or default_workdir(config_flags.get_config_filename(FLAGS["config"]))
+    try:
+        record = train_and_evaluate(config, workdir)
+    except (ValueError, NonFiniteLossError) as e:
+        raise SystemExit(f"pi0_armfix.train: {e}") from None
+    if jax.process_index() == 0:
+        layout = ActionLayout.from_config(config.layout)
+        print(f"\nfinished {config.train.total_steps} steps in {workdir}; last logged losses "
+              f"(unweighted per group, normalized units):\n{format_record(record, layout)}")
+
+
+if __name__ == "__main__":
+    app.run(main)
