@@ -127,6 +127,14 @@ class Pi0Config:
         for field in ("vocab_size", "action_dim", "action_horizon", "max_token_len"):
             if getattr(self, field) <= 0:
                 raise ValueError(f"{field}={getattr(self, field)} must be positive")
+        aug = self.augment
+        if not 0.0 < aug.crop_scale <= 1.0:
+            raise ValueError(f"augment.crop_scale={aug.crop_scale} must be in (0, 1]")
+        if aug.rotate_degrees < 0.0:
+            raise ValueError(f"augment.rotate_degrees={aug.rotate_degrees} must be >= 0")
+        for field in ("brightness", "contrast", "saturation"):
+            if not 0.0 <= getattr(aug, field) < 1.0:
+                raise ValueError(f"augment.{field}={getattr(aug, field)} must be in [0, 1)")
 
     @property
     def num_image_tokens(self) -> int:
@@ -215,4 +223,4 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
         changes["dtype"] = model_cfg["dtype"]
     if model_cfg.get("action_horizon"):
         changes["action_horizon"] = int(model_cfg["action_horizon"])
-    return get_preset(model_cfg.get("preset", "demo"), **changes)
+    return get_preset(model_cfg["preset"], **changes)
