@@ -130,11 +130,9 @@ def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, progress: bo
     Actions are in the model's action space: with `data.delta_action_mask`, the relative dims'
     statistics are those of `action - state` (frame by frame)."""
     blocks, total = training_blocks(config, layout, ("actions", "state"))
-    stats = stats_lib.compute_norm_stats(
+    return stats_lib.compute_norm_stats(
         blocks, total_frames=total, transform=delta_block_transform(config["data"], layout),
         progress=progress)
-    layout.check_real_dim(stats["actions"].width, source="the dataset's actions")
-    return stats
 
 
 def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats_lib.NormStats,
@@ -311,11 +309,13 @@ class SampleSelector:
 
 
 def source_frames(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike,
-                  sources: Sequence[str], action_stats: stats_lib.NormStats
+                  names: Sequence[str], action_stats: stats_lib.NormStats
                   ) -> dict[str, np.ndarray]:
-    """Frame indices of the table that each curriculum source draws from."""
+    """Frame indices of the table that each named curriculum source draws from. The on-the-fly
+    arm-heavy selection measures motion in z-score units of `action_stats`, as
+    `filter_arm_heavy_episodes` does with the run's stats, so both select the same episodes."""
     frames = {}
-    for name in sources:
+    for name in names:
         if name == "full":
             frames[name] = np.arange(table.num_frames)
             continue

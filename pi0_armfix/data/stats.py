@@ -26,7 +26,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import queue
+import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -346,13 +348,15 @@ def compute_norm_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions"
 # ---------------------------------------------------------------------- norm_stats.json
 
 def save_norm_stats(path: str | Path, stats: Mapping[str, NormStats]) -> None:
-    """Writes openpi's `norm_stats.json` (real widths, no padding)."""
+    """Writes openpi's `norm_stats.json` (real widths, no padding), atomically: several processes
+    of a run may write the same file at once, and a reader never sees a partial file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"norm_stats": {key: value.to_json() for key, value in stats.items()}}
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2))
-    tmp.replace(path)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
+                                     delete=False) as tmp:
+        tmp.write(json.dumps(payload, indent=2))
+    os.replace(tmp.name, path)
 
 
 def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None
