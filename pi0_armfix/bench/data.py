@@ -142,9 +142,12 @@ def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup
                    num_workers: int) -> dict[str, float]:
     import jax
     import ml_collections
+    from absl import flags
 
     from pi0_armfix.data import pipeline
     from pi0_armfix.data import stats as stats_lib
+
+    flags.FLAGS.mark_as_parsed()  # grain's worker processes read absl flags
 
     config = ml_collections.ConfigDict({
         "seed": 0, "eval": {"episodes": 0},

@@ -376,6 +376,10 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
 class TrainIterator:
     """Global batches, step after step, with a checkpointable position.
 
+    With `num_workers > 0` the batches are made in grain worker processes, which read absl flags:
+    run under `absl.app` (as `train.py` does) or call `absl.flags.FLAGS.mark_as_parsed()` first;
+    the tokenizer and the table's image reader must be picklable.
+
     Attributes:
       step: the step of the next batch.
       phase: the curriculum phase of the batch returned last (of step 0 before any).
@@ -442,7 +446,7 @@ class TrainIterator:
         self.phase = self.curriculum.phase_at(max(self.step - 1, 0))
 
     def close(self) -> None:
-        if self._iterator is not None and hasattr(self._iterator, "close"):
+        if self._iterator is not None:
             self._iterator.close()
         self._iterator = None
 
