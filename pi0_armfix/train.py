@@ -24,8 +24,9 @@ Logged training metrics (means over the steps since the previous record): `loss`
 spent waiting for the next batch). A record equals an uninterrupted run's when
 `train.checkpoint_every` is a multiple of `train.log_every` (the defaults).
 
-Multi-process (one process per host, or several CPU processes on one host, see launch/):
-    --coordinator_address=HOST:PORT --num_processes=N --process_id=I
+Multi-process (see launch/): every process runs the same command plus
+    --num_processes=N [--coordinator_address=HOST:PORT --process_id=I]
+where the bracketed flags may be left to `jax.distributed`'s cluster detection (SLURM).
 """
 
 from __future__ import annotations
@@ -263,9 +264,11 @@ config_flags.DEFINE_config_file("config", None, "experiment config: configs/<nam
                                 lock_config=True)
 flags.DEFINE_string("workdir", None, "run folder (default runs/<config name>); resumed when it "
                     "holds checkpoints")
-flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (multi-process runs)")
-flags.DEFINE_integer("num_processes", 1, "number of processes (multi-process runs)")
-flags.DEFINE_integer("process_id", 0, "index of this process (multi-process runs)")
+flags.DEFINE_integer("num_processes", 1, "number of processes; > 1 starts jax.distributed")
+flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (unset: detected from "
+                    "the cluster environment, e.g. SLURM)")
+flags.DEFINE_integer("process_id", None, "index of this process (unset: detected from the "
+                     "cluster environment, e.g. SLURM_PROCID)")
 flags.mark_flag_as_required("config")
 
 
