@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import functools
+import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -114,26 +116,31 @@ class Curriculum:
     def from_config(cls, data_cfg: Mapping[str, Any], seed: int) -> "Curriculum":
         return cls(parse_curriculum(data_cfg.get("curriculum")), int(seed))
 
-    @property
+    @functools.cached_property
     def sources(self) -> tuple[str, ...]:
         used = {s for phase in self.phases for s in phase.sources}
         return tuple(s for s in SOURCES if s in used)
 
+    @functools.cached_property
+    def _bounds(self) -> list[int]:
+        return [p.until_step for p in self.phases]
+
+    @functools.cached_property
+    def _draw_tables(self) -> list[tuple[list[float], list[int]]]:
+        """Per phase: cumulative probabilities and the positions of its sources in `sources`."""
+        return [(list(itertools.accumulate(p.probs)), [self.sources.index(s) for s in p.sources])
+                for p in self.phases]
+
     def phase_at(self, step: int) -> int:
         """Index of the phase that step `step` belongs to."""
-        bounds = [p.until_step for p in self.phases]
-        return min(bisect.bisect_right(bounds, step), len(self.phases) - 1)
+        return min(bisect.bisect_right(self._bounds, step), len(self.phases) - 1)
 
     def choose(self, global_index: int, global_batch_size: int) -> int:
         """Position in `self.sources` of the source of global sample `global_index`."""
-        phase = self.phases[self.phase_at(global_index // global_batch_size)]
+        cumulative, positions = self._draw_tables[self.phase_at(global_index // global_batch_size)]
         u = counter_uniform(self.seed, global_index)
-        cumulative = 0.0
-        for source, prob in zip(phase.sources, phase.probs):
-            cumulative += prob
-            if u < cumulative:
-                return self.sources.index(source)
-        return self.sources.index(phase.sources[-1])  # u within rounding of 1
+        # min(): u within rounding of 1 past the last cumulative probability
+        return positions[min(bisect.bisect_right(cumulative, u), len(positions) - 1)]
 
 
 def load_episode_list(path: str | Path) -> np.ndarray:

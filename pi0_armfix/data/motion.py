@@ -155,7 +155,7 @@ class MotionAccumulator:
         self._membership = membership.astype(np.float64)
         self._count = np.maximum(membership.sum(0), 1)
         self._unit = np.asarray(unit, np.float64)
-        self._carry: tuple[np.ndarray, Any] | None = None  # last frame of the previous block
+        self._carry: tuple[np.ndarray, np.ndarray] | None = None  # last frame of the previous block
         self._episodes: dict[int, int] = {}
         self._frames: list[int] = []
         self._pairs: list[int] = []
@@ -180,8 +180,8 @@ class MotionAccumulator:
             return
         self.magnitude.update(np.sqrt((actions * actions) @ self._membership / self._count))
         episodes, first, frames = np.unique(episode_index, return_index=True, return_counts=True)
-        for episode, count in zip(episodes, frames):
-            self._frames[self._row(int(episode))] += int(count)
+        for i in np.argsort(first):  # rows in stream order
+            self._frames[self._row(int(episodes[i]))] += int(frames[i])
         if self._carry is not None:
             actions = np.concatenate([self._carry[0], actions])
             episode_index = np.concatenate([self._carry[1], episode_index])
