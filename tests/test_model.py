@@ -235,7 +235,8 @@ def _with_depth(depth):
 def test_layers_are_stacked_along_depth():
     shapes = policy.param_shapes(_with_depth(5))
     assert shapes["PaliGemma"]["llm"]["layers"]["attn"]["q_einsum_1"]["w"].shape[0] == 5
-    assert shapes["PaliGemma"]["img"]["Transformer"]["encoderblock"]["LayerNorm_0"]["scale"].shape[0] == 5
+    encoder = shapes["PaliGemma"]["img"]["Transformer"]["encoderblock"]
+    assert encoder["LayerNorm_0"]["scale"].shape[0] == 5
 
 
 def test_compiled_program_size_does_not_grow_with_depth():

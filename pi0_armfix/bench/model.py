@@ -81,8 +81,8 @@ def train_step_memory(preset: str, batch_size: int) -> dict[str, float]:
     state_shardings = sharding.tree_shardings(state, mesh)
     abstract_state = jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
                                   state, state_shardings)
-    example = dict(fake_observation(config, 1), actions=np.zeros((1, config.action_horizon, config.action_dim),
-                                                                 np.float32),
+    example = dict(fake_observation(config, 1),
+                   actions=np.zeros((1, config.action_horizon, config.action_dim), np.float32),
                    action_is_pad=np.zeros((1, config.action_horizon), bool))
     batch_sharding = sharding.batch_sharding(mesh)
     abstract_batch = jax.tree.map(

@@ -115,7 +115,8 @@ class Pi0Config:
         if a.width % 2:
             raise ValueError(f"action_expert.width={a.width} must be even (sin-cos time embedding)")
         if s.width % s.num_heads:
-            raise ValueError(f"siglip.width={s.width} must be a multiple of siglip.num_heads={s.num_heads}")
+            raise ValueError(
+                f"siglip.width={s.width} must be a multiple of siglip.num_heads={s.num_heads}")
         if len(self.image_resolution) != 2 or any(r % s.patch_size for r in self.image_resolution):
             raise ValueError(
                 f"image_resolution={self.image_resolution} must be (height, width), each a multiple "
@@ -191,14 +192,16 @@ _PRESETS = {
     # Laptop CPU: 3 cameras x 16 tokens + 16 prompt tokens; 1 + 32 suffix tokens.
     "demo": Pi0Config(
         paligemma=GemmaConfig(width=128, depth=2, mlp_dim=256, num_heads=4, num_kv_heads=1, head_dim=32),
-        action_expert=GemmaConfig(width=64, depth=2, mlp_dim=128, num_heads=4, num_kv_heads=1, head_dim=32),
+        action_expert=GemmaConfig(width=64, depth=2, mlp_dim=128, num_heads=4, num_kv_heads=1,
+                                  head_dim=32),
         siglip=SiglipConfig(width=64, depth=2, mlp_dim=128, num_heads=4, patch_size=8),
         vocab_size=512, action_horizon=32, max_token_len=16,
         image_resolution=(32, 32), dtype="float32", remat=False),
     # Unit tests: grouped-query attention with 2 query heads per kv head.
     "tiny": Pi0Config(
         paligemma=GemmaConfig(width=32, depth=2, mlp_dim=64, num_heads=4, num_kv_heads=2, head_dim=8),
-        action_expert=GemmaConfig(width=16, depth=2, mlp_dim=32, num_heads=4, num_kv_heads=2, head_dim=8),
+        action_expert=GemmaConfig(width=16, depth=2, mlp_dim=32, num_heads=4, num_kv_heads=2,
+                                  head_dim=8),
         siglip=SiglipConfig(width=16, depth=2, mlp_dim=32, num_heads=2, patch_size=8),
         vocab_size=64, action_horizon=4, max_token_len=8,
         image_resolution=(16, 16), dtype="float32", remat=False),

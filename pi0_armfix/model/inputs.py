@@ -49,8 +49,8 @@ def resize_with_pad(images: jax.Array, height: int, width: int) -> jax.Array:
         images, (images.shape[0], resized_height, resized_width, images.shape[3]), method="linear")
     pad_top, extra_h = divmod(height - resized_height, 2)
     pad_left, extra_w = divmod(width - resized_width, 2)
-    return jnp.pad(resized, ((0, 0), (pad_top, pad_top + extra_h), (pad_left, pad_left + extra_w), (0, 0)),
-                   constant_values=-1.0)
+    padding = ((0, 0), (pad_top, pad_top + extra_h), (pad_left, pad_left + extra_w), (0, 0))
+    return jnp.pad(resized, padding, constant_values=-1.0)
 
 
 def _random_crop_resize(rng: jax.Array, image: jax.Array, scale: float) -> jax.Array:

@@ -26,8 +26,6 @@ Params = Mapping[str, Any]
 # Time embedding periods: sensitivity over t in [0, 1].
 TIME_MIN_PERIOD = 4e-3
 TIME_MAX_PERIOD = 4.0
-DENSE_LAYERS = ("state_proj", "action_in_proj", "action_time_mlp_in", "action_time_mlp_out",
-                "action_out_proj")
 
 
 def transformer(config: Pi0Config) -> Transformer:
@@ -99,7 +97,8 @@ def embed_prefix(params: Params, observation: Mapping[str, Any], *, config: Pi0C
     n = config.num_image_tokens
     masks = [jnp.repeat(observation["image_mask"][key][:, None], n, axis=1) for key in config.image_keys]
     tokens = jnp.concatenate([t.astype(config.dtype) for t in image_tokens] + [text_tokens], axis=1)
-    input_mask = jnp.concatenate(masks + [jnp.asarray(observation["tokenized_prompt_mask"], bool)], axis=1)
+    text_mask = jnp.asarray(observation["tokenized_prompt_mask"], bool)
+    input_mask = jnp.concatenate(masks + [text_mask], axis=1)
     return tokens, input_mask, jnp.zeros((tokens.shape[1],), bool)
 
 

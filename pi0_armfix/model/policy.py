@@ -43,8 +43,8 @@ def init_params(config: Pi0Config, rng: jax.Array) -> Params:
     shapes = pi0.dense_shapes(config)
     for key, name in zip(jax.random.split(rng_dense, len(shapes)), shapes):
         fan_in, fan_out = shapes[name]
-        params[name] = {"kernel": jax.nn.initializers.lecun_normal()(key, (fan_in, fan_out), jnp.float32),
-                        "bias": jnp.zeros((fan_out,), jnp.float32)}
+        kernel = jax.nn.initializers.lecun_normal()(key, (fan_in, fan_out), jnp.float32)
+        params[name] = {"kernel": kernel, "bias": jnp.zeros((fan_out,), jnp.float32)}
     return params
 
 

@@ -9,7 +9,7 @@ Which sentencepiece model (`make_tokenizer(config.model, prompts=...)`):
   * `model.tokenizer` set: that file (PaliGemma's `paligemma_tokenizer.model` for real runs;
     required with `model.pretrained`, whose embedding rows are PaliGemma's token ids);
   * empty: a small BPE model trained offline on the dataset's prompts with
-    `sentencepiece.SentencePieceTrainer` (deterministic; cached under `cache_dir` by a hash of the
+    `sentencepiece.SentencePieceTrainer` (deterministic; cached under `cache_root()` by a hash of the
     prompts and the vocabulary size, which never exceeds the preset's `vocab_size`).
 Training builds it once and passes it to the data pipeline, which applies it before batching.
 """
@@ -28,7 +28,6 @@ import sentencepiece
 
 from pi0_armfix.model.config import from_model_config
 
-DEFAULT_CACHE_DIR = pathlib.Path(os.environ.get("PI0_ARMFIX_CACHE", "~/.cache/pi0_armfix")).expanduser()
 # PaliGemma's special ids: pad 0 (also the padding token of tokenized prompts), eos 1, bos 2, unk 3.
 _SPECIAL_IDS = dict(pad_id=0, eos_id=1, bos_id=2, unk_id=3)
 
@@ -49,8 +48,8 @@ class Tokenizer:
         """
         self._processor = sentencepiece.SentencePieceProcessor(model_proto=model_proto)
         if self._processor.vocab_size() > vocab_size:
-            raise ValueError(f"tokenizer {source} has {self._processor.vocab_size()} pieces but the model "
-                             f"preset embeds only vocab_size={vocab_size} tokens")
+            raise ValueError(f"tokenizer {source} has {self._processor.vocab_size()} pieces but "
+                             f"the model preset embeds only vocab_size={vocab_size} tokens")
         self.max_len = max_len
         self.vocab_size = self._processor.vocab_size()
 
@@ -87,12 +86,18 @@ def train_sentencepiece(prompts: Iterable[str], vocab_size: int) -> bytes:
     return model.getvalue()
 
 
+def cache_root(cache_dir: str | os.PathLike | None = None) -> pathlib.Path:
+    """`cache_dir`, else $PI0_ARMFIX_CACHE, else ~/.cache/pi0_armfix (the demo dataset's cache)."""
+    return pathlib.Path(cache_dir or os.environ.get("PI0_ARMFIX_CACHE")
+                        or pathlib.Path.home() / ".cache" / "pi0_armfix")
+
+
 def cached_sentencepiece(prompts: Iterable[str], vocab_size: int,
-                         cache_dir: str | os.PathLike = DEFAULT_CACHE_DIR) -> pathlib.Path:
+                         cache_dir: str | os.PathLike | None = None) -> pathlib.Path:
     """Path of the offline model for these prompts, trained on first use (atomic write)."""
     corpus = sorted({clean_prompt(p) for p in prompts} - {""})
     digest = hashlib.sha256("\0".join([str(vocab_size), *corpus]).encode()).hexdigest()[:16]
-    path = pathlib.Path(cache_dir) / "tokenizers" / f"spm_{vocab_size}_{digest}.model"
+    path = cache_root(cache_dir) / "tokenizers" / f"spm_{vocab_size}_{digest}.model"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".tmp{os.getpid()}")
@@ -102,13 +107,13 @@ def cached_sentencepiece(prompts: Iterable[str], vocab_size: int,
 
 
 def make_tokenizer(model_cfg: Mapping[str, Any], *, prompts: Iterable[str] | None = None,
-                   cache_dir: str | os.PathLike = DEFAULT_CACHE_DIR) -> Tokenizer:
+                   cache_dir: str | os.PathLike | None = None) -> Tokenizer:
     """The tokenizer for the `model` config section (`preset`, `tokenizer`, `pretrained`).
 
     Args:
       model_cfg: `config.model`.
       prompts: every task prompt of the dataset; needed when `model.tokenizer` is empty.
-      cache_dir: where the offline model is cached.
+      cache_dir: where the offline model is cached (default: see `cache_root`).
     """
     config = from_model_config(model_cfg)
     path = model_cfg.get("tokenizer") or ""
@@ -122,7 +127,8 @@ def make_tokenizer(model_cfg: Mapping[str, Any], *, prompts: Iterable[str] | Non
         raise ValueError("model.pretrained is set but model.tokenizer is empty: pretrained weights need "
                          "the tokenizer they were trained with (PaliGemma's paligemma_tokenizer.model)")
     if prompts is None:
-        raise ValueError("model.tokenizer is empty: pass the dataset's prompts to build the offline tokenizer")
+        raise ValueError("model.tokenizer is empty: pass the dataset's prompts to build the "
+                         "offline tokenizer")
     path = cached_sentencepiece(prompts, config.vocab_size, cache_dir)
     return Tokenizer(path.read_bytes(), config.max_token_len, vocab_size=config.vocab_size,
                      source=f"{str(path)!r} (offline, from the dataset prompts)")
