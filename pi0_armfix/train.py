@@ -136,8 +136,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
 
     abstract_state = jax.eval_shape(
         lambda: state_lib.create_train_state(
-            policy.param_shapes(model_config), tx=tx, loss_cfg=config.loss, layout=layout,
-            ema_decay=config.optim.ema_decay))
+            policy.init_params(model_config, jax.random.key(0)), tx=tx, loss_cfg=config.loss,
+            layout=layout, ema_decay=config.optim.ema_decay))
     state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
     evaluator = None
     if config.eval.every > 0:

@@ -1,0 +1,79 @@
+"""Tiny training runs for the training tests: a small demo dataset and the overrides of a tiny run.
+
+Runs go through `python -m pi0_armfix.train` in a subprocess (the entrypoint as users start it)
+or `train.train_and_evaluate` in-process. Compiled programs are shared through JAX's persistent
+compilation cache in a per-module folder, so a test that repeats a run does not recompile it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pi0_armfix.data import demo
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+TINY_EPISODES = 8  # 6 to train on, 2 held out
+TIMING_KEYS = ("steps_per_sec", "data_wait")
+
+
+def write_tiny_demo(path: Path) -> Path:
+    """A demo dataset of `TINY_EPISODES` episodes (~3k frames, 2 MB) at `path`."""
+    return demo.write_demo_dataset(path, demo.DemoSpec(num_episodes=TINY_EPISODES))
+
+
+def tiny_overrides(data_root: Path, **changes: Any) -> dict[str, Any]:
+    """Flat config overrides (`"train.total_steps": 4`, ...) of a run of the tiny preset on the
+    tiny demo: batch 8, no evaluation, a checkpoint at the end. `changes` use `__` for `.`."""
+    overrides = {
+        "model.preset": "tiny",
+        "data.root": str(data_root),
+        "train.total_steps": 2,
+        "train.batch_size": 8,
+        "train.log_every": 1,
+        "train.checkpoint_every": 2,
+        "optim.warmup_steps": 1,
+        "eval.every": 0,
+        "eval.episodes": 2,
+        "eval.batch_size": 8,
+        "eval.max_chunks": 16,
+    }
+    overrides.update({key.replace("__", "."): value for key, value in changes.items()})
+    return overrides
+
+
+def flags(overrides: Mapping[str, Any]) -> list[str]:
+    """`--config.<key>=<value>` flags; strings as they are, other values as Python literals."""
+    return [f"--config.{key}={value if isinstance(value, str) else repr(value)}"
+            for key, value in overrides.items()]
+
+
+def env(cache_dir: Path, **extra: str) -> dict[str, str]:
+    """Environment of a training subprocess: CPU, the repo importable, a shared compilation cache
+    and a private tokenizer cache."""
+    return dict(os.environ, PYTHONPATH=str(REPO_ROOT), JAX_PLATFORMS="cpu",
+                JAX_COMPILATION_CACHE_DIR=str(cache_dir / "jax"),
+                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                PI0_ARMFIX_CACHE=str(cache_dir / "pi0_armfix"), **extra)
+
+
+def train_command(config: str, workdir: Path, overrides: Mapping[str, Any]) -> list[str]:
+    return [sys.executable, "-m", "pi0_armfix.train", f"--config={REPO_ROOT / config}",
+            f"--workdir={workdir}", *flags(overrides)]
+
+
+def run_train(config: str, workdir: Path, overrides: Mapping[str, Any], cache_dir: Path,
+              timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(train_command(config, workdir, overrides), env=env(cache_dir),
+                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+def records(workdir: Path) -> list[dict]:
+    """`metrics.jsonl` records without the timing fields (which no two runs share)."""
+    lines = (workdir / "metrics.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(line).items() if k not in TIMING_KEYS} for line in lines]
