@@ -18,8 +18,9 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import policy
 from pi0_armfix.model.config import get_preset
 from pi0_armfix.model.inputs import fake_observation
-from pi0_armfix.torch_mirror import convert
-from pi0_armfix.torch_mirror.params import ParameterMismatchError, flatten_tree, torch_name
+from pi0_armfix.model.tree import flatten_tree
+from pi0_armfix.torch_mirror import checkpoint
+from pi0_armfix.torch_mirror.params import ParameterMismatchError, torch_name
 from pi0_armfix.training.checkpoint import Checkpoints
 from pi0_armfix.training.state import create_train_state
 
@@ -73,7 +74,7 @@ def test_cli_converts_a_run_checkpoint_that_loads_back_identical_and_predicts_li
     result = _run_cli(f"--checkpoint={tmp_path / 'run'}", f"--output={tmp_path / 'torch'}")
     assert result.returncode == 0, result.stderr
 
-    model, norm_stats = convert.load_converted(str(tmp_path / "torch"))
+    model, norm_stats = checkpoint.load_converted(str(tmp_path / "torch"))
     assert norm_stats == NORM_STATS
     assert model.config == CONFIG
     state_dict = model.state_dict()
@@ -91,7 +92,7 @@ def test_cli_converts_a_run_checkpoint_that_loads_back_identical_and_predicts_li
 
 def test_run_checkpoint_ema_params_are_converted_on_request(tmp_path, params):
     _write_run_checkpoint(str(tmp_path), params, step=7)
-    arrays, config, _ = convert.read_checkpoint(str(tmp_path / "checkpoints" / "7"), ema=True)
+    arrays, config, _ = checkpoint.read_checkpoint(str(tmp_path / "checkpoints" / "7"), ema=True)
     assert config == CONFIG
     for name, value in _flat(params).items():
         np.testing.assert_array_equal(arrays[name], 0.5 * value)
@@ -99,9 +100,9 @@ def test_run_checkpoint_ema_params_are_converted_on_request(tmp_path, params):
 
 def test_openpi_params_folder_converts_with_its_norm_stats(tmp_path, params):
     _write_openpi_checkpoint(str(tmp_path / "openpi"), params)
-    arrays, config, norm_stats = convert.read_checkpoint(str(tmp_path / "openpi"), preset="tiny")
-    convert.write_converted(str(tmp_path / "torch"), arrays, config, norm_stats, source="test")
-    model, loaded_stats = convert.load_converted(str(tmp_path / "torch"))
+    arrays, config, norm_stats = checkpoint.read_checkpoint(str(tmp_path / "openpi"), preset="tiny")
+    checkpoint.write_converted(str(tmp_path / "torch"), arrays, config, norm_stats, source="test")
+    model, loaded_stats = checkpoint.load_converted(str(tmp_path / "torch"))
     assert loaded_stats == NORM_STATS
     for name, value in _flat(params).items():
         np.testing.assert_array_equal(model.state_dict()[torch_name(name)].numpy(), value)
@@ -109,7 +110,7 @@ def test_openpi_params_folder_converts_with_its_norm_stats(tmp_path, params):
 
 def test_openpi_params_subfolder_itself_is_accepted(tmp_path, params):
     _write_openpi_checkpoint(str(tmp_path), params)
-    assert convert.locate(str(tmp_path / "params")) == ("openpi", tmp_path)
+    assert checkpoint.locate(str(tmp_path / "params")) == ("openpi", tmp_path)
 
 
 def test_strict_key_check_lists_missing_unexpected_and_mis_shaped_names(tmp_path, params):
@@ -118,39 +119,39 @@ def test_strict_key_check_lists_missing_unexpected_and_mis_shaped_names(tmp_path
     arrays["PaliGemma/llm/layers/mlp_2/linear"] = np.zeros((2, 3), np.float32)
     arrays["state_proj/kernel"] = np.zeros((7, 16), np.float32)
     with pytest.raises(ParameterMismatchError) as error:
-        convert.write_converted(str(tmp_path / "out"), arrays, CONFIG, None, source="ckpt_dir")
+        checkpoint.write_converted(str(tmp_path / "out"), arrays, CONFIG, None, source="ckpt_dir")
     message = str(error.value)
     for expected in ("ckpt_dir", "missing (1): action_out_proj.bias",
                      "unexpected (1): PaliGemma.llm.layers.mlp_2.linear",
                      "state_proj.kernel: (7, 16) != expected (32, 16)"):
         assert expected in message
-    assert not (tmp_path / "out" / convert.MODEL_FILE).exists()
+    assert not (tmp_path / "out" / checkpoint.MODEL_FILE).exists()
 
 
 def test_a_model_config_that_does_not_fit_the_params_is_a_value_error(tmp_path, params):
     _write_openpi_checkpoint(str(tmp_path), params)
-    arrays, config, _ = convert.read_checkpoint(str(tmp_path), preset="demo")
+    arrays, config, _ = checkpoint.read_checkpoint(str(tmp_path), preset="demo")
     with pytest.raises(ValueError, match="mis-shaped"):
-        convert.write_converted(str(tmp_path / "out"), arrays, config, None, source=str(tmp_path))
+        checkpoint.write_converted(str(tmp_path / "out"), arrays, config, None, source=str(tmp_path))
 
 
 def test_load_converted_rejects_a_tampered_safetensors_file(tmp_path, params):
-    convert.write_converted(str(tmp_path), _flat(params), CONFIG, None, source="test")
-    tensors = load_file(str(tmp_path / convert.MODEL_FILE))
+    checkpoint.write_converted(str(tmp_path), _flat(params), CONFIG, None, source="test")
+    tensors = load_file(str(tmp_path / checkpoint.MODEL_FILE))
     tensors.pop("PaliGemma.img.head.bias")
-    save_file(tensors, str(tmp_path / convert.MODEL_FILE))
+    save_file(tensors, str(tmp_path / checkpoint.MODEL_FILE))
     with pytest.raises(ValueError, match="missing .*PaliGemma.img.head.bias"):
-        convert.load_converted(str(tmp_path))
+        checkpoint.load_converted(str(tmp_path))
 
 
 def test_a_folder_that_is_not_a_checkpoint_is_a_value_error_naming_it(tmp_path):
     with pytest.raises(ValueError, match=f"{tmp_path} is not a checkpoint"):
-        convert.read_checkpoint(str(tmp_path))
+        checkpoint.read_checkpoint(str(tmp_path))
     with pytest.raises(ValueError, match="does not exist"):
-        convert.load_converted(str(tmp_path))
+        checkpoint.load_converted(str(tmp_path))
 
 
 def test_a_step_that_was_not_saved_is_a_value_error_listing_the_saved_ones(tmp_path, params):
     _write_run_checkpoint(str(tmp_path), params, step=5)
     with pytest.raises(ValueError, match=r"step 9 .* saved steps: \[5\]"):
-        convert.read_checkpoint(str(tmp_path), step=9)
+        checkpoint.read_checkpoint(str(tmp_path), step=9)

@@ -19,7 +19,7 @@ from pi0_armfix.data.sources import open_source
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 REPO = Path(__file__).resolve().parents[1]
-REFERENCE = REPO.parent / "shared" / "reference" / "b1k_2025_norm_stats.json"
+REFERENCE = Path(__file__).resolve().parent / "reference" / "b1k_2025_norm_stats.json"
 CHUNK = 50  # pi0's action horizon
 
 

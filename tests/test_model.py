@@ -13,9 +13,9 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import config as model_config
 from pi0_armfix.model import pi0, policy
 from pi0_armfix.model.inputs import fake_observation, preprocess_observation
-from pi0_armfix.tools import param_tree
+from pi0_armfix.model.tree import count_params
 
-REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "openpi_param_tree.json"
+REFERENCE = Path(__file__).resolve().parent / "reference" / "openpi_param_tree.json"
 TINY = model_config.get_preset("tiny")
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 BATCH = 3
@@ -64,18 +64,16 @@ def _expert_outputs(params, obs, x_t, t):
 
 
 def test_pi0_param_tree_equals_openpi_reference():
-    if not REFERENCE.exists():
-        pytest.skip(f"reference file {REFERENCE} not present")
     expected = json.loads(REFERENCE.read_text())["pi0"]
-    tree = param_tree.param_tree(model_config.get_preset("pi0"))
+    tree = policy.param_tree(model_config.get_preset("pi0"))
     assert tree == expected
-    assert param_tree.count(tree) == 3_238_048_528
+    assert count_params(tree) == 3_238_048_528
 
 
 @pytest.mark.parametrize("preset", ["demo", "tiny"])
 def test_small_presets_use_the_pi0_names(preset):
-    pi0_names = set(param_tree.param_tree(model_config.get_preset("pi0")))
-    assert set(param_tree.param_tree(model_config.get_preset(preset))) == pi0_names
+    pi0_names = set(policy.param_tree(model_config.get_preset("pi0")))
+    assert set(policy.param_tree(model_config.get_preset(preset))) == pi0_names
 
 
 def test_config_round_trips_through_json():

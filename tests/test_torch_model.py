@@ -7,6 +7,7 @@ embedding, whose float32 sines at periods down to 4e-3 move by ~1e-6 between any
 """
 
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -18,14 +19,15 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import inputs as flax_inputs
 from pi0_armfix.model import policy
 from pi0_armfix.model.config import get_preset
-from pi0_armfix.torch_mirror import convert, inputs
+from pi0_armfix.torch_mirror import checkpoint, inputs
 from pi0_armfix.torch_mirror.model import Pi0
-from pi0_armfix.torch_mirror.params import flatten_tree, openpi_name, param_shapes, torch_name
+from pi0_armfix.model.tree import flatten_tree
+from pi0_armfix.torch_mirror.params import openpi_name, param_shapes, torch_name
 
 CONFIG = get_preset("tiny")
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 BATCH = 3
-REFERENCE_TREE = "/work/shared/reference/openpi_param_tree.json"
+REFERENCE_TREE = Path(__file__).resolve().parent / "reference" / "openpi_param_tree.json"
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +40,8 @@ def torch_model(flax_params, tmp_path_factory):
     """The Flax params through conversion and back: what a user of the mirror loads."""
     out = tmp_path_factory.mktemp("converted")
     arrays = {k: np.asarray(v) for k, v in flatten_tree(flax_params).items()}
-    convert.write_converted(str(out), arrays, CONFIG, None, source="test")
-    model, _ = convert.load_converted(str(out))
+    checkpoint.write_converted(str(out), arrays, CONFIG, None, source="test")
+    model, _ = checkpoint.load_converted(str(out))
     return model
 
 

@@ -27,6 +27,7 @@ from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import pi0
 from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.model.tree import flatten_tree
 from pi0_armfix.model.inputs import preprocess_observation
 
 Params = dict[str, Any]
@@ -51,6 +52,12 @@ def init_params(config: Pi0Config, rng: jax.Array) -> Params:
 def param_shapes(config: Pi0Config) -> Params:
     """The parameter tree as jax.ShapeDtypeStruct leaves, without allocating it."""
     return jax.eval_shape(lambda: init_params(config, jax.random.key(0)))
+
+
+def param_tree(config: Pi0Config) -> dict[str, list]:
+    """`{"path/with/slashes": [shape, dtype]}`, sorted: the format of openpi's reference tree file."""
+    flat = flatten_tree(param_shapes(config))
+    return {path: [list(leaf.shape), str(leaf.dtype)] for path, leaf in sorted(flat.items())}
 
 
 @functools.partial(jax.jit, static_argnames="config")

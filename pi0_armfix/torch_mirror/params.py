@@ -38,18 +38,6 @@ def openpi_name(torch_key: str) -> str:
     return torch_key.replace(".", "/")
 
 
-def flatten_tree(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested dict -> {"a/b/c": leaf} (openpi's flattened names)."""
-    flat = {}
-    for key, value in tree.items():
-        path = f"{prefix}/{key}" if prefix else str(key)
-        if isinstance(value, Mapping):
-            flat.update(flatten_tree(value, path))
-        else:
-            flat[path] = value
-    return flat
-
-
 def _suffix(name: str, expert: int) -> str:
     return name if expert == 0 else f"{name}_{expert}"
 
