@@ -32,7 +32,7 @@ def test_two_processes_of_two_devices_reproduce_one_process_of_four(tmp_path, ca
 
     single = subprocess.run(
         tf.train_command(config, tmp_path / "single", overrides),
-        env=tf.env(cache_dir, XLA_FLAGS="--xla_force_host_platform_device_count=4"),
+        env=tf.env(cache_dir, devices=4),
         cwd=tf.REPO_ROOT, capture_output=True, text=True, timeout=600)
     assert single.returncode == 0, single.stderr[-3000:]
 
@@ -42,7 +42,7 @@ def test_two_processes_of_two_devices_reproduce_one_process_of_four(tmp_path, ca
             tf.train_command(config, tmp_path / "multi", overrides)
             + ["--num_processes=2", f"--coordinator_address=localhost:{port}",
                f"--process_id={i}"],
-            env=tf.env(cache_dir, XLA_FLAGS="--xla_force_host_platform_device_count=2"),
+            env=tf.env(cache_dir, devices=2),
             cwd=tf.REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for i in range(2)]
     outputs = [p.communicate(timeout=600)[0] for p in processes]
