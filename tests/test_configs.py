@@ -1,0 +1,143 @@
+"""The experiment configs (DESIGN §6): one shared base, two scales, each trains at tiny scale."""
+
+import importlib.util
+import json
+
+import jax
+import ml_collections
+import numpy as np
+import pytest
+
+import train_fixtures as tf
+from configs import base
+from pi0_armfix import train
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import pipeline
+from pi0_armfix.training import checkpoint, sharding
+
+CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
+           "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty")
+B1K = ActionLayout.preset("b1k_r1pro")
+
+
+def load(name: str, arg: str | None = None) -> ml_collections.ConfigDict:
+    path = tf.REPO_ROOT / "configs" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.get_config(arg)
+
+
+def flat_keys(config: ml_collections.ConfigDict) -> set[str]:
+    def walk(node, prefix):
+        for key, value in node.items():
+            if isinstance(value, ml_collections.ConfigDict) and key != "group_weights":
+                yield from walk(value, f"{prefix}{key}.")
+            else:
+                yield f"{prefix}{key}"
+    return set(walk(config, ""))
+
+
+def test_every_config_file_is_listed():
+    found = {p.stem for p in (tf.REPO_ROOT / "configs").glob("*.py")} - {"base", "__init__"}
+    assert found == set(CONFIGS)
+
+
+@pytest.mark.parametrize("scale", [None, "b1k"])
+@pytest.mark.parametrize("name", CONFIGS)
+def test_config_has_exactly_the_keys_of_the_base(name, scale):
+    assert flat_keys(load(name, scale)) == flat_keys(base.get_config(scale))
+
+
+@pytest.mark.parametrize("name, strategy, arm_weight", [
+    ("arm_focused", "per_group", 3.0), ("very_arm_focused", "per_group", 5.0),
+    ("arm_focused_balanced", "per_group", 3.0), ("arm_curriculum", "per_group", 3.0),
+    ("uniform", "uniform", None), ("original", "original", None),
+    ("loss_balanced", "loss_balanced", 1.0), ("uncertainty", "uncertainty", 1.0),
+])
+def test_config_selects_its_strategy_and_arm_weight(name, strategy, arm_weight):
+    config = load(name)
+    assert config.loss.strategy == strategy
+    if arm_weight is not None:
+        weights = dict(config.loss.group_weights)
+        B1K.check_group_weights(weights)
+        assert {weights[g] for g in base.ARM_GROUPS} == {arm_weight}
+        assert weights["base"] == weights["torso"] == 1.0
+
+
+def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
+    weights = np.asarray(load("simple_arm_focused").loss.dimension_weights)
+    B1K.check_dimension_weights(weights)
+    for g in B1K.group_names:
+        assert set(weights[B1K.group_dims(g)]) == {3.0 if g in base.ARM_GROUPS else 1.0}
+    assert not weights[B1K.real_dim:].any()
+
+
+def test_only_the_balanced_and_curriculum_configs_change_the_data():
+    assert load("arm_focused_balanced").data.balanced_norm
+    phases = load("arm_curriculum").data.curriculum
+    assert [p[1] for p in phases] == [{"arm_heavy": 1.0}, {"arm_heavy": 0.3, "full": 0.7}]
+    assert phases[0][0] == base.get_config().train.total_steps // 5
+    for name in set(CONFIGS) - {"arm_focused_balanced", "arm_curriculum"}:
+        assert load(name).data == base.get_config().data
+
+
+def test_b1k_scale_is_full_pi0_on_a_root_given_on_the_command_line():
+    config = load("arm_focused", "b1k")
+    assert config.model.preset == "pi0"
+    assert config.data.root is None
+    assert config.sharding.fsdp == -1
+
+
+def test_unknown_scale_is_an_error_naming_it():
+    with pytest.raises(ValueError, match="'tpu'"):
+        load("arm_focused", "tpu")
+
+
+def test_b1k_scale_without_a_data_root_fails_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match="data.root is unset"):
+        train.train_and_evaluate(load("arm_focused", "b1k"), str(tmp_path))
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def demo_root(tmp_path_factory):
+    return tf.write_tiny_demo(tmp_path_factory.mktemp("data") / "demo")
+
+
+@pytest.mark.parametrize("name", CONFIGS)
+def test_config_trains_at_tiny_scale(name, tmp_path, cache_dir, demo_root):
+    arm_heavy = tmp_path / "arm_heavy.json"
+    arm_heavy.write_text(json.dumps({"episodes": [1, 3]}))  # the tiny demo is too short to filter
+    workdir = tmp_path / "run"
+    result = tf.run_train(f"configs/{name}.py", workdir,
+                          tf.tiny_overrides(demo_root, data__arm_heavy_episodes=str(arm_heavy)),
+                          cache_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "right_gripper" in result.stdout  # the final per-group loss table
+
+    records = tf.records(workdir)
+    assert [r["step"] for r in records] == [1, 2]
+    assert all(np.isfinite(r["loss"]) for r in records)
+    state, _, _ = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).restore_for_eval(
+        2, sharding.make_mesh(1))
+    weights = [[r[f"weight/{g}"] for g in B1K.group_names] for r in records]
+    if name == "loss_balanced":  # equal at step 1 (no EMA yet), then from the group losses
+        assert int(state["balancer"]["count"]) == 2
+        assert np.ptp(weights[0]) < 1e-6
+        assert np.ptp(weights[1]) > 1e-3
+    elif name == "uncertainty":  # the log-variances are trained
+        assert np.abs(jax.device_get(state["loss_params"]["log_vars"])).min() > 0
+    elif name == "arm_focused_balanced":  # the run's stats are the balanced ones
+        config = load(name)
+        config.update_from_flattened_dict({"data.root": str(demo_root), "eval.episodes": 2})
+        plain = pipeline.dataset_norm_stats(config, B1K, progress=False)["actions"]
+        balanced = json.loads((workdir / "norm_stats.json").read_text())["norm_stats"]["actions"]
+        arm = B1K.group_dims("left_arm")
+        assert not np.allclose(np.asarray(balanced["std"])[arm], plain.std[arm])
+        np.testing.assert_allclose(balanced["mean"], plain.mean, rtol=1e-6)
