@@ -60,7 +60,8 @@ def episodes_of(batch, normalizer):
     (((10, {"full": 1.0}), (20, {"full": -0.5, "arm_heavy": 1.0})),
      r"data.curriculum\[1\]: weight of 'full' is negative"),
     (((10, {"full": 0.0, "arm_heavy": 0.0}),), r"data.curriculum\[0\]: all weights are zero"),
-    (((10, {"full": float("nan")}),), r"data.curriculum\[0\]: weight of 'full' must be a finite number"),
+    (((10, {"full": float("nan")}),),
+     r"data.curriculum\[0\]: weight of 'full' must be a finite number"),
     (((10.5, {"full": 1.0}),), r"data.curriculum\[0\]: until_step must be an int"),
     ((("full", 1.0),), r"data.curriculum\[0\] .* must be a pair"),
 ])

@@ -9,7 +9,7 @@ import pytest
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
 
-REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "b1k_2025_norm_stats.json"
+REFERENCE = Path(__file__).resolve().parent / "reference" / "b1k_2025_norm_stats.json"
 
 
 def hard_data(seed: int = 0, n: int = 60_000) -> np.ndarray:

@@ -5,8 +5,9 @@ the steps `[until_step[i-1], until_step[i])` (the first starts at 0) and the las
 continues past its `until_step`. An empty curriculum is `full` throughout. Sources:
 
   full       every training episode.
-  arm_heavy  the training episodes listed by `filter_arm_heavy_episodes` (`data.arm_heavy_episodes`),
-             or, when that is '', the ones its default thresholds select (computed on the fly).
+  arm_heavy  the training episodes listed by `filter_arm_heavy_episodes`
+             (`data.arm_heavy_episodes`), or, when that is '', the ones its default thresholds
+             select (computed on the fly).
 
 Selection is a pure function of the *global* sample index `g = step * global_batch + position`:
 a counter-based hash (splitmix64 of seed and g) draws the source by the phase's weights, so the

@@ -230,7 +230,8 @@ class BatchTransform:
         self.delta_mask = delta_mask
         self.tokenize = tokenize
         self.actions_only = actions_only
-        actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim, "norm stats 'actions'")
+        actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
+                                      "norm stats 'actions'")
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
         self.action_norm = transforms.Normalizer.from_stats(actions, norm_mode)
         self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)

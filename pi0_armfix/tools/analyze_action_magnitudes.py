@@ -136,7 +136,8 @@ def plot_motion(layout: ActionLayout, summary: motion_lib.MotionSummary, path: P
         still = summary.motion.counts[g, 0] / max(summary.motion.count, 1)
         ax.text(0.99, 0.8, f"still: {still:.0%}", transform=ax.transAxes, ha="right")
     if occupied.size:
-        axes[-1].set_xlim(edges[max(occupied[0] - 1, 0)], edges[min(occupied[-1] + 2, len(edges) - 1)])
+        axes[-1].set_xlim(edges[max(occupied[0] - 1, 0)],
+                          edges[min(occupied[-1] + 2, len(edges) - 1)])
     axes[-1].set_xlabel("frame-to-frame motion per pair (normalized units, RMS over the group)")
     fig.suptitle("per-group motion histograms (share of frame pairs)")
     fig.tight_layout()
