@@ -6,6 +6,8 @@ Entry points (what training and evaluation call):
     it = make_train_iterator(config, layout, norm_stats=stats, action_horizon=H,
                              global_batch_size=config.train.batch_size, sharding=batch_sharding,
                              tokenize=tokenize)      # tokenize(prompt) -> (int32 [L], bool [L])
+                             # actions_only=True: state/actions/action_is_pad only (no images,
+                             # no prompt) for benchmarks and tools
     batch = next(it)        # the contract's batch dict of global jax.Arrays laid out by `sharding`
     it.phase                # curriculum phase (index into config.data.curriculum) of that batch
     state = it.get_state()  # {"step", "global_batch_size", "seed"}: JSON-able, for the checkpoint
