@@ -32,6 +32,7 @@ where the bracketed flags may be left to `jax.distributed`'s cluster detection (
 from __future__ import annotations
 
 import functools
+import re
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -272,6 +273,22 @@ flags.DEFINE_integer("process_id", None, "index of this process (unset: detected
 flags.mark_flag_as_required("config")
 
 
+def parse_flags(argv: Sequence[str]) -> list[str]:
+    """absl's flag parsing, with a bad flag and an override of a key the (locked) config lacks
+    reported as one line naming the flag instead of a traceback."""
+    try:
+        return FLAGS(argv)
+    except flags.Error as e:
+        raise SystemExit(f"pi0_armfix.train: {e}") from None
+    except (AttributeError, KeyError) as e:
+        message = str(e.args[0] if e.args else e).strip("\"").replace("\n", "; ")
+        missing = re.findall(r"'(\w+)'", message)[:1]
+        overrides = [a.split("=")[0] for a in argv[1:] if a.startswith("--config.")]
+        culprit = [a for a in overrides if set(missing) & set(a.split("."))] or overrides
+        raise SystemExit(f"pi0_armfix.train: {', '.join(culprit)}: the config has no key "
+                         f"{message}") from None
+
+
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
@@ -293,4 +310,4 @@ def main(argv: Sequence[str]) -> None:
 
 
 if __name__ == "__main__":
-    app.run(main)
+    app.run(main, flags_parser=parse_flags)

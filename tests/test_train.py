@@ -1,0 +1,163 @@
+"""The training entrypoint and step (DESIGN §6): outputs of a run, failures, loss weights."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import train_fixtures as tf
+from configs import base
+from pi0_armfix import train
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix.training import step as step_lib
+
+B1K = ActionLayout.preset("b1k_r1pro")
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def demo_root(tmp_path_factory):
+    return tf.write_tiny_demo(tmp_path_factory.mktemp("data") / "demo")
+
+
+# ---------------------------------------------------------------------- a run and its outputs
+
+def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, cache_dir,
+                                                                       demo_root):
+    workdir = tmp_path / "run"
+    result = tf.run_train("configs/arm_focused.py", workdir,
+                          tf.tiny_overrides(demo_root, train__total_steps=4,
+                                            train__log_every=2, eval__every=4), cache_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for group in B1K.group_names:
+        assert group in result.stdout.split("last logged losses")[1]
+    assert "held-out evaluation" in result.stdout
+
+    lines = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+    training, evaluation = [r for r in lines if "loss" in r], [r for r in lines if "err/base" in r]
+    assert [r["step"] for r in training] == [2, 4] and [r["step"] for r in evaluation] == [4]
+    expected = {"loss", "grad_norm", "lr", "phase", "steps_per_sec", "data_wait"}
+    expected |= {f"{kind}/{g}" for kind in ("loss", "weight") for g in B1K.group_names}
+    assert expected <= training[-1].keys()
+    assert 0 <= training[-1]["data_wait"] <= 1
+    assert {f"{kind}/{g}" for kind in ("err", "motion_gain", "motion_ratio")
+            for g in B1K.group_names} | {"gripper_switch_recall"} <= evaluation[0].keys()
+    assert training[-1]["weight/left_arm"] == pytest.approx(3 * training[-1]["weight/base"])
+
+    assert list((workdir / "tensorboard").glob("events.out.tfevents.*"))
+    for figure in ("group_losses.png", "trajectories_4.png"):
+        assert (workdir / "plots" / figure).stat().st_size > 10_000
+    assert checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).all_steps() == [2, 4]
+    assert json.loads((workdir / "config.json").read_text())["loss"]["strategy"] == "per_group"
+
+
+def test_non_finite_loss_stops_the_run_naming_the_step_and_keeps_the_last_checkpoint(
+        tmp_path, cache_dir, demo_root):
+    # A learning rate of 1e38 overflows the params on the first update: step 2 is NaN.
+    workdir = tmp_path / "run"
+    result = tf.run_train("configs/uniform.py", workdir,
+                          tf.tiny_overrides(demo_root, train__total_steps=4,
+                                            train__checkpoint_every=1, optim__lr=1e38,
+                                            optim__warmup_steps=0), cache_dir)
+    assert result.returncode != 0
+    assert "step 2 has loss nan" in result.stderr
+    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
+    assert ckpts.all_steps() == [1]
+    state, _, _ = ckpts.restore_for_eval(1, sharding.make_mesh(1))
+    assert int(state["step"]) == 1
+
+
+def test_unknown_config_key_is_an_error(tmp_path, cache_dir, demo_root):
+    result = tf.run_train("configs/arm_focused.py", tmp_path / "run",
+                          {"loss.arm_weight": 3.0}, cache_dir)
+    assert result.returncode != 0
+    assert "--config.loss.arm_weight: the config has no key 'arm_weight'" in result.stderr
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"loss.group_weights.left_arm": -1.0}, r"loss.group_weights\['left_arm'\] = -1.0 is negative"),
+    ({"loss.strategy": "per_grup"}, "unknown loss strategy 'per_grup'"),
+    ({"loss.strategy": "uniform", "loss.delta_weighting": True}, "delta_weighting=True"),
+    ({"layout.preset": "spot"}, "unknown layout preset 'spot'"),
+    ({"model.preset": "huge"}, "unknown model preset 'huge'"),
+    ({"sharding.fsdp": 3}, "sharding.fsdp = 3"),
+    ({"train.batch_size": 0}, "train.batch_size = 0"),
+    ({"train.log_every": 0}, "train.log_every = 0"),
+    ({"optim.warmup_steps": 2}, "optim.warmup_steps = 2"),
+    ({"eval.every": 1, "eval.plot_groups": ("left_hand",)}, r"eval.plot_groups names \['left_hand'\]"),
+    ({"eval.episodes": 8}, "eval.episodes = 8"),
+    ({"data.root": "/nonexistent/b1k"}, "/nonexistent/b1k"),
+    ({"data.norm_stats": "/nonexistent/norm_stats.json"}, "/nonexistent/norm_stats.json"),
+])
+def test_config_and_data_errors_fail_before_the_first_step(overrides, message, tmp_path,
+                                                           demo_root):
+    config = base.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(demo_root))
+    config.update_from_flattened_dict(overrides)
+    with pytest.raises(ValueError, match=message):
+        train.train_and_evaluate(config, str(tmp_path / "run"))
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_default_workdir_is_named_after_the_config_and_its_scale():
+    assert train.default_workdir("configs/arm_focused.py") == "runs/arm_focused"
+    assert train.default_workdir("configs/uniform.py:b1k") == "runs/uniform_b1k"
+
+
+# ---------------------------------------------------------------------- loss weights of a step
+
+def _loss_cfg(**changes):
+    loss_cfg = base.get_config().loss
+    loss_cfg.update(changes)
+    return loss_cfg
+
+
+def _kwargs(loss_cfg, step, balancer=None, log_vars=None):
+    loss_params = {} if log_vars is None else {"log_vars": log_vars}
+    return step_lib.loss_kwargs(loss_cfg, B1K, jnp.int32(step), loss_params, balancer or {})
+
+
+def test_group_weights_ramp_from_one_to_their_target_over_the_warmup():
+    loss_cfg = _loss_cfg(group_weights=base.group_weights(3.0), weight_warmup_steps=10)
+    for step, arm in ((0, 1.0), (5, 2.0), (10, 3.0), (50, 3.0)):
+        weights = _kwargs(loss_cfg, step)["group_weights"]
+        assert float(weights["left_arm"]) == pytest.approx(arm)
+        assert float(weights["base"]) == pytest.approx(1.0)
+
+
+def test_dimension_weights_ramp_from_one_on_real_dims_and_stay_zero_on_padding():
+    target = np.asarray(base.dimension_weights(base.group_weights(3.0)))
+    loss_cfg = _loss_cfg(strategy="per_dimension", dimension_weights=tuple(target),
+                         weight_warmup_steps=4)
+    np.testing.assert_allclose(_kwargs(loss_cfg, 0)["dimension_weights"], B1K.real_mask())
+    np.testing.assert_allclose(_kwargs(loss_cfg, 4)["dimension_weights"], target)
+
+
+def test_loss_balanced_weights_favour_the_group_with_the_smaller_loss_ema():
+    loss_cfg = _loss_cfg(strategy="loss_balanced", weight_warmup_steps=0)
+    ema = jnp.asarray([1.0, 1.0, 0.25, 1.0, 1.0, 1.0])  # left_arm's loss is 4x smaller
+    kwargs = _kwargs(loss_cfg, 3, balancer={"ema": ema, "count": jnp.int32(3)})
+    weights = step_lib.effective_group_weights(kwargs, B1K)
+    assert float(weights[2]) == pytest.approx(4 * float(weights[0]))
+
+
+def test_uncertainty_weight_is_the_precision_of_each_group():
+    loss_cfg = _loss_cfg(strategy="uncertainty")
+    log_vars = jnp.log(jnp.asarray([1.0, 2.0, 4.0, 1.0, 1.0, 1.0]))
+    weights = step_lib.effective_group_weights(_kwargs(loss_cfg, 0, log_vars=log_vars), B1K)
+    np.testing.assert_allclose(weights[:3], [1.0, 0.5, 0.25], rtol=1e-6)
+
+
+def test_per_group_effective_weights_keep_their_ratios_and_mean_one_over_all_dims():
+    kwargs = _kwargs(_loss_cfg(group_weights=base.group_weights(3.0)), 0)
+    weights = np.asarray(step_lib.effective_group_weights(kwargs, B1K))
+    sizes = np.asarray([len(B1K.group_dims(g)) for g in B1K.group_names])
+    assert weights[2] == pytest.approx(3 * weights[0])
+    assert (weights * sizes).sum() / B1K.action_dim == pytest.approx(1.0)
