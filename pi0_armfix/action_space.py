@@ -5,6 +5,9 @@ An `ActionLayout` says which slice of the real action vector belongs to which bo
 pi0_armfix is expressed through it, so it is validated once, when it is built, and every
 error names the field and the offending value.
 
+Groups listed in `velocity_groups` hold velocity commands (the B1K base) rather than positions:
+their motion is the command itself, not its change from frame to frame.
+
 Dimensions `[real_dim, action_dim)` are padding: zeros, never trained (pi0 works in a fixed
 32-D action space). Real dims that belong to no group are allowed (a researcher may leave a
 constant dim out) but get weight 0 under the group-weighted strategies.
@@ -33,6 +36,7 @@ _PRESETS: dict[str, dict[str, Any]] = {
         },
         real_dim=23,
         action_dim=32,
+        velocity_groups=("base",),
     ),
 }
 
@@ -54,11 +58,13 @@ class ActionLayout:
       groups: group name -> `(start, stop)`, half-open, inside `[0, real_dim)`.
       real_dim: width of the dataset's action vector.
       action_dim: width of the model's (padded) action vector.
+      velocity_groups: names of the groups whose actions are velocity commands.
     """
 
     groups: Mapping[str, tuple[int, int]]
     real_dim: int
     action_dim: int = 32
+    velocity_groups: tuple[str, ...] = ()
 
     def __post_init__(self):
         if not isinstance(self.groups, Mapping):
@@ -94,13 +100,19 @@ class ActionLayout:
         for (name_a, (sa, ea)), (name_b, (sb, eb)) in zip(ordered, ordered[1:]):
             if sb < ea:
                 raise ValueError(f"group {name_b!r} ({sb}, {eb}) overlaps {name_a!r} ({sa}, {ea})")
+        velocity_groups = tuple(self.velocity_groups)
+        unknown = [g for g in velocity_groups if g not in groups]
+        if unknown:
+            raise ValueError(f"velocity_groups names unknown group(s) {unknown}; the layout's groups "
+                             f"are {list(groups)}")
         object.__setattr__(self, "groups", groups)
+        object.__setattr__(self, "velocity_groups", velocity_groups)
         object.__setattr__(self, "real_dim", int(self.real_dim))
         object.__setattr__(self, "action_dim", int(self.action_dim))
 
     def __hash__(self):
         # Hashable so that a layout can be a static argument of `jax.jit`.
-        return hash((tuple(self.groups.items()), self.real_dim, self.action_dim))
+        return hash((tuple(self.groups.items()), self.real_dim, self.action_dim, self.velocity_groups))
 
     # ------------------------------------------------------------------ construction
 
@@ -111,18 +123,20 @@ class ActionLayout:
             raise ValueError(f"unknown layout preset {name!r}; known presets: {sorted(_PRESETS)}")
         spec = _PRESETS[name]
         return cls(groups=dict(spec["groups"]), real_dim=spec["real_dim"],
-                   action_dim=spec["action_dim"])
+                   action_dim=spec["action_dim"], velocity_groups=spec["velocity_groups"])
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "ActionLayout":
-        """From a config section: `{preset: NAME}` or `{groups: {...}, real_dim: N, action_dim: M}`.
+        """From a config section: `{preset: NAME}` or `{groups: {...}, real_dim: N, action_dim: M,
+        velocity_groups: (...)}`.
 
         An explicit `groups` wins over `preset`, so that `--config.layout.groups=...` overrides work.
         """
         groups = cfg.get("groups") or None
         if groups:
             return cls(groups={k: tuple(v) for k, v in dict(groups).items()},
-                       real_dim=cfg.get("real_dim"), action_dim=cfg.get("action_dim", 32))
+                       real_dim=cfg.get("real_dim"), action_dim=cfg.get("action_dim", 32),
+                       velocity_groups=tuple(cfg.get("velocity_groups") or ()))
         preset = cfg.get("preset")
         if not preset:
             raise ValueError("layout: set layout.preset (e.g. 'b1k_r1pro') or layout.groups")
@@ -149,6 +163,13 @@ class ActionLayout:
         for g, (start, stop) in enumerate(self.groups.values()):
             m[start:stop, g] = 1.0
         return m
+
+    def velocity_mask(self) -> np.ndarray:
+        """`[action_dim]` bool, True on the dims of the velocity groups."""
+        mask = np.zeros(self.action_dim, bool)
+        for g in self.velocity_groups:
+            mask[self.group_dims(g)] = True
+        return mask
 
     def real_mask(self) -> np.ndarray:
         """`[action_dim]` bool, True on the real (non-padding) dims."""

@@ -21,6 +21,16 @@ def test_b1k_preset_covers_23_real_dims_padded_to_32():
     np.testing.assert_array_equal(B1K.grouped_mask(), np.arange(32) < 23)
 
 
+def test_b1k_preset_marks_the_base_as_a_velocity_group():
+    assert B1K.velocity_groups == ("base",)
+    np.testing.assert_array_equal(np.flatnonzero(B1K.velocity_mask()), [0, 1, 2])
+
+
+def test_unknown_velocity_group_is_named():
+    _raises(r"velocity_groups names unknown group\(s\) \['wheels'\]",
+            lambda: ActionLayout({"base": (0, 3)}, real_dim=3, velocity_groups=("wheels",)))
+
+
 def test_membership_is_one_hot_on_grouped_dims():
     m = B1K.membership()
     assert m.shape == (32, 6)
