@@ -1,5 +1,5 @@
-"""Frame-to-frame motion of each action group, per episode: one implementation shared by the
-magnitude analysis, the balanced normalization and the arm-heavy episode filter.
+"""Motion of each action group, per episode: one implementation shared by the magnitude
+analysis, the balanced normalization and the arm-heavy episode filter.
 
 Definitions (a frame pair is two consecutive frames of the same episode; pairs never span an
 episode boundary, also not across the blocks of a stream):
@@ -11,6 +11,15 @@ episode boundary, also not across the blocks of a stream):
   rescaled). An RMS rather than a norm, so groups of different widths compare.
 - Group motion RMS of a set of pairs: `sqrt(mean over pairs of m_g**2)`.
 - Group magnitude of a frame: `sqrt(mean_{d in g} a_d**2)`, in raw units.
+- Episode motion of a group over a pair (the arm-heavy filter's measure): `e_g = m_g` for a
+  position group (arms, torso, grippers). For a velocity group (`layout.velocity_groups`, the B1K
+  base) the command *is* the motion, so `e_g = sqrt(mean_{d in g, active} (a_d[t-1] * unit_d)**2)`,
+  the magnitude of the command in force over the pair (the command of frame t-1 drives the base
+  until frame t; a pair per frame keeps one count for both kinds of group). It is taken from 0,
+  not centred on the dataset mean: a command of 0 means standing still, so a base standing still
+  has `e_g = 0` and one driving at a constant speed has `e_g > 0` (its `m_g` is 0: the command
+  does not change), whatever the dataset's mean command. The analysis and the balanced
+  normalization keep `m_g` for every group.
 
 Motion is always taken on absolute actions: with delta actions the chunk's step-to-step change is
 still `a[t+h+1] - a[t+h]`.
@@ -20,15 +29,14 @@ source when no episode list is given):
 
 - Arm groups: layout groups whose name contains "arm" or "gripper"; base groups: name contains
   "base".
-- An episode's relative motion of group g: its mean `m_g` over its pairs divided by the mean `m_g`
+- An episode's relative motion of group g: its mean `e_g` over its pairs divided by the mean `e_g`
   over all pairs of the analysed episodes (so 1 = a typical episode; unit-free, which makes one
   threshold work for velocity commands and joint targets alike).
 - `arm_movement` = mean relative motion over the arm groups; `base_movement` = mean over the
   base groups; `arm_to_base_ratio = arm_movement / max(base_movement, 1e-6)`.
 - An episode is arm-heavy iff `arm_to_base_ratio >= arm_ratio_threshold` (1.5) and
   `arm_movement >= min_arm_movement` (0.1) and, if set, `base_movement <= max_base_movement`.
-  (For a velocity group such as the base, `m_g` is the change of the command: 0 while the base
-  stands still.)
+  Driving counts as base motion also at a constant speed.
 """
 
 from __future__ import annotations
@@ -103,7 +111,8 @@ class MotionSummary:
       episode_index: `[E]` dataset episode indices, in stream order.
       episode_frames: `[E]` frames per episode.
       episode_pairs: `[E]` frame pairs per episode.
-      episode_motion_sum: `[E, G]` sum over the episode's pairs of `m_g`.
+      episode_motion_sum: `[E, G]` sum over the episode's pairs of the episode motion `e_g`
+        (`m_g` for a position group, the command's magnitude for a velocity group).
       dim_sq_sum: `[A]` sum over all pairs of the *raw* `(a_d[t] - a_d[t-1])**2`, so the motion
         RMS under any per-dim scale follows without another pass.
       motion: histograms of `m_g` over all pairs (normalized units), G series.
@@ -124,7 +133,7 @@ class MotionSummary:
         return int(self.episode_pairs.sum())
 
     def episode_motion(self) -> np.ndarray:
-        """`[E, G]` mean `m_g` per pair of each episode (0 for a one-frame episode)."""
+        """`[E, G]` mean `e_g` per pair of each episode (0 for a one-frame episode)."""
         return self.episode_motion_sum / np.maximum(self.episode_pairs, 1)[:, None]
 
     def group_motion_rms(self, layout: ActionLayout, scale: np.ndarray,
@@ -155,6 +164,7 @@ class MotionAccumulator:
         self._membership = membership.astype(np.float64)
         self._count = np.maximum(membership.sum(0), 1)
         self._unit = np.asarray(unit, np.float64)
+        self._velocity = layout.velocity_mask()[:width]
         self._carry: tuple[np.ndarray, np.ndarray] | None = None  # last frame of the previous block
         self._episodes: dict[int, int] = {}
         self._frames: list[int] = []
@@ -192,17 +202,23 @@ class MotionAccumulator:
             return
         pair_episode = episode_index[1:][same]
         self.dim_sq_sum += np.einsum("pd,pd->d", diff, diff)
-        scaled = diff * self._unit
-        motion = np.sqrt((scaled * scaled) @ self._active_membership / self._active_count)
-        self.motion.update(motion)
+        self.motion.update(self._group_rms(diff))
+        command = actions[:-1][same]  # in force from t-1 to t
+        episode_motion = self._group_rms(np.where(self._velocity, command, diff))
         episodes, inverse = np.unique(pair_episode, return_inverse=True)
         sums = np.zeros((len(episodes), self.layout.num_groups))
-        np.add.at(sums, inverse, motion)
+        np.add.at(sums, inverse, episode_motion)
         counts = np.bincount(inverse, minlength=len(episodes))
         for episode, total, count in zip(episodes, sums, counts):
             row = self._row(int(episode))
             self._pairs[row] += int(count)
             self._motion_sum[row] += total
+
+    def _group_rms(self, values: np.ndarray) -> np.ndarray:
+        """`[p, A]` raw per-dim values -> `[p, G]` RMS over each group's active dims, in
+        normalized units."""
+        scaled = values * self._unit
+        return np.sqrt((scaled * scaled) @ self._active_membership / self._active_count)
 
     def summary(self) -> MotionSummary:
         return MotionSummary(

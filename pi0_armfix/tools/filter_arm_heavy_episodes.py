@@ -4,12 +4,14 @@
         [--config.data.root=DIR] --output=arm_heavy.json \
         [--arm_ratio_threshold=1.5] [--min_arm_movement=0.1] [--max_base_movement=X]
 
-Per episode, over its real frame pairs (never across an episode boundary), the frame-to-frame
-motion of each group in z-score units of the run's norm stats, relative to the group's mean over
-all analysed episodes (1 = typical). Arm groups: names containing "arm" or "gripper"; base groups:
-names containing "base". `arm_movement` / `base_movement` are the mean relative motion over the
-arm / base groups, `arm_to_base_ratio` their ratio; an episode is selected iff
-ratio >= arm_ratio_threshold, arm_movement >= min_arm_movement and (if given)
+Per episode, over its real frame pairs (never across an episode boundary), the motion of each
+group in z-score units of the run's norm stats, relative to the group's mean over all analysed
+episodes (1 = typical): the frame-to-frame change for a position group (arms, torso, grippers),
+the magnitude of the command itself for a velocity group (`layout.velocity_groups`, the B1K base),
+so a base driving at a constant speed counts as moving. Arm groups: names containing "arm" or
+"gripper"; base groups: names containing "base". `arm_movement` / `base_movement` are the mean
+relative motion over the arm / base groups, `arm_to_base_ratio` their ratio; an episode is
+selected iff ratio >= arm_ratio_threshold, arm_movement >= min_arm_movement and (if given)
 base_movement <= max_base_movement. Full definitions: `pi0_armfix.data.motion`.
 
 Writes `{"episodes": [dataset episode ids], "per_episode": [...], "thresholds": {...}}`; set
