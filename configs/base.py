@@ -85,18 +85,18 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.delta_action_mask = ()  # action dims made relative to the state (() = absolute)
     config.data.state_groups = config_dict.placeholder(object)  # {group: (start, stop)} of the state
     config.data.num_workers = 0  # grain worker processes (0 = in the main process)
-    config.data.prefetch = 2  # batches buffered ahead of the step
+    config.data.prefetch = 8  # batches buffered ahead of the step
 
     config.train = ml_collections.ConfigDict()
-    config.train.total_steps = 300
+    config.train.total_steps = 1500
     config.train.batch_size = 32  # global, over all processes
-    config.train.log_every = 10
-    config.train.checkpoint_every = 100
+    config.train.log_every = 25
+    config.train.checkpoint_every = 500
     config.train.keep_checkpoints = 3
 
     config.optim = ml_collections.ConfigDict()
     config.optim.lr = 1e-3  # peak of the warmup-cosine schedule
-    config.optim.warmup_steps = 20
+    config.optim.warmup_steps = 50
     config.optim.end_lr_factor = 0.1  # final lr = lr * end_lr_factor
     config.optim.b1 = 0.9
     config.optim.b2 = 0.95
@@ -109,7 +109,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.sharding.fsdp = 1  # size of the fsdp mesh axis (-1 = all devices); batch axis = the rest
 
     config.eval = ml_collections.ConfigDict()
-    config.eval.every = 100  # 0 = no evaluation during training
+    config.eval.every = 500  # 0 = no evaluation during training
     config.eval.episodes = 4  # held out: the dataset's last N episodes, never trained on
     config.eval.num_steps = 10  # Euler steps of sample_actions
     config.eval.batch_size = 32

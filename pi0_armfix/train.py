@@ -31,10 +31,11 @@ where the bracketed flags may be left to `jax.distributed`'s cluster detection (
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -59,8 +60,12 @@ from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 
 
+class ConfigurationError(ValueError):
+    """A config, layout, data or checkpoint error, found before the first step."""
+
+
 class NonFiniteLossError(RuntimeError):
-    """The loss of a step is NaN or infinite."""
+    """The loss or gradient of a step is NaN or infinite."""
 
 
 def check_train_config(train: Mapping[str, Any]) -> None:
@@ -103,13 +108,28 @@ def _init_state(config: ml_collections.ConfigDict, model_config, layout: ActionL
     return jax.jit(init, out_shardings=state_shardings)(jax.random.key(config.seed))
 
 
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
-    """Runs (or resumes) training in `workdir`; returns the last training record (on process 0;
-    {} on the others)."""
-    workdir = epath.Path(workdir)
-    is_main = jax.process_index() == 0
+@dataclasses.dataclass
+class Run:
+    """A run ready for its next step: everything built from the config, the state restored."""
 
-    # Everything a user can get wrong fails here, before any step.
+    config: ml_collections.ConfigDict
+    workdir: epath.Path
+    layout: ActionLayout
+    mesh: jax.sharding.Mesh
+    start: int  # steps already taken
+    state: state_lib.TrainState
+    train_step: Callable
+    train_iter: pipeline.TrainIterator
+    checkpoints: checkpoint.Checkpoints
+    evaluator: evaluate.Evaluator | None
+    norm_stats_json: dict[str, Any]
+
+
+def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
+    """Validates the config, opens the data, builds or restores the state, compiles the step:
+    everything a user can get wrong fails here, before any step."""
+    workdir = epath.Path(workdir).absolute()
+    is_main = jax.process_index() == 0
     layout = ActionLayout.from_config(config.layout)
     model_config = model_config_lib.from_model_config(config.model)
     if model_config.action_dim != layout.action_dim:
@@ -120,8 +140,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     if config.data.root is None:
         raise ValueError("data.root is unset: the b1k scale needs --config.data.root=<LeRobot "
                          "B1K root> ('' = the built-in demo dataset)")
-    total_steps = config.train.total_steps
-    tx, schedule = optimizer_lib.make_optimizer(config.optim, total_steps)
+    tx, schedule = optimizer_lib.make_optimizer(config.optim, config.train.total_steps)
     mesh = sharding_lib.make_mesh(config.sharding.fsdp)
     sharding_lib.check_batch_size(config.train.batch_size, mesh, "train.batch_size")
     batch_sharding = sharding_lib.batch_sharding(mesh)
@@ -146,10 +165,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
                                        mesh=mesh, params_sharding=state_shardings.params)
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", every=config.train.checkpoint_every,
                                    keep=config.train.keep_checkpoints)
-    norm_stats_json = {"norm_stats": {k: v.to_json() for k, v in norm_stats.items()}}
-    if is_main:
-        (workdir / "config.json").write_text(config.to_json_best_effort(indent=2))
-
     with jax.set_mesh(mesh):
         start = ckpts.latest_step() or 0
         if start:
@@ -161,63 +176,92 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
         else:
             state = _init_state(config, model_config, layout, tx, state_shardings,
                                 state_shardings.params)
-        train_step = jax.jit(
-            functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
-                              model_config=model_config, loss_cfg=config.loss, layout=layout,
-                              tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay),
-            in_shardings=(state_shardings, batch_sharding),
-            out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
-            donate_argnums=0)
+    train_step = jax.jit(
+        functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
+                          model_config=model_config, loss_cfg=config.loss, layout=layout,
+                          tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay),
+        in_shardings=(state_shardings, batch_sharding),
+        out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
+        donate_argnums=0)
+    if is_main:
+        (workdir / "config.json").write_text(config.to_json_best_effort(indent=2))
+    return Run(config=config, workdir=workdir, layout=layout, mesh=mesh, start=start,
+               state=state, train_step=train_step, train_iter=train_iter, checkpoints=ckpts,
+               evaluator=evaluator,
+               norm_stats_json={"norm_stats": {k: v.to_json() for k, v in norm_stats.items()}})
 
-        writer = metrics_lib.MetricsWriter(workdir, resume_step=start)
-        window: list[tuple[int, Mapping[str, jax.Array]]] = []
-        checked = 0  # window entries known to be finite
-        phase = train_iter.phase
-        wait, window_start = 0.0, time.perf_counter()
-        try:
-            with tqdm(total=total_steps, initial=start, desc="train", unit="step",
-                      disable=not is_main, dynamic_ncols=True) as bar:
-                for step in range(start + 1, total_steps + 1):  # `step` steps done after this one
-                    fetch_start = time.perf_counter()
-                    batch = next(train_iter)
-                    wait += time.perf_counter() - fetch_start
-                    if train_iter.phase != phase:
-                        phase = train_iter.phase
-                        _say(f"curriculum phase {phase} from step {step - 1}: "
-                             f"{train_iter.curriculum.phases[phase].weights}")
-                    state, step_metrics = train_step(state, batch)
-                    window.append((step, step_metrics))
-                    bar.update()
 
-                    last = step == total_steps
-                    if step % config.train.log_every == 0 or last:
-                        _check_finite(window[checked:])
-                        elapsed = time.perf_counter() - window_start
-                        record = {**_summarize(window), "phase": phase,
-                                  "steps_per_sec": len(window) / elapsed,
-                                  "data_wait": wait / elapsed}
-                        writer.write(step, record)
-                        bar.set_postfix(loss=f"{record['loss']:.4f}", phase=phase)
-                        window, checked = [], 0
-                        wait, window_start = 0.0, time.perf_counter()
-                    if step % config.train.checkpoint_every == 0 or last:
-                        _check_finite(window[checked:])
-                        checked = len(window)
-                        ckpts.save(step, state, train_iter.get_state(), norm_stats_json, config,
-                                   force=last)
-                    if evaluator is not None and (step % config.eval.every == 0 or last):
-                        _evaluate(evaluator, state, step, writer, workdir, layout)
-                        window_start = time.perf_counter()
-        finally:
-            ckpts.wait()
-            ckpts.close()
-            writer.close()
-            train_iter.close()
+def train_loop(run: Run) -> dict[str, float]:
+    """Steps `run` to `train.total_steps`, logging, checkpointing and evaluating on the way;
+    returns the last training record (on process 0; {} on the others)."""
+    config, workdir, state, train_iter = run.config, run.workdir, run.state, run.train_iter
+    is_main = jax.process_index() == 0
+    total_steps = config.train.total_steps
+    writer = metrics_lib.MetricsWriter(workdir, resume_step=run.start)
+    window: list[tuple[int, Mapping[str, jax.Array]]] = []
+    checked = 0  # window entries known to be finite
+    phase = train_iter.phase
+    wait, window_start = 0.0, time.perf_counter()
+    try:
+        with jax.set_mesh(run.mesh), tqdm(total=total_steps, initial=run.start, desc="train",
+                                          unit="step", disable=not is_main,
+                                          dynamic_ncols=True) as bar:
+            for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
+                fetch_start = time.perf_counter()
+                batch = next(train_iter)
+                wait += time.perf_counter() - fetch_start
+                if train_iter.phase != phase:
+                    phase = train_iter.phase
+                    _say(f"curriculum phase {phase} from step {step - 1}: "
+                         f"{train_iter.curriculum.phases[phase].weights}")
+                state, step_metrics = run.train_step(state, batch)
+                window.append((step, step_metrics))
+                bar.update()
+
+                last = step == total_steps
+                if step % config.train.log_every == 0 or last:
+                    _check_finite(window[checked:])
+                    elapsed = time.perf_counter() - window_start
+                    record = {**_summarize(window), "phase": phase,
+                              "steps_per_sec": len(window) / elapsed,
+                              "data_wait": wait / elapsed}
+                    writer.write(step, record)
+                    bar.set_postfix(loss=f"{record['loss']:.4f}", phase=phase)
+                    window, checked = [], 0
+                    wait, window_start = 0.0, time.perf_counter()
+                if step % config.train.checkpoint_every == 0 or last:
+                    _check_finite(window[checked:])
+                    checked = len(window)
+                    run.checkpoints.save(step, state, train_iter.get_state(),
+                                         run.norm_stats_json, config, force=last)
+                if run.evaluator is not None and (step % config.eval.every == 0 or last):
+                    _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
+                    window_start = time.perf_counter()
+    finally:
+        run.checkpoints.wait()
+        run.checkpoints.close()
+        writer.close()
+        train_iter.close()
     if not is_main:
         return {}
     records = metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)
-    plots.plot_group_losses(records, layout, _plots_dir(workdir) / "group_losses.png")
+    plots.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
     return [r for r in records if "loss" in r][-1]
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
+    """Runs (or resumes) training in `workdir`; returns the last training record (on process 0;
+    {} on the others).
+
+    Raises:
+      ConfigurationError: a config, layout, data or checkpoint error, before any step.
+      NonFiniteLossError: a step's loss or gradient is not finite.
+    """
+    try:
+        run = prepare(config, workdir)
+    except ValueError as e:
+        raise ConfigurationError(str(e)) from e
+    return train_loop(run)
 
 
 def _say(message: str) -> None:
@@ -301,7 +345,7 @@ def main(argv: Sequence[str]) -> None:
     workdir = FLAGS.workdir or default_workdir(config_flags.get_config_filename(FLAGS["config"]))
     try:
         record = train_and_evaluate(config, workdir)
-    except (ValueError, NonFiniteLossError) as e:
+    except (ConfigurationError, NonFiniteLossError) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
     if jax.process_index() == 0:
         layout = ActionLayout.from_config(config.layout)

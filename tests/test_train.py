@@ -111,6 +111,15 @@ def test_default_workdir_is_named_after_the_config_and_its_scale():
     assert train.default_workdir("configs/uniform.py:b1k") == "runs/uniform_b1k"
 
 
+def test_run_without_workdir_checkpoints_into_runs_of_the_current_folder(tmp_path, cache_dir,
+                                                                          demo_root):
+    result = tf.run_train("configs/uniform.py", None, tf.tiny_overrides(demo_root), cache_dir,
+                          cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    ckpts = checkpoint.Checkpoints(tmp_path / "runs" / "uniform" / "checkpoints", read_only=True)
+    assert ckpts.all_steps() == [2]
+
+
 # ---------------------------------------------------------------------- loss weights of a step
 
 def _loss_cfg(**changes):

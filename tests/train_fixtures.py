@@ -65,15 +65,16 @@ def env(cache_dir: Path, devices: int = 1) -> dict[str, str]:
                 PI0_ARMFIX_CACHE=str(cache_dir / "pi0_armfix"))
 
 
-def train_command(config: str, workdir: Path, overrides: Mapping[str, Any]) -> list[str]:
+def train_command(config: str, workdir: Path | None, overrides: Mapping[str, Any]) -> list[str]:
+    """The entrypoint's command line; no `--workdir` when `workdir` is None."""
     return [sys.executable, "-m", "pi0_armfix.train", f"--config={REPO_ROOT / config}",
-            f"--workdir={workdir}", *flags(overrides)]
+            *([f"--workdir={workdir}"] if workdir is not None else []), *flags(overrides)]
 
 
-def run_train(config: str, workdir: Path, overrides: Mapping[str, Any], cache_dir: Path,
-              timeout: float = 600) -> subprocess.CompletedProcess:
+def run_train(config: str, workdir: Path | None, overrides: Mapping[str, Any], cache_dir: Path,
+              cwd: Path = REPO_ROOT, timeout: float = 600) -> subprocess.CompletedProcess:
     return subprocess.run(train_command(config, workdir, overrides), env=env(cache_dir),
-                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=timeout)
+                          cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
 def records(workdir: Path) -> list[dict]:

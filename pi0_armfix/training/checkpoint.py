@@ -40,7 +40,7 @@ class Checkpoints:
             raise ValueError(f"train.checkpoint_every = {every} must be positive")
         if keep is not None and keep <= 0:
             raise ValueError(f"train.keep_checkpoints = {keep} must be positive")
-        self.directory = epath.Path(directory)
+        self.directory = epath.Path(directory).absolute()  # orbax wants absolute paths
         self._manager = ocp.CheckpointManager(
             self.directory,
             options=ocp.CheckpointManagerOptions(
