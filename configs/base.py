@@ -68,6 +68,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.layout.groups = config_dict.placeholder(object)  # a dict; `object` makes it overridable
     config.layout.real_dim = config_dict.placeholder(int)
     config.layout.action_dim = 32
+    config.layout.velocity_groups = ()  # with layout.groups: groups that are velocity commands
 
     config.data = ml_collections.ConfigDict()
     config.data.root = ""  # '' = embedded demo dataset, generated on first use into a cache folder
@@ -114,7 +115,6 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.num_steps = 10  # Euler steps of sample_actions
     config.eval.batch_size = 32
     config.eval.max_chunks = 256  # chunks drawn from the held-out episodes per evaluation
-    config.eval.velocity_groups = ("base",)  # displacement = the chunk's mean, not last - first
     config.eval.gripper_groups = ("left_gripper", "right_gripper")  # for gripper_switch_recall
     config.eval.plot_groups = ("left_arm", "right_arm", "left_gripper", "right_gripper")
 

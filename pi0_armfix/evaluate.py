@@ -16,9 +16,9 @@ so two evaluations differ only by the params. Per group g (normalized units):
   gripper_switch_recall  fraction of the data's gripper open/close switches the policy makes too.
 
 A displacement is the chunk's last valid action minus its first (the current one); for a velocity
-group (`eval.velocity_groups`, the base) it is the chunk's mean. A gripper switch is a crossing of
-the midpoint of the dim's 1%/99% quantiles between two consecutive steps, counted per (chunk, dim,
-direction). Figures: predicted vs true trajectories of the chunks that move the `eval.plot_groups`
+group of the layout (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean. A
+gripper switch is a crossing of the midpoint of the dim's 1%/99% quantiles between two consecutive
+steps, counted per (chunk, dim, direction). Figures: predicted vs true trajectories of the chunks that move the `eval.plot_groups`
 most, and the per-group loss curves of `metrics.jsonl`.
 """
 
@@ -80,26 +80,21 @@ def _switches(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray) -> np
 
 
 def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
-                  layout: ActionLayout, velocity_groups: Sequence[str],
-                  gripper_groups: Sequence[str], gripper_threshold: np.ndarray
-                  ) -> dict[str, float]:
+                  layout: ActionLayout, gripper_groups: Sequence[str],
+                  gripper_threshold: np.ndarray) -> dict[str, float]:
     """Stagnation metrics of sampled chunks against the true ones (see the module docstring).
 
     Args:
       predicted, true: `[N, H, D]` normalized action chunks.
       valid: `[N, H]` bool, False on the padded tail of a chunk at an episode end.
-      velocity_groups: groups whose actions are velocities.
       gripper_groups: groups whose dims are open/close commands.
       gripper_threshold: `[D]` the open/close boundary of each dim, normalized units.
     Returns:
       `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group, `gripper_switch_recall`;
       NaN where the data gives nothing to measure (no motion, no switch).
     """
-    velocity = np.zeros(layout.action_dim, bool)
-    for g in velocity_groups:
-        velocity[layout.group_dims(g)] = True
-    dp = displacement(predicted, valid, velocity)
-    dt = displacement(true, valid, velocity)
+    dp = displacement(predicted, valid, layout.velocity_mask())
+    dt = displacement(true, valid, layout.velocity_mask())
     sq_err = np.square(predicted - true)
     w = valid[..., None].astype(np.float64)
     metrics = {}
@@ -125,7 +120,7 @@ def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
 def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_devices: int
                       ) -> None:
     """Raises ValueError naming the `eval.*` key the evaluation cannot run with."""
-    for field in ("velocity_groups", "gripper_groups", "plot_groups"):
+    for field in ("gripper_groups", "plot_groups"):
         unknown = [g for g in eval_cfg[field] if g not in layout.groups]
         if unknown:
             raise ValueError(f"eval.{field} names {unknown}, which are not groups of the layout "
@@ -215,7 +210,6 @@ class Evaluator:
         valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
         metrics = chunk_metrics(
             predicted, true, valid, layout=self.layout,
-            velocity_groups=self.eval_cfg.velocity_groups,
             gripper_groups=self.eval_cfg.gripper_groups,
             gripper_threshold=self.gripper_threshold)
         return metrics, predicted, true

@@ -11,13 +11,13 @@ from pi0_armfix import evaluate
 from pi0_armfix.action_space import ActionLayout
 
 LAYOUT = ActionLayout(groups={"base": (0, 2), "arm": (2, 5), "gripper": (5, 6)}, real_dim=6,
-                      action_dim=8)
+                      action_dim=8, velocity_groups=("base",))
 H = 6
 
 
 def _metrics(predicted, true, valid=None):
     valid = np.ones(true.shape[:2], bool) if valid is None else valid
-    return evaluate.chunk_metrics(predicted, true, valid, layout=LAYOUT, velocity_groups=("base",),
+    return evaluate.chunk_metrics(predicted, true, valid, layout=LAYOUT,
                                   gripper_groups=("gripper",),
                                   gripper_threshold=np.zeros(LAYOUT.action_dim))
 
@@ -94,9 +94,9 @@ def test_metrics_are_nan_where_the_data_gives_nothing_to_measure():
 
 
 def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
-    eval_cfg = dict(velocity_groups=("wheels",), gripper_groups=(), plot_groups=(), batch_size=8,
-                    max_chunks=16, num_steps=10)
-    with pytest.raises(ValueError, match=r"eval.velocity_groups names \['wheels'\]"):
+    eval_cfg = dict(gripper_groups=("claw",), plot_groups=(), batch_size=8, max_chunks=16,
+                    num_steps=10)
+    with pytest.raises(ValueError, match=r"eval.gripper_groups names \['claw'\]"):
         evaluate.check_eval_config(eval_cfg, LAYOUT, num_devices=1)
 
 
