@@ -2,14 +2,20 @@
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import orbax.checkpoint as ocp
 import pytest
 
 import train_fixtures as tf
 from configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import sources
+from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import policy
+from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint, sharding
 from pi0_armfix.training import step as step_lib
 
@@ -118,6 +124,25 @@ def test_run_without_workdir_checkpoints_into_runs_of_the_current_folder(tmp_pat
     assert result.returncode == 0, result.stderr[-3000:]
     ckpts = checkpoint.Checkpoints(tmp_path / "runs" / "uniform" / "checkpoints", read_only=True)
     assert ckpts.all_steps() == [2]
+
+
+def test_pretrained_params_are_the_state_at_step_zero(tmp_path, demo_root):
+    # openpi's params layout: an orbax PyTree checkpoint of {"params": params}.
+    model_config = model_config_lib.get_preset("tiny")
+    params = jax.device_get(policy.init_params(model_config, jax.random.key(7)))
+    with ocp.PyTreeCheckpointer() as checkpointer:
+        checkpointer.save(tmp_path / "pretrained", {"params": params})
+    prompts = sources.open_source({"root": str(demo_root)}, B1K).tasks
+    spm = tokenizer_lib.cached_sentencepiece(prompts, model_config.vocab_size, tmp_path / "spm")
+    config = base.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(
+        demo_root, model__pretrained=str(tmp_path / "pretrained"), model__tokenizer=str(spm)))
+
+    run = train.prepare(config, str(tmp_path / "run"))
+    run.train_iter.close()
+    run.checkpoints.close()
+    jax.tree.map(np.testing.assert_array_equal, jax.device_get(run.state.params), params)
+    assert int(run.state.step) == 0
 
 
 # ---------------------------------------------------------------------- loss weights of a step
