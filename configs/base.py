@@ -29,7 +29,7 @@ def group_weights(arm_weight: float = 1.0) -> dict[str, float]:
 
 
 def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> tuple[float, ...]:
-    """`[action_dim]` per-dimension weights from group weights: each dim its group's, 0 elsewhere."""
+    """`[action_dim]` weights from group weights: each dim its group's weight, 0 elsewhere."""
     action_layout = ActionLayout.preset(layout)
     vec = action_layout.membership() @ [weights[g] for g in action_layout.group_names]
     return tuple(float(w) for w in vec)
@@ -39,7 +39,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     """All keys of a run. `arg`: '' (demo scale) or 'b1k' (full pi0 on a B1K LeRobot root)."""
     scale = arg or ""
     if scale not in SCALES:
-        raise ValueError(f"config argument {arg!r} is not a scale; use no argument (demo) or ':b1k'")
+        raise ValueError(f"config argument {arg!r} is not a scale; use no argument (demo) or "
+                         "':b1k'")
 
     config = ml_collections.ConfigDict()
     config.seed = 0
@@ -52,7 +53,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.model.tokenizer = ""  # sentencepiece model file ('' = the demo's offline tokenizer)
 
     config.loss = ml_collections.ConfigDict()
-    config.loss.strategy = "per_group"  # uniform|original|per_group|per_dimension|loss_balanced|uncertainty
+    # uniform | original | per_group | per_dimension | loss_balanced | uncertainty
+    config.loss.strategy = "per_group"
     config.loss.group_weights = group_weights(1.0)
     config.loss.dimension_weights = ()  # per_dimension only: action_dim weights, 0 on padding
     config.loss.delta_weighting = False
@@ -73,7 +75,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data = ml_collections.ConfigDict()
     config.data.root = ""  # '' = embedded demo dataset, generated on first use into a cache folder
     config.data.format = "lerobot"  # lerobot | rlds
-    config.data.cameras = config_dict.placeholder(object)  # {batch camera: stored name}; None = auto
+    config.data.cameras = config_dict.placeholder(object)  # {batch camera: stored}; None = auto
     config.data.state_indices = ()  # LeRobot: dims of observation.state to keep (() = all)
     config.data.split = "train"  # RLDS: the split to read
     config.data.norm = "zscore"  # zscore | quantile
@@ -82,9 +84,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.balanced_max_scale = 10.0  # balanced stats: cap on each group's change of scale
     # Phases (until_step, {source: weight}), sources `full` and `arm_heavy`; () = `full` throughout.
     config.data.curriculum = ()
-    config.data.arm_heavy_episodes = ""  # JSON of filter_arm_heavy_episodes ('' = default thresholds)
+    config.data.arm_heavy_episodes = ""  # filter_arm_heavy_episodes JSON; '' = default thresholds
     config.data.delta_action_mask = ()  # action dims made relative to the state (() = absolute)
-    config.data.state_groups = config_dict.placeholder(object)  # {group: (start, stop)} of the state
+    config.data.state_groups = config_dict.placeholder(object)  # the state's {group: (start, stop)}
     config.data.num_workers = 0  # grain worker processes (0 = in the main process)
     config.data.prefetch = 8  # batches buffered ahead of the step
 

@@ -18,8 +18,8 @@ so two evaluations differ only by the params. Per group g (normalized units):
 A displacement is the chunk's last valid action minus its first (the current one); for a velocity
 group of the layout (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean. A
 gripper switch is a crossing of the midpoint of the dim's 1%/99% quantiles between two consecutive
-steps, counted per (chunk, dim, direction). Figures: predicted vs true trajectories of the chunks that move the `eval.plot_groups`
-most, and the per-group loss curves of `metrics.jsonl`.
+steps, counted per (chunk, dim, direction). Figures: predicted vs true trajectories of the chunks
+that move the `eval.plot_groups` most, and the per-group loss curves of `metrics.jsonl`.
 """
 
 from __future__ import annotations

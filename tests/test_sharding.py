@@ -1,5 +1,6 @@
 """Mesh and parameter rule table of DESIGN §6."""
 
+import json
 import os
 import subprocess
 import sys
@@ -92,8 +93,28 @@ def test_optimizer_moments_and_batch_are_placed_like_their_params_on_four_device
         print(sh["params"]["mlp"]["kernel"].spec, sh["opt"][0].mu["mlp"]["kernel"].spec,
               sh["params"]["norm"]["scale"].spec, sh["opt"][0].nu["norm"]["scale"].spec, sep="|")
         batch = jax.device_put(jnp.zeros((8, 3)), sharding.batch_sharding(mesh))
-        print(sorted({s.data.shape[0] for s in batch.addressable_shards}), len(batch.addressable_shards))
+        shards = batch.addressable_shards
+        print(sorted({s.data.shape[0] for s in shards}), len(shards))
     """)
     specs, rows = out.strip().splitlines()
     assert specs == "P(None, 'fsdp')|P(None, 'fsdp')|P()|P()"
     assert rows == "[2] 4"
+
+
+def test_pi0_parameters_are_almost_all_sharded_and_never_along_the_layer_axis():
+    path = os.path.join(REPO_ROOT, "..", "shared", "reference", "openpi_param_tree.json")
+    if not os.path.exists(path):
+        pytest.skip("shared/reference/openpi_param_tree.json is not next to the repository")
+    with open(path) as f:
+        tree = json.load(f)["pi0"]
+    sharded = total = 0
+    for name, (shape, _) in tree.items():
+        spec = sharding.partition_spec(name, shape, 8)
+        size = int(np.prod(shape))
+        total += size
+        if spec != P():
+            sharded += size
+            stacked = name.startswith(("PaliGemma/llm/layers/",
+                                       "PaliGemma/img/Transformer/encoderblock/"))
+            assert not (stacked and spec[0] == "fsdp"), name
+    assert sharded / total > 0.999

@@ -1,1 +1,1 @@
-"""Training machinery: mesh and sharding rules, optimizer, train state and step, checkpoints, metrics."""
+"""Training machinery: mesh and sharding rules, optimizer, state and step, checkpoints, metrics."""

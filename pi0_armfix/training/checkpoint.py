@@ -1,4 +1,4 @@
-"""Orbax checkpoints of a run: train state, data iterator, norm stats and config, in one step folder.
+"""Orbax checkpoints of a run: train state, data iterator, norm stats and config, per step.
 
   <workdir>/checkpoints/<step>/state       TrainState (params, optimizer, EMA, loss-balancer state)
                               /data        the data iterator's state (`get_state()`, JSON): the

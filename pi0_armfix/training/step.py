@@ -34,11 +34,13 @@ def check_loss_config(loss_cfg: Mapping[str, Any], layout: ActionLayout) -> None
     strategy = loss_cfg["strategy"]
     loss_lib.check_strategy(strategy, loss_cfg["delta_weighting"])
     if strategy == "per_dimension":
-        layout.check_dimension_weights(loss_cfg["dimension_weights"], field="loss.dimension_weights")
+        layout.check_dimension_weights(loss_cfg["dimension_weights"],
+                                       field="loss.dimension_weights")
     elif strategy in ("per_group", "loss_balanced", "uncertainty"):
         layout.check_group_weights(dict(loss_cfg["group_weights"]), field="loss.group_weights")
     if loss_cfg["weight_warmup_steps"] < 0:
-        raise ValueError(f"loss.weight_warmup_steps = {loss_cfg['weight_warmup_steps']} must be >= 0")
+        raise ValueError(f"loss.weight_warmup_steps = {loss_cfg['weight_warmup_steps']} must "
+                         "be >= 0")
     if strategy == "loss_balanced":
         if not 0.0 <= loss_cfg["ema_decay"] < 1.0:
             raise ValueError(f"loss.ema_decay = {loss_cfg['ema_decay']} must be in [0, 1)")
