@@ -35,7 +35,7 @@ import dataclasses
 import functools
 import re
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -49,6 +49,7 @@ from tqdm import tqdm
 from pi0_armfix import evaluate
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import pipeline, sources
+from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy, pretrained
 from pi0_armfix.model import tokenizer as tokenizer_lib
@@ -201,6 +202,8 @@ def train_loop(run: Run) -> dict[str, float]:
     window: list[tuple[int, Mapping[str, jax.Array]]] = []
     checked = 0  # window entries known to be finite
     phase = train_iter.phase
+    # The next global batches are built (host -> device included) in a background thread.
+    batches = stats_lib.prefetched(_with_position(train_iter), depth=2)
     wait, window_start = 0.0, time.perf_counter()
     try:
         with jax.set_mesh(run.mesh), tqdm(total=total_steps, initial=run.start, desc="train",
@@ -208,10 +211,10 @@ def train_loop(run: Run) -> dict[str, float]:
                                           dynamic_ncols=True) as bar:
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 fetch_start = time.perf_counter()
-                batch = next(train_iter)
+                batch, data_state, batch_phase = next(batches)
                 wait += time.perf_counter() - fetch_start
-                if train_iter.phase != phase:
-                    phase = train_iter.phase
+                if batch_phase != phase:
+                    phase = batch_phase
                     _say(f"curriculum phase {phase} from step {step - 1}: "
                          f"{train_iter.curriculum.phases[phase].weights}")
                 state, step_metrics = run.train_step(state, batch)
@@ -232,12 +235,13 @@ def train_loop(run: Run) -> dict[str, float]:
                 if step % config.train.checkpoint_every == 0 or last:
                     _check_finite(window[checked:])
                     checked = len(window)
-                    run.checkpoints.save(step, state, train_iter.get_state(),
-                                         run.norm_stats_json, config, force=last)
+                    run.checkpoints.save(step, state, data_state, run.norm_stats_json, config,
+                                         force=last)
                 if run.evaluator is not None and (step % config.eval.every == 0 or last):
                     _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
     finally:
+        batches.close()
         run.checkpoints.wait()
         run.checkpoints.close()
         writer.close()
@@ -247,6 +251,14 @@ def train_loop(run: Run) -> dict[str, float]:
     records = metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)
     plots.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
     return [r for r in records if "loss" in r][-1]
+
+
+def _with_position(train_iter: pipeline.TrainIterator) -> Iterator[tuple[Any, dict, int]]:
+    """`(batch, iterator state after it, its curriculum phase)`, batch after batch: what a
+    checkpoint and the log need of the batch the step consumes, whatever was read ahead."""
+    while True:
+        batch = next(train_iter)
+        yield batch, train_iter.get_state(), train_iter.phase
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[str, float]:
