@@ -317,16 +317,6 @@ def default_workdir(config_filename: str) -> str:
 
 
 FLAGS = flags.FLAGS
-config_flags.DEFINE_config_file("config", None, "experiment config: configs/<name>.py[:b1k]",
-                                lock_config=True)
-flags.DEFINE_string("workdir", None, "run folder (default runs/<config name>); resumed when it "
-                    "holds checkpoints")
-flags.DEFINE_integer("num_processes", 1, "number of processes; > 1 starts jax.distributed")
-flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (unset: detected from "
-                    "the cluster environment, e.g. SLURM)")
-flags.DEFINE_integer("process_id", None, "index of this process (unset: detected from the "
-                     "cluster environment, e.g. SLURM_PROCID)")
-flags.mark_flag_as_required("config")
 
 
 def parse_flags(argv: Sequence[str]) -> list[str]:
@@ -365,5 +355,21 @@ def main(argv: Sequence[str]) -> None:
               f"(unweighted per group, normalized units):\n{format_record(record, layout)}")
 
 
+def define_flags() -> None:
+    """The entrypoint's flags (defined only when run as a program, so that importing this module
+    defines no absl flags)."""
+    config_flags.DEFINE_config_file("config", None, "experiment config: configs/<name>.py[:b1k]",
+                                    lock_config=True)
+    flags.DEFINE_string("workdir", None, "run folder (default runs/<config name>); resumed when "
+                        "it holds checkpoints")
+    flags.DEFINE_integer("num_processes", 1, "number of processes; > 1 starts jax.distributed")
+    flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (unset: detected "
+                        "from the cluster environment, e.g. SLURM)")
+    flags.DEFINE_integer("process_id", None, "index of this process (unset: detected from the "
+                         "cluster environment, e.g. SLURM_PROCID)")
+    flags.mark_flag_as_required("config")
+
+
 if __name__ == "__main__":
+    define_flags()
     app.run(main, flags_parser=parse_flags)

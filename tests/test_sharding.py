@@ -102,10 +102,7 @@ def test_optimizer_moments_and_batch_are_placed_like_their_params_on_four_device
 
 
 def test_pi0_parameters_are_almost_all_sharded_and_never_along_the_layer_axis():
-    path = os.path.join(REPO_ROOT, "..", "shared", "reference", "openpi_param_tree.json")
-    if not os.path.exists(path):
-        pytest.skip("shared/reference/openpi_param_tree.json is not next to the repository")
-    with open(path) as f:
+    with open(os.path.join(REPO_ROOT, "tests", "reference", "openpi_param_tree.json")) as f:
         tree = json.load(f)["pi0"]
     sharded = total = 0
     for name, (shape, _) in tree.items():
