@@ -8,17 +8,12 @@ import time
 
 import jax
 import numpy as np
-import pytest
 
 import train_fixtures as tf
+from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix.training import checkpoint, sharding
 
 N = 3  # the checkpoint the run is killed after; the run has 2N steps
-
-
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("cache")
 
 
 def _overrides(tmp_path, demo_root):
@@ -38,8 +33,7 @@ def _final_state(workdir):
 
 
 def test_run_killed_after_a_checkpoint_and_restarted_matches_an_uninterrupted_run(
-        tmp_path, cache_dir):
-    demo_root = tf.write_tiny_demo(tmp_path / "demo")
+        tmp_path, cache_dir, demo_root):
     overrides = _overrides(tmp_path, demo_root)
     config = "configs/loss_balanced.py"
 

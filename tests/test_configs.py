@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import train_fixtures as tf
+from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
@@ -98,16 +99,6 @@ def test_b1k_scale_without_a_data_root_fails_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="data.root is unset"):
         train.train_and_evaluate(load("arm_focused", "b1k"), str(tmp_path))
     assert not any(tmp_path.iterdir())
-
-
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("cache")
-
-
-@pytest.fixture(scope="module")
-def demo_root(tmp_path_factory):
-    return tf.write_tiny_demo(tmp_path_factory.mktemp("data") / "demo")
 
 
 @pytest.mark.parametrize("name", CONFIGS)

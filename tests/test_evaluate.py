@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import train_fixtures as tf
+from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import evaluate
 from pi0_armfix.action_space import ActionLayout
 
@@ -100,15 +101,15 @@ def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
         evaluate.check_eval_config(eval_cfg, LAYOUT, num_devices=1)
 
 
-def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(tmp_path):
-    demo_root = tf.write_tiny_demo(tmp_path / "demo")
+def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
+        tmp_path, cache_dir, demo_root):
     workdir = tmp_path / "run"
     trained = tf.run_train("configs/arm_focused.py", workdir,
-                           tf.tiny_overrides(demo_root, optim__ema_decay=0.5), tmp_path)
+                           tf.tiny_overrides(demo_root, optim__ema_decay=0.5), cache_dir)
     assert trained.returncode == 0, trained.stderr[-3000:]
 
     result = subprocess.run([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={workdir}"],
-                            env=tf.env(tmp_path), cwd=tf.REPO_ROOT, capture_output=True,
+                            env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,
                             text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "step 2" in result.stdout

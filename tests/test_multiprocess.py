@@ -4,16 +4,11 @@ import socket
 import subprocess
 
 import numpy as np
-import pytest
 
 import train_fixtures as tf
+from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 
 STEPS = 5
-
-
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("cache")
 
 
 def _free_port() -> int:
@@ -22,8 +17,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_processes_of_two_devices_reproduce_one_process_of_four(tmp_path, cache_dir):
-    demo_root = tf.write_tiny_demo(tmp_path / "demo")
+def test_two_processes_of_two_devices_reproduce_one_process_of_four(tmp_path, cache_dir,
+                                                                    demo_root):
     # fsdp=2 shards the params across the two processes; the final evaluation samples across them.
     overrides = tf.tiny_overrides(demo_root, train__total_steps=STEPS,
                                   train__checkpoint_every=STEPS, sharding__fsdp=2,

@@ -9,6 +9,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 import train_fixtures as tf
+from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
@@ -20,16 +21,6 @@ from pi0_armfix.training import checkpoint, sharding
 from pi0_armfix.training import step as step_lib
 
 B1K = ActionLayout.preset("b1k_r1pro")
-
-
-@pytest.fixture(scope="module")
-def cache_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("cache")
-
-
-@pytest.fixture(scope="module")
-def demo_root(tmp_path_factory):
-    return tf.write_tiny_demo(tmp_path_factory.mktemp("data") / "demo")
 
 
 # ---------------------------------------------------------------------- a run and its outputs

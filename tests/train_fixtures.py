@@ -3,6 +3,7 @@
 Runs go through `python -m pi0_armfix.train` in a subprocess (the entrypoint as users start it)
 or `train.train_and_evaluate` in-process. Compiled programs are shared through JAX's persistent
 compilation cache in a per-module folder, so a test that repeats a run does not recompile it.
+Test modules import the fixtures `cache_dir` and `demo_root` from here.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from pi0_armfix.data import demo
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -25,6 +28,18 @@ TIMING_KEYS = ("steps_per_sec", "data_wait")
 def write_tiny_demo(path: Path) -> Path:
     """A demo dataset of `TINY_EPISODES` episodes (~3k frames, 2 MB) at `path`."""
     return demo.write_demo_dataset(path, demo.DemoSpec(num_episodes=TINY_EPISODES))
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory) -> Path:
+    """Compilation and tokenizer caches shared by the runs of a test module."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def demo_root(tmp_path_factory) -> Path:
+    """The tiny demo dataset of a test module."""
+    return write_tiny_demo(tmp_path_factory.mktemp("data") / "demo")
 
 
 def tiny_overrides(data_root: Path, **changes: Any) -> dict[str, Any]:
