@@ -148,7 +148,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
 
     workdir.mkdir(parents=True, exist_ok=True)
     norm_stats = pipeline.load_or_compute_norm_stats(
-        config, layout, cache_path=workdir / "norm_stats.json", progress=is_main)
+        config, layout, action_horizon=model_config.action_horizon,
+        cache_path=workdir / "norm_stats.json", progress=is_main)
     tokenize = tokenizer_lib.make_tokenizer(
         config.model, prompts=sources.open_source(config.data, layout).tasks)
     train_iter = pipeline.make_train_iterator(

@@ -14,6 +14,7 @@ from configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import pipeline
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.training import checkpoint, sharding
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -127,7 +128,9 @@ def test_config_trains_at_tiny_scale(name, tmp_path, cache_dir, demo_root):
     elif name == "arm_focused_balanced":  # the run's stats are the balanced ones
         config = load(name)
         config.update_from_flattened_dict({"data.root": str(demo_root), "eval.episodes": 2})
-        plain = pipeline.dataset_norm_stats(config, B1K, progress=False)["actions"]
+        horizon = model_config_lib.from_model_config(config.model).action_horizon
+        plain = pipeline.dataset_norm_stats(config, B1K, action_horizon=horizon,
+                                            progress=False)["actions"]
         balanced = json.loads((workdir / "norm_stats.json").read_text())["norm_stats"]["actions"]
         arm = B1K.group_dims("left_arm")
         assert not np.allclose(np.asarray(balanced["std"])[arm], plain.std[arm])

@@ -16,6 +16,7 @@ from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import pipeline, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
                               filter_arm_heavy_episodes, recompute_balanced_norm_stats)
 
@@ -258,7 +259,8 @@ def test_filter_writes_the_manipulation_episodes(config, tmp_path):
 
 def test_curriculum_on_the_fly_selects_what_the_filter_lists(config, tmp_path):
     layout = ActionLayout.from_config(config.layout)
-    stats = pipeline.load_or_compute_norm_stats(config, layout)
+    horizon = model_config_lib.from_model_config(config.model).action_horizon
+    stats = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
     source = pipeline.sources.open_source(config.data, layout)
     table = source.load_table(pipeline.training_episodes(config, source), images=False)
     listed = config.copy_and_resolve_references()

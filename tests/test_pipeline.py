@@ -164,9 +164,8 @@ def test_delta_actions_are_relative_to_the_current_state():
     table.state = np.concatenate([table.actions[:, :20] + 0.5], axis=1)
     data = {"delta_action_mask": list(range(7, 14)),
             "state_groups": {"left_arm": (7, 14)}}
-    stats = stats_lib.compute_norm_stats(
-        stats_lib.table_blocks(table), progress=False,
-        transform=pipeline.delta_block_transform(data, LAYOUT))
+    stats = pipeline.block_norm_stats(stats_lib.table_blocks(table), data, LAYOUT,
+                                      action_horizon=HORIZON, progress=False)
     dataset, _ = pipeline.train_batches(table, LAYOUT, {"norm": "zscore", **data}, seed=0,
                                         norm_stats=stats, action_horizon=HORIZON,
                                         global_batch_size=8, actions_only=True)
@@ -176,6 +175,62 @@ def test_delta_actions_are_relative_to_the_current_state():
     index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
     expected = table.actions[index][..., 7:14] - table.state[frames][:, None, 7:14]
     np.testing.assert_allclose(raw[..., 7:14], expected, atol=1e-4)
+
+
+def arm_table() -> EpisodeTable:
+    """B1K-like left arm (dims 7..13): a random walk the state follows closely, so a frame's own
+    delta `a[t] - s[t]` is tiny next to a chunk's `a[t + h] - s[t]`."""
+    table = frame_table()
+    rng = np.random.default_rng(1)
+    table.actions[:, 7:14] = np.cumsum(rng.normal(size=(table.num_frames, 7)), axis=0)
+    table.state[:, 7:14] = table.actions[:, 7:14] + 0.01 * rng.normal(size=(table.num_frames, 7))
+    return table
+
+
+ARM_DELTA = {"delta_action_mask": list(range(7, 14)), "state_groups": {"left_arm": (7, 14)}}
+
+
+def chunk_targets(table, norm_stats):
+    """`[frames * H, 23]` float64: the action targets of every chunk of the table as batched."""
+    mask = transforms.delta_action_mask(ARM_DELTA["delta_action_mask"], LAYOUT)
+    transform = pipeline.BatchTransform(table, LAYOUT, norm_stats=norm_stats, norm_mode="zscore",
+                                        action_horizon=HORIZON, delta_mask=mask,
+                                        actions_only=True)
+    return transform(np.arange(table.num_frames))["actions"][..., :23].reshape(-1, 23).astype(
+        np.float64)
+
+
+def passthrough_stats(width):
+    """Stats the normalizer leaves values unchanged with: std 0 is a constant dim, passed
+    through centred on its mean 0."""
+    return stats_lib.NormStats(*(np.zeros(width) for _ in stats_lib.FIELDS))
+
+
+def test_delta_action_stats_are_over_every_chunk_step_the_batches_hold():
+    table = arm_table()
+    stats = pipeline.block_norm_stats(stats_lib.table_blocks(table, block_frames=5), ARM_DELTA,
+                                      LAYOUT, action_horizon=HORIZON, progress=False)
+    targets = chunk_targets(table, {"actions": passthrough_stats(23),
+                                    "state": passthrough_stats(20)})
+    arm = slice(7, 14)
+    np.testing.assert_allclose(stats["actions"].mean[arm], targets[:, arm].mean(0), rtol=1e-9)
+    np.testing.assert_allclose(stats["actions"].std[arm], targets[:, arm].std(0), rtol=1e-9)
+    data_range = np.ptp(targets[:, arm], axis=0)
+    np.testing.assert_array_less(
+        np.abs(stats["actions"].q99[arm] - np.quantile(targets[:, arm], 0.99, axis=0)),
+        2 * data_range / stats_lib.DEFAULT_BINS)
+    absolute = np.r_[0:7, 14:23]  # per frame, each frame once
+    np.testing.assert_allclose(stats["actions"].mean[absolute],
+                               table.actions[:, absolute].mean(0, dtype=np.float64), rtol=1e-9)
+
+
+def test_normalized_delta_targets_have_unit_std():
+    table = arm_table()
+    stats = pipeline.block_norm_stats(stats_lib.table_blocks(table), ARM_DELTA, LAYOUT,
+                                      action_horizon=HORIZON, progress=False)
+    normalized = chunk_targets(table, stats)[:, 7:14]
+    np.testing.assert_allclose(normalized.std(0), 1.0, atol=1e-3)
+    np.testing.assert_allclose(normalized.mean(0), 0.0, atol=1e-3)
 
 
 def test_delta_actions_with_a_mismatched_state_layout_fail_before_any_batch():
@@ -296,7 +351,7 @@ def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config
     layout = ActionLayout.from_config(lerobot_config.layout)
     heldout = pipeline.heldout_table(lerobot_config, layout)
     np.testing.assert_array_equal(heldout.episode_index, [4, 5])
-    stats = pipeline.load_or_compute_norm_stats(lerobot_config, layout,
+    stats = pipeline.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                                 cache_path=tmp_path / "norm_stats.json")
     run = pipeline.make_train_iterator(lerobot_config, layout, norm_stats=stats,
                                        action_horizon=HORIZON, global_batch_size=8,
@@ -315,17 +370,19 @@ def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config
 def test_norm_stats_are_computed_once_then_read_from_the_cache(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
     cache = tmp_path / "norm_stats.json"
-    computed = pipeline.load_or_compute_norm_stats(lerobot_config, layout, cache_path=cache,
-                                                   progress=False)
+    computed = pipeline.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+                                                   cache_path=cache, progress=False)
     assert cache.is_file()
     stats_lib.save_norm_stats(cache, {k: v.replace(mean=v.mean + 1) for k, v in computed.items()})
-    cached = pipeline.load_or_compute_norm_stats(lerobot_config, layout, cache_path=cache)
+    cached = pipeline.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+                                                 cache_path=cache)
     np.testing.assert_allclose(cached["actions"].mean, computed["actions"].mean + 1)
 
 
 def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    stats = pipeline.dataset_norm_stats(lerobot_config, layout, progress=False)
+    stats = pipeline.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+                                        progress=False)
     source = pipeline.sources.open_source(lerobot_config.data, layout)
     training = source.load_table(source.episode_index[:4], images=False)
     np.testing.assert_allclose(stats["actions"].mean, training.actions.mean(0, dtype=np.float64),
@@ -335,14 +392,15 @@ def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
 
 def test_a_padded_norm_stats_file_serves_the_real_width(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    stats = pipeline.dataset_norm_stats(lerobot_config, layout, progress=False)
+    stats = pipeline.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+                                        progress=False)
     padded = {k: stats_lib.NormStats(*(np.pad(getattr(v, f), (0, 32 - v.width))
                                        for f in stats_lib.FIELDS)) for k, v in stats.items()}
     path = tmp_path / "padded.json"
     stats_lib.save_norm_stats(path, padded)
     config = lerobot_config.copy_and_resolve_references()
     config.data.norm_stats = str(path)
-    loaded = pipeline.load_or_compute_norm_stats(config, layout)
+    loaded = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=HORIZON)
     assert loaded["actions"].width == 23 and loaded["state"].width == 32
     run = pipeline.make_train_iterator(config, layout, norm_stats=loaded, action_horizon=HORIZON,
                                        global_batch_size=4, sharding=single_device_sharding(),

@@ -118,6 +118,28 @@ def test_table_blocks_cover_every_frame_once():
                                   np.repeat([10, 11, 12, 13], lengths))
 
 
+def test_whole_episode_blocks_hold_each_episode_in_one_block():
+    lengths = np.array([5, 1, 9, 3, 2])
+    starts = np.concatenate([[0], np.cumsum(lengths)])
+    table = EpisodeTable(actions=np.arange(20, dtype=np.float32)[:, None],
+                         state=np.zeros((20, 1), np.float32), episode_starts=starts,
+                         episode_index=np.array([10, 11, 12, 13, 14]), tasks=["a"] * 5)
+    blocks = list(stats_lib.whole_episode_blocks(stats_lib.table_blocks(table, block_frames=4)))
+    episodes = [np.unique(b["episode_index"]) for b in blocks]
+    np.testing.assert_array_equal(np.concatenate(episodes), [10, 11, 12, 13, 14])  # none split
+    np.testing.assert_array_equal(np.concatenate([b["actions"] for b in blocks]), table.actions)
+
+
+def test_a_block_transform_may_give_a_key_lazy_pieces():
+    x = hard_data(n=1000)
+    pieces = stats_lib.compute_norm_stats(
+        iter([{"actions": x[:600]}, {"actions": x[600:]}]), ("actions",), progress=False,
+        transform=lambda b: {"actions": (k * b["actions"] for k in (1, 2))})["actions"]
+    both = np.concatenate([x, 2 * x]).astype(np.float64)
+    np.testing.assert_allclose(pieces.mean, both.mean(0), rtol=1e-9)
+    np.testing.assert_allclose(pieces.std, both.std(0), rtol=1e-9)
+
+
 def test_compute_norm_stats_applies_the_block_transform():
     x = hard_data(n=1000)
     blocks = [{"actions": x[:600]}, {"actions": x[600:]}]

@@ -156,7 +156,8 @@ def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup
     layout = ActionLayout.preset(_LAYOUT)
     stats_path = root / "bench_norm_stats.json"
     if not stats_path.is_file():
-        stats_lib.save_norm_stats(stats_path, pipeline.dataset_norm_stats(config, layout))
+        stats_lib.save_norm_stats(stats_path, pipeline.dataset_norm_stats(
+            config, layout, action_horizon=horizon))
     stats = stats_lib.load_norm_stats(stats_path)
     mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))

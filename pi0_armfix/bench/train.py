@@ -45,7 +45,8 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     model_config = model_config_lib.from_model_config(config.model)
     mesh = sharding_lib.make_mesh(config.sharding.fsdp)
     batch_sharding = sharding_lib.batch_sharding(mesh)
-    norm_stats = pipeline.load_or_compute_norm_stats(config, layout)
+    norm_stats = pipeline.load_or_compute_norm_stats(
+        config, layout, action_horizon=model_config.action_horizon)
     tokenize = tokenizer_lib.make_tokenizer(
         config.model, prompts=sources.open_source(config.data, layout).tasks)
     batches = pipeline.make_train_iterator(

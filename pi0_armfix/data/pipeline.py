@@ -2,7 +2,8 @@
 
 Entry points (what training and evaluation call):
 
-    stats = load_or_compute_norm_stats(config, layout, cache_path=workdir / "norm_stats.json")
+    stats = load_or_compute_norm_stats(config, layout, action_horizon=H,
+                                       cache_path=workdir / "norm_stats.json")
     it = make_train_iterator(config, layout, norm_stats=stats, action_horizon=H,
                              global_batch_size=config.train.batch_size, sharding=batch_sharding,
                              tokenize=tokenize)      # tokenize(prompt) -> (int32 [L], bool [L])
@@ -38,7 +39,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -109,32 +110,68 @@ def _num_frames(source, episodes: np.ndarray) -> int:
 
 # ---------------------------------------------------------------------- normalization statistics
 
-def delta_block_transform(data_cfg: ConfigLike, layout: ActionLayout
-                          ) -> Callable[[stats_lib.Block], stats_lib.Block] | None:
-    """Block transform that puts actions in the model's action space (`data.delta_action_mask`
-    dims relative to the state; the state layout is checked on the first block), or None."""
+def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
+                     layout: ActionLayout, *, action_horizon: int, total_frames: int | None = None,
+                     progress: bool = True) -> dict[str, stats_lib.NormStats]:
+    """Statistics `{"actions", "state"}` of a stream of blocks (`Source.iter_blocks`), with the
+    actions in the model's action space.
+
+    Absolute action dims and the state: over frames, each frame once. The relative dims of
+    `data.delta_action_mask`: over every step of every chunk, as openpi (which computes its stats
+    through the data transforms) and exactly what the training batches hold: for each frame t and
+    h < H, `a[min(t + h, last)] - s[t]` (float32, clamped at the episode's last frame like the
+    chunker; the padded steps are included because the batch holds them too). A frame's own delta
+    `a[t] - s[t]` is far smaller than the chunk's later ones, so per-frame stats would blow the
+    normalized targets up. This pass re-cuts the stream into whole episodes and costs H times the
+    work on those dims; without a delta mask it is the plain per-frame pass.
+
+    Args:
+      blocks: `{"actions": [n, A], "state": [n, S], "episode_index": [n]}`, episodes in order.
+      data_cfg: `config.data` (`delta_action_mask`, `state_groups`).
+      layout: the action layout.
+      action_horizon: H of the model's chunks (`config.model.action_horizon` resolved against the
+        preset by the caller).
+    """
     mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
     if mask is None:
-        return None
+        return stats_lib.compute_norm_stats(blocks, total_frames=total_frames, progress=progress)
+    if action_horizon < 1:
+        raise ValueError(f"action_horizon must be >= 1 for the delta action statistics, got "
+                         f"{action_horizon}")
 
-    def apply(block: stats_lib.Block) -> stats_lib.Block:
+    def chunk_steps(block: stats_lib.Block) -> stats_lib.Block:
+        actions = np.asarray(block["actions"], np.float32)  # the table's dtype
+        state = np.asarray(block["state"], np.float32)
         transforms.check_delta_state_layout(mask, layout, data_cfg.get("state_groups"),
-                                            block["state"].shape[1])
-        return {**block, "actions": transforms.to_delta(block["actions"], block["state"], mask)}
+                                            state.shape[1])
+        episode = np.asarray(block["episode_index"])
+        starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
+                                 [len(episode)]])
+        index, _ = transforms.chunk_indices(np.arange(len(episode)), starts, action_horizon)
+        steps = (transforms.to_delta(actions[index[:, h]], state, mask)[:, mask]
+                 for h in range(action_horizon))
+        return {"actions": actions, "delta_actions": steps, "state": state}
 
-    return apply
+    stats = stats_lib.compute_norm_stats(
+        stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
+        total_frames=total_frames, transform=chunk_steps, progress=progress)
+    delta = stats.pop("delta_actions")
+    fields = {}
+    for field in stats_lib.FIELDS:
+        fields[field] = getattr(stats["actions"], field).copy()
+        fields[field][mask] = getattr(delta, field)
+    stats["actions"] = stats_lib.NormStats(**fields)
+    return stats
 
 
-def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, progress: bool = True
-                       ) -> dict[str, stats_lib.NormStats]:
-    """Plain statistics `{"actions", "state"}` of the training episodes, one streaming pass.
-
-    Actions are in the model's action space: with `data.delta_action_mask`, the relative dims'
-    statistics are those of `action - state` (frame by frame)."""
+def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
+                       progress: bool = True) -> dict[str, stats_lib.NormStats]:
+    """Plain statistics `{"actions", "state"}` of the training episodes, one streaming pass
+    (`block_norm_stats`: the relative dims of `data.delta_action_mask` over chunks of H =
+    `action_horizon`)."""
     blocks, total = training_blocks(config, layout, ("actions", "state"))
-    return stats_lib.compute_norm_stats(
-        blocks, total_frames=total, transform=delta_block_transform(config["data"], layout),
-        progress=progress)
+    return block_norm_stats(blocks, config["data"], layout, action_horizon=action_horizon,
+                            total_frames=total, progress=progress)
 
 
 def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats_lib.NormStats,
@@ -148,19 +185,19 @@ def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats
 
 
 def balanced_dataset_norm_stats(config: ConfigLike, layout: ActionLayout, max_scale: float, *,
-                                progress: bool = True
+                                action_horizon: int, progress: bool = True
                                 ) -> tuple[dict[str, stats_lib.NormStats],
                                            list[motion_lib.BalanceReport]]:
     """`dataset_norm_stats` with balanced action statistics (`motion.balanced_norm_stats`): two
     streaming passes (statistics, then motion)."""
-    stats = dataset_norm_stats(config, layout, progress=progress)
+    stats = dataset_norm_stats(config, layout, action_horizon=action_horizon, progress=progress)
     summary = dataset_motion(config, layout, stats["actions"], progress=progress)
     stats["actions"], reports = motion_lib.balanced_norm_stats(stats["actions"], summary, layout,
                                                                max_scale)
     return stats, reports
 
 
-def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *,
+def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
                                cache_path: str | Path | None = None, progress: bool = True
                                ) -> dict[str, stats_lib.NormStats]:
     """The run's normalization statistics `{"actions", "state"}`.
@@ -180,12 +217,14 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *,
         return stats_lib.load_norm_stats(path, {"actions": layout.real_dim, "state": None})
     if data.get("balanced_norm"):
         stats, reports = balanced_dataset_norm_stats(
-            config, layout, float(data.get("balanced_max_scale", 10.0)), progress=progress)
+            config, layout, float(data.get("balanced_max_scale", 10.0)),
+            action_horizon=action_horizon, progress=progress)
         for report in reports:
             logging.info("balanced norm stats (%s): motion RMS before %s after %s",
                          report.mode, report.before, report.after)
     else:
-        stats = dataset_norm_stats(config, layout, progress=progress)
+        stats = dataset_norm_stats(config, layout, action_horizon=action_horizon,
+                                   progress=progress)
     if cache_path is not None:
         stats_lib.save_norm_stats(cache_path, stats)
     return stats

@@ -16,6 +16,10 @@ not grow with the dataset:
   placed inside its bin, so its error is below one bin: `|q - np.quantile| < 2 * range / bins`,
   i.e. < 4.9e-4 of the dim's range with the default `bins = 4096`. A constant dim is exact.
 
+Statistics that need whole episodes (delta actions over chunks, see `pipeline.block_norm_stats`)
+re-cut the stream with `whole_episode_blocks`, and a block transform may expand a block lazily
+into pieces (one `[n, D]` array per chunk step), so memory stays one block plus one episode.
+
 `norm_stats.json` is openpi's format, `{"norm_stats": {"state"|"actions": {"mean", "std", "q01",
 "q99"}}}`. openpi stores values padded to the model's action_dim; `load_norm_stats` reads padded
 and unpadded files alike (padding must be zeros), `save_norm_stats` writes the real width.
@@ -275,6 +279,26 @@ def table_blocks(table: EpisodeTable, keys: Sequence[str] = ("actions", "state")
         yield block
 
 
+def whole_episode_blocks(blocks: Iterable[Block]) -> Iterator[dict[str, np.ndarray]]:
+    """Re-cuts a stream of blocks (episodes contiguous and in order, each block with
+    `"episode_index"` `[n]`) so that every block holds whole episodes: the last episode of a block
+    is carried into the next one. Memory: one block plus one episode."""
+    carry: dict[str, np.ndarray] | None = None
+    for block in blocks:
+        if carry is not None:
+            block = {key: np.concatenate([carry[key], block[key]]) for key in block}
+        episode = np.asarray(block["episode_index"])
+        if not len(episode):
+            continue
+        changes = np.flatnonzero(episode[1:] != episode[:-1])
+        cut = int(changes[-1]) + 1 if len(changes) else 0
+        if cut:
+            yield {key: value[:cut] for key, value in block.items()}
+        carry = {key: value[cut:] for key, value in block.items()}
+    if carry is not None:
+        yield carry
+
+
 def prefetched(blocks: Iterable[Block], depth: int = 2) -> Iterator[Block]:
     """Reads `blocks` in a background thread, so that decoding (parquet, which releases the GIL)
     overlaps with the numpy work of the consumer."""
@@ -318,21 +342,27 @@ def compute_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions", "st
                   progress: bool = True) -> dict[str, StreamingStats]:
     """One streaming pass over `blocks` (each `{key: [n, D]}`) -> an accumulator per key.
 
-    `transform` is applied to each block first (e.g. delta actions). `total_frames` only sizes the
-    progress bar. Memory: one block plus `[D, 2 * bins]` counts per key.
+    `transform` is applied to each block first (e.g. delta actions); it may give a key an
+    iterator of `[m, D]` pieces instead of one array, all of which that key's accumulator takes,
+    so a block that expands (into chunk steps) is never held whole. `total_frames` only sizes the
+    progress bar, which counts the frames of the blocks before `transform`. Memory: one block (or
+    piece) plus `[D, 2 * bins]` counts per key.
     """
     accumulators: dict[str, StreamingStats] = {}
     with tqdm.tqdm(total=total_frames, unit="frame", unit_scale=True, desc="norm stats",
                    disable=not progress) as bar:
         for block in prefetched(blocks):
+            frames = len(next(iter(block.values())))
             if transform is not None:
                 block = transform(block)
             for key in keys:
-                values = np.asarray(block[key])
-                if key not in accumulators:
-                    accumulators[key] = StreamingStats(values.shape[-1], bins)
-                accumulators[key].update(values, what=key)
-            bar.update(len(block[keys[0]]))
+                value = block[key]
+                for piece in value if isinstance(value, Iterator) else (value,):
+                    piece = np.asarray(piece)
+                    if key not in accumulators:
+                        accumulators[key] = StreamingStats(piece.shape[-1], bins)
+                    accumulators[key].update(piece, what=key)
+            bar.update(frames)
     missing = [key for key in keys if key not in accumulators]
     if missing:
         raise ValueError(f"no frames were seen: the data is empty (keys {missing})")

@@ -41,6 +41,7 @@ from ml_collections import config_flags
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import pipeline
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.transforms import DEGENERATE
 
@@ -147,7 +148,8 @@ def plot_motion(layout: ActionLayout, summary: motion_lib.MotionSummary, path: P
 def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]:
     layout = ActionLayout.from_config(config.layout)
     norm_mode = config.data.get("norm", "zscore")
-    norm_stats = pipeline.load_or_compute_norm_stats(config, layout)
+    horizon = model_config_lib.from_model_config(config.model).action_horizon
+    norm_stats = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
     blocks, total = pipeline.training_blocks(config, layout, ("actions",))
     actions = stats_lib.compute_stats(blocks, ("actions",), total_frames=total)["actions"]
     layout.check_real_dim(actions.width, source="the dataset's actions")

@@ -5,9 +5,11 @@
 
 One streaming pass over the training episodes (all but the `eval.episodes` held out): exact
 float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.stats`), for actions
-(in the model's action space, so relative under `data.delta_action_mask`) and state. These are
-plain statistics whatever `data.balanced_norm` says; `recompute_balanced_norm_stats` writes
-balanced ones. Point `--config.data.norm_stats` at the output to train with them.
+(in the model's action space: the dims of `data.delta_action_mask` relative to the state, over
+every step of the model's chunks of `model.action_horizon`, see `pipeline.block_norm_stats`) and
+state. These are plain statistics whatever `data.balanced_norm` says;
+`recompute_balanced_norm_stats` writes balanced ones. Point `--config.data.norm_stats` at the
+output to train with them.
 """
 
 from __future__ import annotations
@@ -20,13 +22,15 @@ from ml_collections import config_flags
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import pipeline
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.data import stats as stats_lib
 
 
 def run(config: ml_collections.ConfigDict, output: str | Path
         ) -> dict[str, stats_lib.NormStats]:
     layout = ActionLayout.from_config(config.layout)
-    stats = pipeline.dataset_norm_stats(config, layout)
+    horizon = model_config_lib.from_model_config(config.model).action_horizon
+    stats = pipeline.dataset_norm_stats(config, layout, action_horizon=horizon)
     stats_lib.save_norm_stats(output, stats)
     return stats
 

@@ -32,13 +32,15 @@ from ml_collections import config_flags
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import pipeline
+from pi0_armfix.model import config as model_config_lib
 
 
 def run(config: ml_collections.ConfigDict, output: str | Path,
         thresholds: motion_lib.ArmHeavyThresholds = motion_lib.ArmHeavyThresholds()
         ) -> dict[str, Any]:
     layout = ActionLayout.from_config(config.layout)
-    stats = pipeline.load_or_compute_norm_stats(config, layout)
+    horizon = model_config_lib.from_model_config(config.model).action_horizon
+    stats = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
     summary = pipeline.dataset_motion(config, layout, stats["actions"])
     selected, per_episode = motion_lib.arm_heavy_episodes(summary, layout, thresholds)
     result = {"episodes": selected.tolist(), "per_episode": per_episode,

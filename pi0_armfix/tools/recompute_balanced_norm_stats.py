@@ -24,6 +24,7 @@ from ml_collections import config_flags
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import pipeline
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.data import stats as stats_lib
 
 
@@ -33,7 +34,9 @@ def run(config: ml_collections.ConfigDict, output: str | Path, max_scale: float 
     layout = ActionLayout.from_config(config.layout)
     if max_scale is None:
         max_scale = float(config.data.get("balanced_max_scale", 10.0))
-    stats, reports = pipeline.balanced_dataset_norm_stats(config, layout, max_scale)
+    horizon = model_config_lib.from_model_config(config.model).action_horizon
+    stats, reports = pipeline.balanced_dataset_norm_stats(config, layout, max_scale,
+                                                          action_horizon=horizon)
     stats_lib.save_norm_stats(output, stats)
     return stats, reports
 
