@@ -209,6 +209,18 @@ _PRESETS = {
 PRESETS = tuple(_PRESETS)
 
 
+def dense_shapes(config: Pi0Config) -> dict[str, tuple[int, int]]:
+    """(in, out) features of each dense layer outside the two towers."""
+    width, action_dim = config.action_expert.width, config.action_dim
+    return {
+        "state_proj": (action_dim, width),
+        "action_in_proj": (action_dim, width),
+        "action_time_mlp_in": (2 * width, width),
+        "action_time_mlp_out": (width, width),
+        "action_out_proj": (width, action_dim),
+    }
+
+
 def get_preset(name: str, **changes) -> Pi0Config:
     """The named preset (`pi0`, `demo`, `tiny`), with top-level fields replaced by `changes`."""
     if name not in _PRESETS:

@@ -38,18 +38,6 @@ def vision_tower(config: Pi0Config) -> SigLIP:
                   out_width=config.paligemma.width, dtype=config.dtype, remat=config.remat)
 
 
-def dense_shapes(config: Pi0Config) -> dict[str, tuple[int, int]]:
-    """(in, out) features of each dense layer outside the two towers."""
-    width, action_dim = config.action_expert.width, config.action_dim
-    return {
-        "state_proj": (action_dim, width),
-        "action_in_proj": (action_dim, width),
-        "action_time_mlp_in": (2 * width, width),
-        "action_time_mlp_out": (width, width),
-        "action_out_proj": (width, action_dim),
-    }
-
-
 def dense(params: Params, x: jax.Array) -> jax.Array:
     """x [..., in] @ kernel [in, out] + bias, in the promoted dtype of x and the params."""
     return jnp.dot(x, params["kernel"]) + params["bias"]

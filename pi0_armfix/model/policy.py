@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import pi0
-from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.model.config import Pi0Config, dense_shapes
 from pi0_armfix.model.tree import flatten_tree
 from pi0_armfix.model.inputs import preprocess_observation
 
@@ -41,7 +41,7 @@ def init_params(config: Pi0Config, rng: jax.Array) -> Params:
     image = jnp.zeros((1, *config.image_resolution, 3), jnp.float32)
     img = pi0.vision_tower(config).init(rng_img, image)["params"]
     params: Params = {"PaliGemma": {"llm": llm, "img": img}}
-    shapes = pi0.dense_shapes(config)
+    shapes = dense_shapes(config)
     for key, name in zip(jax.random.split(rng_dense, len(shapes)), shapes):
         fan_in, fan_out = shapes[name]
         kernel = jax.nn.initializers.lecun_normal()(key, (fan_in, fan_out), jnp.float32)

@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from pi0_armfix.model.config import GemmaConfig, Pi0Config
+from pi0_armfix.model.config import GemmaConfig, Pi0Config, dense_shapes
 
 # Dense layers outside the two towers, each {kernel [in, out], bias [out]}.
 DENSE_LAYERS = ("state_proj", "action_in_proj", "action_time_mlp_in", "action_time_mlp_out",
@@ -86,18 +86,6 @@ def _siglip_shapes(config: Pi0Config) -> dict[str, tuple[int, ...]]:
         "head/bias": (config.paligemma.width,),
     })
     return {f"PaliGemma/img/{name}": shape for name, shape in shapes.items()}
-
-
-def dense_shapes(config: Pi0Config) -> dict[str, tuple[int, int]]:
-    """(in, out) features of each dense layer outside the two towers."""
-    width, action_dim = config.action_expert.width, config.action_dim
-    return {
-        "state_proj": (action_dim, width),
-        "action_in_proj": (action_dim, width),
-        "action_time_mlp_in": (2 * width, width),
-        "action_time_mlp_out": (width, width),
-        "action_out_proj": (width, action_dim),
-    }
 
 
 def param_shapes(config: Pi0Config) -> dict[str, tuple[int, ...]]:
