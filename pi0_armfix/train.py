@@ -20,9 +20,11 @@ The run folder:
 
 Logged training metrics (means over the steps since the previous record): `loss`,
 `loss/<group>` (unweighted), `weight/<group>` (effective), `grad_norm`; and `lr`, `phase`
-(curriculum phase of the last step), `steps_per_sec` and `data_wait` (fraction of the wall time
-spent waiting for the next batch). A record equals an uninterrupted run's when
-`train.checkpoint_every` is a multiple of `train.log_every` (the defaults).
+(curriculum phase of the last step), `steps_per_sec` and `data_wait`: the fraction of the wall
+time the loop waited for the next batch while the device had no step left to run (an upper bound
+of the device time lost to the input pipeline; a wait while queued steps still run costs
+nothing). A record equals an uninterrupted run's when `train.checkpoint_every` is a multiple of
+`train.log_every` (the defaults).
 
 Multi-process (see launch/): every process runs the same command plus
     --num_processes=N [--coordinator_address=HOST:PORT --process_id=I]
@@ -210,10 +212,12 @@ def train_loop(run: Run) -> dict[str, float]:
         with jax.set_mesh(run.mesh), tqdm(total=total_steps, initial=run.start, desc="train",
                                           unit="step", disable=not is_main,
                                           dynamic_ncols=True) as bar:
+            step_metrics = None
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 fetch_start = time.perf_counter()
                 batch, data_state, batch_phase = next(batches)
-                wait += time.perf_counter() - fetch_start
+                if step_metrics is None or step_metrics["loss"].is_ready():  # the device idles
+                    wait += time.perf_counter() - fetch_start
                 if batch_phase != phase:
                     phase = batch_phase
                     _say(f"curriculum phase {phase} from step {step - 1}: "

@@ -1,6 +1,6 @@
 """Training benchmarks: the cost of the arm-focused loss, and how long the step waits for data.
 
-    python -m pi0_armfix.bench train [--rounds=5] [--steps=10] [--data_steps=300]
+    python -m pi0_armfix.bench train [--rounds=10] [--steps=10] [--data_steps=300]
 
 1. Step time of `per_group` with delta weighting over `uniform`, on the `demo` preset and the demo
    config's batch: both jitted train steps (the real `train_step`, sharded and donated) run on the
@@ -8,9 +8,9 @@
    that machine noise hits both alike; the ratio of the median round times is printed
    (target <= 1.03: the weighting is a few elementwise ops next to the transformer).
 2. Data-wait fraction of the demo training: `configs/arm_focused.py` trained for `--data_steps`
-   steps in a temporary folder (evaluation off); the fraction of wall time the loop spent in
-   `next(batch iterator)`, over all logged windows but the first (which holds the compilation).
-   Target < 5%.
+   steps in a temporary folder (evaluation off); the logged `data_wait` (wall time the loop waited
+   for the next batch while the device had no step left to run, see `pi0_armfix.train`) over all
+   logged windows but the first (which holds the compilation). Target < 5%.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def data_wait_fraction(steps: int) -> float:
 
 def main(argv: Sequence[str]) -> None:
     parser = argparse.ArgumentParser(prog="python -m pi0_armfix.bench train")
-    parser.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
+    parser.add_argument("--rounds", type=int, default=10, help="interleaved timing rounds")
     parser.add_argument("--steps", type=int, default=10, help="train steps per timing round")
     parser.add_argument("--data_steps", type=int, default=300,
                         help="steps of the demo training measured for the data-wait fraction")
