@@ -51,6 +51,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.model.pretrained = ""  # path to pretrained params ('' = random init)
     config.model.action_horizon = 0  # H of an action chunk; 0 = the preset's
     config.model.tokenizer = ""  # sentencepiece model file ('' = the demo's offline tokenizer)
+    # Padded action/state width of the model; 0 = the preset's (32, pi0's). Must equal
+    # layout.action_dim; only for actions wider than 32 (pretrained pi0 params need 32).
+    config.model.action_dim = 0
 
     config.loss = ml_collections.ConfigDict()
     # uniform | original | per_group | per_dimension | loss_balanced | uncertainty
@@ -71,12 +74,23 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.layout.real_dim = config_dict.placeholder(int)
     config.layout.action_dim = 32
     config.layout.velocity_groups = ()  # with layout.groups: groups that are velocity commands
+    # With layout.groups: {group: role}, roles base | torso | arm | gripper | other (the default).
+    # The arm-heavy filter, the curriculum and the evaluation defaults read them.
+    config.layout.roles = config_dict.placeholder(object)
 
     config.data = ml_collections.ConfigDict()
     config.data.root = ""  # '' = embedded demo dataset, generated on first use into a cache folder
     config.data.format = "lerobot"  # lerobot | rlds
     config.data.cameras = config_dict.placeholder(object)  # {batch camera: stored}; None = auto
-    config.data.state_indices = ()  # LeRobot: dims of observation.state to keep (() = all)
+    config.data.action_key = "action"  # LeRobot: the stored action feature
+    config.data.state_key = "observation.state"  # LeRobot: the stored state feature
+    # LeRobot: a named selection of the stored state into the action order (pi0_armfix.data.
+    # selection: 'b1k_r1pro' for B1K's 256-D state, 'b1k_baseline23'); '' = data.state_indices.
+    config.data.state_preset = ""
+    config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
+    config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
+    config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
+    config.data.probe_episodes = 4  # episodes whose files and first/last frames are read first
     config.data.split = "train"  # RLDS: the split to read
     config.data.norm = "zscore"  # zscore | quantile
     config.data.norm_stats = ""  # norm_stats.json (openpi format); '' = compute into the workdir
@@ -117,13 +131,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.num_steps = 10  # Euler steps of sample_actions
     config.eval.batch_size = 32
     config.eval.max_chunks = 256  # chunks drawn from the held-out episodes per evaluation
-    config.eval.gripper_groups = ("left_gripper", "right_gripper")  # for gripper_switch_recall
-    config.eval.plot_groups = ("left_arm", "right_arm", "left_gripper", "right_gripper")
+    config.eval.gripper_groups = ()  # for gripper_switch_recall; () = the layout's gripper role
+    config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
     if scale == "b1k":
         config.model.preset = "pi0"
         config.model.tokenizer = config_dict.placeholder(str)  # PaliGemma's sentencepiece model
         config.data.root = config_dict.placeholder(str)  # required: a LeRobot B1K root
+        config.data.state_preset = "b1k_r1pro"  # B1K 2025's 256-D state -> 23-D, action order
         config.data.num_workers = 8
         config.data.prefetch = 4
         config.train.total_steps = 30_000

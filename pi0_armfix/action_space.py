@@ -8,6 +8,11 @@ error names the field and the offending value.
 Groups listed in `velocity_groups` hold velocity commands (the B1K base) rather than positions:
 their motion is the command itself, not its change from frame to frame.
 
+Every group has a *role* (`ROLES`: base, torso, arm, gripper, other), declared with the layout
+rather than guessed from its name: the arm-heavy filter and curriculum compare the manipulation
+groups (arm, gripper) with the rest, and evaluation measures gripper switches on the gripper
+groups and plots the manipulation groups. A group without a declared role is "other".
+
 Dimensions `[real_dim, action_dim)` are padding: zeros, never trained (pi0 works in a fixed
 32-D action space). Real dims that belong to no group are allowed (a researcher may leave a
 constant dim out) but get weight 0 under the group-weighted strategies.
@@ -37,8 +42,14 @@ _PRESETS: dict[str, dict[str, Any]] = {
         real_dim=23,
         action_dim=32,
         velocity_groups=("base",),
+        roles={"base": "base", "torso": "torso", "left_arm": "arm", "left_gripper": "gripper",
+               "right_arm": "arm", "right_gripper": "gripper"},
     ),
 }
+
+# What a group is for. "arm" and "gripper" groups are the manipulation groups.
+ROLES = ("base", "torso", "arm", "gripper", "other")
+MANIPULATION_ROLES = ("arm", "gripper")
 
 
 def _is_concrete(x: Any) -> bool:
@@ -59,12 +70,14 @@ class ActionLayout:
       real_dim: width of the dataset's action vector.
       action_dim: width of the model's (padded) action vector.
       velocity_groups: names of the groups whose actions are velocity commands.
+      roles: group name -> role (`ROLES`); groups left out are "other".
     """
 
     groups: Mapping[str, tuple[int, int]]
     real_dim: int
     action_dim: int = 32
     velocity_groups: tuple[str, ...] = ()
+    roles: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if not isinstance(self.groups, Mapping):
@@ -105,14 +118,25 @@ class ActionLayout:
         if unknown:
             raise ValueError(f"velocity_groups names unknown group(s) {unknown}; the layout's groups "
                              f"are {list(groups)}")
+        roles = dict(self.roles or {})
+        unknown = [g for g in roles if g not in groups]
+        if unknown:
+            raise ValueError(f"layout.roles names unknown group(s) {unknown}; the layout's groups "
+                             f"are {list(groups)}")
+        bad = {g: r for g, r in roles.items() if r not in ROLES}
+        if bad:
+            raise ValueError(f"layout.roles has unknown role(s) {bad}; roles are {list(ROLES)}")
+        roles = {g: roles.get(g, "other") for g in groups}
         object.__setattr__(self, "groups", groups)
+        object.__setattr__(self, "roles", roles)
         object.__setattr__(self, "velocity_groups", velocity_groups)
         object.__setattr__(self, "real_dim", int(self.real_dim))
         object.__setattr__(self, "action_dim", int(self.action_dim))
 
     def __hash__(self):
         # Hashable so that a layout can be a static argument of `jax.jit`.
-        return hash((tuple(self.groups.items()), self.real_dim, self.action_dim, self.velocity_groups))
+        return hash((tuple(self.groups.items()), self.real_dim, self.action_dim, self.velocity_groups,
+                     tuple(self.roles.items())))
 
     # ------------------------------------------------------------------ construction
 
@@ -123,24 +147,30 @@ class ActionLayout:
             raise ValueError(f"unknown layout preset {name!r}; known presets: {sorted(_PRESETS)}")
         spec = _PRESETS[name]
         return cls(groups=dict(spec["groups"]), real_dim=spec["real_dim"],
-                   action_dim=spec["action_dim"], velocity_groups=spec["velocity_groups"])
+                   action_dim=spec["action_dim"], velocity_groups=spec["velocity_groups"],
+                   roles=dict(spec["roles"]))
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "ActionLayout":
         """From a config section: `{preset: NAME}` or `{groups: {...}, real_dim: N, action_dim: M,
-        velocity_groups: (...)}`.
+        velocity_groups: (...), roles: {...}}`.
 
         An explicit `groups` wins over `preset`, so that `--config.layout.groups=...` overrides work.
+        A preset's `action_dim` gives way to `layout.action_dim` when that is set.
         """
         groups = cfg.get("groups") or None
         if groups:
             return cls(groups={k: tuple(v) for k, v in dict(groups).items()},
-                       real_dim=cfg.get("real_dim"), action_dim=cfg.get("action_dim", 32),
-                       velocity_groups=tuple(cfg.get("velocity_groups") or ()))
+                       real_dim=cfg.get("real_dim"), action_dim=cfg.get("action_dim") or 32,
+                       velocity_groups=tuple(cfg.get("velocity_groups") or ()),
+                       roles=dict(cfg.get("roles") or {}))
         preset = cfg.get("preset")
         if not preset:
             raise ValueError("layout: set layout.preset (e.g. 'b1k_r1pro') or layout.groups")
-        return cls.preset(preset)
+        layout = cls.preset(preset)
+        if cfg.get("action_dim") and int(cfg["action_dim"]) != layout.action_dim:
+            layout = dataclasses.replace(layout, action_dim=int(cfg["action_dim"]))
+        return layout
 
     # ------------------------------------------------------------------ derived views
 
@@ -151,6 +181,10 @@ class ActionLayout:
     @property
     def num_groups(self) -> int:
         return len(self.groups)
+
+    def groups_with_role(self, *roles: str) -> tuple[str, ...]:
+        """Names of the groups whose role is one of `roles`, in layout order."""
+        return tuple(g for g, r in self.roles.items() if r in roles)
 
     def group_dims(self, name: str) -> np.ndarray:
         """Indices of the dims of group `name`, `[n]` int."""

@@ -36,6 +36,7 @@ from etils import epath
 from tqdm import tqdm
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, sources, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
@@ -117,14 +118,30 @@ def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
     return metrics
 
 
+def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
+                ) -> dict[str, tuple[str, ...]]:
+    """`{"gripper_groups", "plot_groups"}`: the `eval.*` keys, or when empty the layout's groups of
+    role gripper, and of role arm or gripper (every group if it declares none)."""
+    return {
+        "gripper_groups": tuple(eval_cfg["gripper_groups"]) or layout.groups_with_role("gripper"),
+        "plot_groups": (tuple(eval_cfg["plot_groups"]) or layout.groups_with_role("arm", "gripper")
+                        or layout.group_names),
+    }
+
+
 def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_devices: int
                       ) -> None:
-    """Raises ValueError naming the `eval.*` key the evaluation cannot run with."""
+    """Raises ValueError naming every `eval.*` group key the evaluation cannot run with at once,
+    then the first other bad key."""
+    problems = []
     for field in ("gripper_groups", "plot_groups"):
         unknown = [g for g in eval_cfg[field] if g not in layout.groups]
         if unknown:
-            raise ValueError(f"eval.{field} names {unknown}, which are not groups of the layout "
-                             f"({list(layout.group_names)})")
+            problems.append(f"eval.{field} names {unknown}")
+    if problems:
+        raise ValueError(f"{'; '.join(problems)}, which are not groups of the layout "
+                         f"({list(layout.group_names)}); set the key(s) to () to take the groups "
+                         "from the layout's roles (layout.roles)")
     if eval_cfg["batch_size"] <= 0 or eval_cfg["batch_size"] % num_devices:
         raise ValueError(f"eval.batch_size = {eval_cfg['batch_size']} must be a positive multiple "
                          f"of the number of devices ({num_devices})")
@@ -148,22 +165,24 @@ class Evaluator:
       norm_stats: the run's `{"actions", "state"}` statistics.
       tokenize: the run's prompt tokenizer.
       mesh: the run's mesh; params_sharding: NamedShardings of the params.
+      source: the run's opened data source (None = open the one `config.data` names).
     """
 
     def __init__(self, config: ml_collections.ConfigDict, layout: ActionLayout,
                  model_config: model_config_lib.Pi0Config,
                  norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
-                 mesh: jax.sharding.Mesh, params_sharding: Any):
+                 mesh: jax.sharding.Mesh, params_sharding: Any, source=None):
         eval_cfg = config.eval
         check_eval_config(eval_cfg, layout, mesh.size)
         self.layout = layout
         self.eval_cfg = eval_cfg
-        table = pipeline.heldout_table(config, layout)
+        self.groups = eval_groups(eval_cfg, layout)
+        table = dataset_lib.heldout_table(config, layout, source=source)
         transform = pipeline.BatchTransform(
             table, layout, norm_stats=norm_stats, norm_mode=config.data.norm,
             action_horizon=model_config.action_horizon,
             delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
-            tokenize=tokenize)
+            tokenize=tokenize, image_size=model_config.image_resolution)
         batch_size = eval_cfg.batch_size
         num_chunks = min(eval_cfg.max_chunks, table.num_frames) // batch_size * batch_size
         if num_chunks == 0:
@@ -210,20 +229,21 @@ class Evaluator:
         valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
         metrics = chunk_metrics(
             predicted, true, valid, layout=self.layout,
-            gripper_groups=self.eval_cfg.gripper_groups,
+            gripper_groups=self.groups["gripper_groups"],
             gripper_threshold=self.gripper_threshold)
         return metrics, predicted, true
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
         """Trajectory figure of the chunks whose `eval.plot_groups` move most in the data."""
-        dims = np.concatenate([self.layout.group_dims(g) for g in self.eval_cfg.plot_groups])
+        plot_groups = self.groups["plot_groups"]
+        dims = np.concatenate([self.layout.group_dims(g) for g in plot_groups])
         valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
         motion = np.linalg.norm(displacement(true, valid, np.zeros(true.shape[-1], bool))[:, dims],
                                 axis=-1)
         rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
         plots.plot_trajectories(predicted[rows], true[rows], self.layout,
-                                self.eval_cfg.plot_groups, path, title)
+                                plot_groups, path, title)
 
 
 def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
@@ -264,12 +284,13 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     model_config = model_config_lib.from_model_config(config.model)
     params = state["ema_params"] if params_name == "ema" and state.get("ema_params") else \
         state["params"]
-    tokenize = tokenizer_lib.make_tokenizer(
-        config.model, prompts=sources.open_source(config.data, layout).tasks)
+    source = sources.open_source(config.data, layout)
+    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     with jax.set_mesh(mesh):
         evaluator = Evaluator(config, layout, model_config, norm_stats_from_json(norm_stats),
                               tokenize, mesh=mesh,
-                              params_sharding=sharding_lib.tree_shardings(params, mesh))
+                              params_sharding=sharding_lib.tree_shardings(params, mesh),
+                              source=source)
         metrics, predicted, true = evaluator(params)
     out = workdir / "eval" / f"step_{step}"
     out.mkdir(parents=True, exist_ok=True)

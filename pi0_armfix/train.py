@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from pi0_armfix import evaluate
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, sources
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
@@ -136,8 +137,11 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     layout = ActionLayout.from_config(config.layout)
     model_config = model_config_lib.from_model_config(config.model)
     if model_config.action_dim != layout.action_dim:
-        raise ValueError(f"layout.action_dim = {layout.action_dim} but the model preset "
-                         f"{config.model.preset!r} has action_dim {model_config.action_dim}")
+        raise ValueError(f"layout.action_dim = {layout.action_dim} but the model (preset "
+                         f"{config.model.preset!r}, model.action_dim={config.model.action_dim}) "
+                         f"has action_dim {model_config.action_dim}: set both to the same width "
+                         "(actions wider than 32 need model.action_dim; pretrained pi0 params "
+                         "need 32)")
     step_lib.check_loss_config(config.loss, layout)
     check_train_config(config.train)
     if config.data.root is None:
@@ -147,16 +151,25 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     mesh = sharding_lib.make_mesh(config.sharding.fsdp)
     sharding_lib.check_batch_size(config.train.batch_size, mesh, "train.batch_size")
     batch_sharding = sharding_lib.batch_sharding(mesh)
+    if config.eval.every > 0:
+        evaluate.check_eval_config(config.eval, layout, mesh.size)
+
+    # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
+    # passes over the data before they all hold.
+    source = sources.open_source(config.data, layout)
+    for warning in dataset_lib.check_data(config, layout, source):
+        _say(f"warning: {warning}")
+    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
 
     workdir.mkdir(parents=True, exist_ok=True)
-    norm_stats = pipeline.load_or_compute_norm_stats(
+    norm_stats = dataset_lib.load_or_compute_norm_stats(
         config, layout, action_horizon=model_config.action_horizon,
-        cache_path=workdir / "norm_stats.json", progress=is_main)
-    tokenize = tokenizer_lib.make_tokenizer(
-        config.model, prompts=sources.open_source(config.data, layout).tasks)
+        cache_path=workdir / "norm_stats.json", progress=is_main, source=source,
+        resuming=checkpoint.has_checkpoints(workdir / "checkpoints"))
     train_iter = pipeline.make_train_iterator(
         config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
-        global_batch_size=config.train.batch_size, sharding=batch_sharding, tokenize=tokenize)
+        global_batch_size=config.train.batch_size, sharding=batch_sharding, tokenize=tokenize,
+        source=source, image_size=model_config.image_resolution)
 
     abstract_state = jax.eval_shape(
         lambda: state_lib.create_train_state(
@@ -166,7 +179,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     evaluator = None
     if config.eval.every > 0:
         evaluator = evaluate.Evaluator(config, layout, model_config, norm_stats, tokenize,
-                                       mesh=mesh, params_sharding=state_shardings.params)
+                                       mesh=mesh, params_sharding=state_shardings.params,
+                                       source=source)
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", every=config.train.checkpoint_every,
                                    keep=config.train.keep_checkpoints)
     with jax.set_mesh(mesh):

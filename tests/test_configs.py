@@ -13,7 +13,7 @@ from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import pipeline
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.training import checkpoint, sharding
 
@@ -129,7 +129,7 @@ def test_config_trains_at_tiny_scale(name, tmp_path, cache_dir, demo_root):
         config = load(name)
         config.update_from_flattened_dict({"data.root": str(demo_root), "eval.episodes": 2})
         horizon = model_config_lib.from_model_config(config.model).action_horizon
-        plain = pipeline.dataset_norm_stats(config, B1K, action_horizon=horizon,
+        plain = dataset_lib.dataset_norm_stats(config, B1K, action_horizon=horizon,
                                             progress=False)["actions"]
         balanced = json.loads((workdir / "norm_stats.json").read_text())["norm_stats"]["actions"]
         arm = B1K.group_dims("left_arm")

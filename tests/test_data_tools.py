@@ -13,6 +13,7 @@ from configs import base as base_config
 from data_fixtures import write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import motion as motion_lib
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
@@ -166,16 +167,43 @@ def test_max_base_movement_and_min_arm_movement_filter():
     np.testing.assert_array_equal(loose, np.arange(1, 12, 2))  # only base-still episodes
 
 
-def test_filter_needs_arm_and_base_groups():
-    layout = ActionLayout(groups={"joints": (0, 23)}, real_dim=23)
+def _summary(layout):
     table = table_of(b1k_like_episodes(2))
     stats = stats_lib.compute_norm_stats(stats_lib.table_blocks(table), ("actions",),
                                          progress=False)["actions"]
-    summary = motion_lib.compute_motion(stats_lib.table_blocks(table, ("actions",)), layout,
-                                        *motion_lib.normalized_units(stats, "zscore"),
-                                        progress=False)
-    with pytest.raises(ValueError, match=r"groups are \['joints'\]"):
-        motion_lib.arm_heavy_episodes(summary, layout)
+    return motion_lib.compute_motion(stats_lib.table_blocks(table, ("actions",)), layout,
+                                     *motion_lib.normalized_units(stats, "zscore"),
+                                     progress=False)
+
+
+def test_filter_needs_groups_declared_as_manipulation():
+    layout = ActionLayout(groups={"joints": (0, 23)}, real_dim=23)
+    with pytest.raises(ValueError, match=r"roles are \{'joints': 'other'\}.*layout.roles"):
+        motion_lib.arm_heavy_episodes(_summary(layout), layout)
+
+
+def test_filter_reads_group_roles_not_names():
+    # A base named "wheels" and arms named "links": found by their roles.
+    layout = ActionLayout(groups={"wheels": (0, 3), "links": (3, 23)}, real_dim=23,
+                          roles={"wheels": "base", "links": "arm"})
+    named = ActionLayout(groups={"base": (0, 3), "arm": (3, 23)}, real_dim=23,
+                         roles={"base": "base", "arm": "arm"})
+    assert motion_lib.arm_heavy_groups(layout) == motion_lib.arm_heavy_groups(named) == ([1], [0])
+
+
+def test_a_fixed_base_layout_compares_manipulation_with_the_other_groups():
+    layout = ActionLayout(groups={"torso": (0, 4), "arm": (4, 22), "gripper": (22, 23)},
+                          real_dim=23, roles={"torso": "torso", "arm": "arm", "gripper": "gripper"})
+    assert motion_lib.arm_heavy_groups(layout) == ([1, 2], [0])
+    selected, per_episode = motion_lib.arm_heavy_episodes(_summary(layout), layout)
+    assert len(per_episode) == 2
+
+
+def test_a_layout_of_manipulation_groups_only_refuses_the_filter_naming_the_fix():
+    layout = ActionLayout(groups={"arm": (0, 22), "gripper": (22, 23)}, real_dim=23,
+                          roles={"arm": "arm", "gripper": "gripper"})
+    with pytest.raises(ValueError, match=r"fixed-base arm.*data.curriculum=\(\)"):
+        motion_lib.arm_heavy_groups(layout)
 
 
 # ---------------------------------------------------------------------- the tools
@@ -260,9 +288,9 @@ def test_filter_writes_the_manipulation_episodes(config, tmp_path):
 def test_curriculum_on_the_fly_selects_what_the_filter_lists(config, tmp_path):
     layout = ActionLayout.from_config(config.layout)
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    stats = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
+    stats = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
     source = pipeline.sources.open_source(config.data, layout)
-    table = source.load_table(pipeline.training_episodes(config, source), images=False)
+    table = source.load_table(dataset_lib.training_episodes(config, source), images=False)
     listed = config.copy_and_resolve_references()
     listed.data.arm_heavy_episodes = str(tmp_path / "arm_heavy.json")
     filter_arm_heavy_episodes.run(config, listed.data.arm_heavy_episodes)

@@ -193,9 +193,14 @@ def test_data_cameras_replaces_the_automatic_match(tmp_path):
     assert source.cameras == {"base_0_rgb": "observation.images.rgb.left_wrist"}
 
 
-def test_two_cameras_for_one_batch_camera_is_an_error():
+def test_two_cameras_with_the_same_alias_for_one_batch_camera_is_an_error():
     with pytest.raises(ValueError, match=r"all match batch camera 'base_0_rgb'.*data.cameras"):
-        match_cameras(["cam.head", "cam.base"], None, "ds")
+        match_cameras(["left.head", "right.head"], None, "ds")
+
+
+def test_the_highest_priority_alias_feeds_the_batch_camera():
+    assert match_cameras(["cam.top", "cam.head", "cam.front"], None, "ds") == {
+        "base_0_rgb": "cam.head"}
 
 
 def test_data_cameras_naming_an_unknown_camera_is_an_error():

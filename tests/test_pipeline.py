@@ -15,6 +15,7 @@ from absl import flags
 from configs import base as base_config
 from data_fixtures import make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
@@ -150,13 +151,21 @@ def test_each_prompt_is_tokenized_once_and_matches_its_episode():
                                   [len(table.tasks[e]) for e in episodes])
 
 
-def test_training_batches_need_a_tokenizer_and_images():
-    table = frame_table()
+def test_training_batches_need_a_tokenizer():
     with pytest.raises(ValueError, match="tokenize"):
-        batches_of(table, actions_only=False)
+        batches_of(frame_table(), actions_only=False)
+
+
+def test_a_dataset_without_cameras_gives_masked_zero_images_of_the_model_size():
+    table = frame_table()
     table.images = None
-    with pytest.raises(ValueError, match="no camera"):
-        batches_of(table, actions_only=False, tokenize=CountingTokenizer())
+    transform = pipeline.BatchTransform(
+        table, LAYOUT, norm_stats=table_stats(table), norm_mode="zscore", action_horizon=4,
+        tokenize=CountingTokenizer(), image_size=(16, 24))
+    batch = transform(np.arange(3))
+    for camera in BATCH_CAMERAS:
+        assert batch["image"][camera].shape == (3, 16, 24, 3)
+        assert not batch["image"][camera].any() and not batch["image_mask"][camera].any()
 
 
 def test_delta_actions_are_relative_to_the_current_state():
@@ -164,7 +173,7 @@ def test_delta_actions_are_relative_to_the_current_state():
     table.state = np.concatenate([table.actions[:, :20] + 0.5], axis=1)
     data = {"delta_action_mask": list(range(7, 14)),
             "state_groups": {"left_arm": (7, 14)}}
-    stats = pipeline.block_norm_stats(stats_lib.table_blocks(table), data, LAYOUT,
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table), data, LAYOUT,
                                       action_horizon=HORIZON, progress=False)
     dataset, _ = pipeline.train_batches(table, LAYOUT, {"norm": "zscore", **data}, seed=0,
                                         norm_stats=stats, action_horizon=HORIZON,
@@ -208,7 +217,7 @@ def passthrough_stats(width):
 
 def test_delta_action_stats_are_over_every_chunk_step_the_batches_hold():
     table = arm_table()
-    stats = pipeline.block_norm_stats(stats_lib.table_blocks(table, block_frames=5), ARM_DELTA,
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5), ARM_DELTA,
                                       LAYOUT, action_horizon=HORIZON, progress=False)
     targets = chunk_targets(table, {"actions": passthrough_stats(23),
                                     "state": passthrough_stats(20)})
@@ -226,7 +235,7 @@ def test_delta_action_stats_are_over_every_chunk_step_the_batches_hold():
 
 def test_normalized_delta_targets_have_unit_std():
     table = arm_table()
-    stats = pipeline.block_norm_stats(stats_lib.table_blocks(table), ARM_DELTA, LAYOUT,
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table), ARM_DELTA, LAYOUT,
                                       action_horizon=HORIZON, progress=False)
     normalized = chunk_targets(table, stats)[:, 7:14]
     np.testing.assert_allclose(normalized.std(0), 1.0, atol=1e-3)
@@ -349,9 +358,9 @@ def lerobot_config(tmp_path_factory):
 
 def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    heldout = pipeline.heldout_table(lerobot_config, layout)
+    heldout = dataset_lib.heldout_table(lerobot_config, layout)
     np.testing.assert_array_equal(heldout.episode_index, [4, 5])
-    stats = pipeline.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    stats = dataset_lib.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                                 cache_path=tmp_path / "norm_stats.json")
     run = pipeline.make_train_iterator(lerobot_config, layout, norm_stats=stats,
                                        action_horizon=HORIZON, global_batch_size=8,
@@ -370,18 +379,18 @@ def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config
 def test_norm_stats_are_computed_once_then_read_from_the_cache(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
     cache = tmp_path / "norm_stats.json"
-    computed = pipeline.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    computed = dataset_lib.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                                    cache_path=cache, progress=False)
     assert cache.is_file()
     stats_lib.save_norm_stats(cache, {k: v.replace(mean=v.mean + 1) for k, v in computed.items()})
-    cached = pipeline.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    cached = dataset_lib.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                                  cache_path=cache)
     np.testing.assert_allclose(cached["actions"].mean, computed["actions"].mean + 1)
 
 
 def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    stats = pipeline.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    stats = dataset_lib.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                         progress=False)
     source = pipeline.sources.open_source(lerobot_config.data, layout)
     training = source.load_table(source.episode_index[:4], images=False)
@@ -392,7 +401,7 @@ def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
 
 def test_a_padded_norm_stats_file_serves_the_real_width(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    stats = pipeline.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    stats = dataset_lib.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                         progress=False)
     padded = {k: stats_lib.NormStats(*(np.pad(getattr(v, f), (0, 32 - v.width))
                                        for f in stats_lib.FIELDS)) for k, v in stats.items()}
@@ -400,7 +409,7 @@ def test_a_padded_norm_stats_file_serves_the_real_width(lerobot_config, tmp_path
     stats_lib.save_norm_stats(path, padded)
     config = lerobot_config.copy_and_resolve_references()
     config.data.norm_stats = str(path)
-    loaded = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=HORIZON)
+    loaded = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=HORIZON)
     assert loaded["actions"].width == 23 and loaded["state"].width == 32
     run = pipeline.make_train_iterator(config, layout, norm_stats=loaded, action_horizon=HORIZON,
                                        global_batch_size=4, sharding=single_device_sharding(),
@@ -412,4 +421,4 @@ def test_too_many_held_out_episodes_is_an_error(lerobot_config):
     config = lerobot_config.copy_and_resolve_references()
     config.eval.episodes = 6
     with pytest.raises(ValueError, match="eval.episodes = 6"):
-        pipeline.heldout_table(config, ActionLayout.from_config(config.layout))
+        dataset_lib.heldout_table(config, ActionLayout.from_config(config.layout))

@@ -144,6 +144,7 @@ def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup
     import ml_collections
     from absl import flags
 
+    from pi0_armfix.data import dataset as dataset_lib
     from pi0_armfix.data import pipeline
     from pi0_armfix.data import stats as stats_lib
 
@@ -156,7 +157,7 @@ def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup
     layout = ActionLayout.preset(_LAYOUT)
     stats_path = root / "bench_norm_stats.json"
     if not stats_path.is_file():
-        stats_lib.save_norm_stats(stats_path, pipeline.dataset_norm_stats(
+        stats_lib.save_norm_stats(stats_path, dataset_lib.dataset_norm_stats(
             config, layout, action_horizon=horizon))
     stats = stats_lib.load_norm_stats(stats_path)
     mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))

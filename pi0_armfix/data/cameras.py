@@ -1,24 +1,34 @@
 """Which stored camera feeds which batch camera, and how a stored image becomes pixels.
 
 Shared by every data source. The batch carries three cameras (see the team contract):
-`base_0_rgb` (B1K head camera), `left_wrist_0_rgb` and `right_wrist_0_rgb`. Stored camera
-names differ between datasets, so the automatic match looks at substrings of the name
-(case-insensitive), in this order:
+`base_0_rgb` (the head / scene camera), `left_wrist_0_rgb` and `right_wrist_0_rgb`. Stored camera
+names differ between datasets, so the automatic match looks for aliases in the name
+(case-insensitive, as whole `_`/`.`/`-`-separated words or joined words), batch camera by batch
+camera, aliases in priority order:
 
-  "left_wrist" / "wrist_left"    -> left_wrist_0_rgb
-  "right_wrist" / "wrist_right"  -> right_wrist_0_rgb
-  "wrist" (a single wrist camera) -> left_wrist_0_rgb   (openpi's convention, e.g. DROID)
-  "head" / "base"                 -> base_0_rgb
+  | batch camera        | aliases, highest priority first                                   |
+  |---------------------|-------------------------------------------------------------------|
+  | left_wrist_0_rgb    | left_wrist, wrist_left, cam_left_wrist, leftwrist, left_hand       |
+  | right_wrist_0_rgb   | right_wrist, wrist_right, cam_right_wrist, rightwrist, right_hand  |
+  | left_wrist_0_rgb    | wrist, wrist_image, hand (a single wrist camera: openpi's DROID    |
+  |                     | convention), when no left wrist matched                            |
+  | base_0_rgb          | head, cam_high, ego_view, base, front, top, overhead, exterior,    |
+  |                     | scene, main, image                                                 |
 
-Names that contain "depth", "seg" or "mask" are never matched (B1K stores depth and
-segmentation videos beside the RGB ones). Anything else is left out; `data.cameras`
-(`{batch camera: stored name}`) names the feeds explicitly and replaces the automatic match.
+B1K (`observation.images.rgb.head` / `.left_wrist` / `.right_wrist`), ALOHA (`cam_high`,
+`cam_left_wrist`, `cam_right_wrist`; `cam_low` is left out), GR00T-style `ego_view`, LIBERO-style
+`image` + `wrist_image` all match. For a batch camera, the stored name with the highest-priority
+alias wins; two names at the same priority are an error listing both. Names containing "depth",
+"seg" or "mask" are never matched (B1K stores depth and segmentation videos beside the RGB ones).
+`data.cameras` (`{batch camera: stored name}`) names the feeds explicitly and replaces the
+automatic match; a batch camera the dataset does not feed is masked out (image_mask False).
 """
 
 from __future__ import annotations
 
 import io
 import logging
+import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -27,21 +37,32 @@ from PIL import Image
 BATCH_CAMERAS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 
 _NOT_RGB = ("depth", "seg", "mask")
-_RULES = (
-    (("left_wrist", "wrist_left"), "left_wrist_0_rgb"),
-    (("right_wrist", "wrist_right"), "right_wrist_0_rgb"),
-    (("wrist",), "left_wrist_0_rgb"),
-    (("head", "base"), "base_0_rgb"),
+# (batch camera, aliases in priority order); a later rule only fills a camera still unmatched.
+ALIASES: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("left_wrist_0_rgb", ("left_wrist", "wrist_left", "cam_left_wrist", "leftwrist",
+                          "left_hand")),
+    ("right_wrist_0_rgb", ("right_wrist", "wrist_right", "cam_right_wrist", "rightwrist",
+                           "right_hand")),
+    ("left_wrist_0_rgb", ("wrist", "wrist_image", "hand")),
+    ("base_0_rgb", ("head", "cam_high", "ego_view", "base", "front", "top", "overhead",
+                    "exterior", "scene", "main", "image")),
 )
 
 
-def _auto_camera(name: str) -> str | None:
-    lowered = name.lower()
-    if any(word in lowered for word in _NOT_RGB):
+def _words(name: str) -> tuple[list[str], str]:
+    """The name's lower-case words (split at `.`, `/`, `-`, `_`) and its `_`-joined form."""
+    words = [w for w in re.split(r"[./\-_\s]+", name.lower()) if w]
+    return words, "_".join(words)
+
+
+def _alias_rank(name: str, aliases: Sequence[str]) -> int | None:
+    """Priority (index into `aliases`) of the best alias in `name`, or None."""
+    words, joined = _words(name)
+    if any(w in _NOT_RGB or w.startswith(_NOT_RGB) for w in words):
         return None
-    for words, camera in _RULES:
-        if any(word in lowered for word in words):
-            return camera
+    for rank, alias in enumerate(aliases):
+        if alias in words or re.search(rf"(^|_){re.escape(alias)}(_|$)", joined):
+            return rank
     return None
 
 
@@ -66,20 +87,37 @@ def match_cameras(names: Sequence[str], override: Mapping[str, str] | None,
                 raise ValueError(f"data.cameras[{camera!r}] = {name!r} is not a camera of {where}; "
                                  f"its cameras are {list(names)}")
         return {camera: override[camera] for camera in BATCH_CAMERAS if camera in override}
-    matched: dict[str, list[str]] = {}
-    for name in names:
-        camera = _auto_camera(name)
-        if camera is not None:
-            matched.setdefault(camera, []).append(name)
-    for camera, found in matched.items():
-        if len(found) > 1:
-            raise ValueError(f"{where}: cameras {found} all match batch camera {camera!r}; "
+    matched: dict[str, str] = {}
+    for camera, aliases in ALIASES:
+        if camera in matched:
+            continue
+        free = [n for n in names if n not in matched.values()]
+        ranked = [(rank, n) for n in free if (rank := _alias_rank(n, aliases)) is not None]
+        if not ranked:
+            continue
+        best = min(rank for rank, _ in ranked)
+        tied = [n for rank, n in ranked if rank == best]
+        if len(tied) > 1:
+            raise ValueError(f"{where}: cameras {tied} all match batch camera {camera!r}; "
                              f"choose one with data.cameras={{{camera!r}: NAME}}")
-    unmatched = [n for n in names if n not in {f[0] for f in matched.values()}]
+        matched[camera] = tied[0]
+    unmatched = [n for n in names if n not in matched.values()]
     if unmatched:
         logging.info("%s: cameras %s feed no batch camera (set data.cameras to use them)",
                      where, unmatched)
-    return {camera: matched[camera][0] for camera in BATCH_CAMERAS if camera in matched}
+    return {camera: matched[camera] for camera in BATCH_CAMERAS if camera in matched}
+
+
+def missing_cameras_message(matched: Mapping[str, str], names: Sequence[str], where: str
+                            ) -> str | None:
+    """The one warning for batch cameras the dataset does not feed (None if all are fed)."""
+    missing = [c for c in BATCH_CAMERAS if c not in matched]
+    if not missing:
+        return None
+    return (f"{where}: no camera feeds {missing} (matched: {dict(matched)}; the dataset's "
+            f"cameras: {list(names)}); training with them masked out. Name a feed with "
+            f"data.cameras={{'<batch camera>': '<stored name>'}} (aliases: "
+            f"pi0_armfix/data/cameras.py)")
 
 
 def decode_image(data: bytes, where: str) -> np.ndarray:

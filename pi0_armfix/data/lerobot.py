@@ -16,12 +16,20 @@ and every column in `features`):
                `videos/<key>/from_timestamp`..`to_timestamp` of the mp4 `videos/<key>/chunk_index`,
                `file_index`); task strings in `meta/tasks.parquet`.
 
-Frame columns: `action` and `observation.state` (float32 or float64 lists), `timestamp` (seconds from
-the episode start), `frame_index` (may be missing), `episode_index`, `index`, `task_index`; an
+Frame columns: the action and state features (`action` / `observation.state` by default;
+`data.action_key` / `data.state_key` name others, e.g. `actions` / `state`), float32 or float64
+lists, fixed- or variable-length; `timestamp` (seconds from the episode start), `frame_index`
+(may be missing), `episode_index`, `index`, `task_index`; only the columns a pass needs are read
+(B1K's `observation.task_info`, `cam_rel_poses` and depth / segmentation videos never are). An
 episode's rows are read in stored order, which LeRobot writes in frame order. Image
 features are stored in parquet as structs `{bytes, path}` holding PNG or JPEG bytes; video features
 are mp4 files whose frame for a row is the one at the row's timestamp (plus the episode's
-`from_timestamp` in v3.0).
+`from_timestamp` in v3.0), to within `data.video_tolerance_frames` (default half a frame: the
+nearest frame; 1 accepts data whose timestamps run one frame past the video, a known fault of
+some converted sets). Decoders are per thread, so any number of Grain threads may read at once.
+`LeRobotSource.probe` decodes the first and last frame of a sample of episodes before training.
+
+Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
 
 The reader takes an episode's prompt from the `tasks` list of its own metadata record (its first
 task); the tasks files map `task_index` to the same strings and are written but not needed to read.
@@ -41,6 +49,7 @@ import fractions
 import itertools
 import json
 import math
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -51,14 +60,14 @@ import pyarrow.parquet as pq
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data.episodes import EpisodeTable
 
 ACTION = "action"
 STATE = "observation.state"
 VERSIONS = ("v2.0", "v2.1", "v3.0")
 
-# Block keys -> parquet columns.
-_COLUMNS = {"actions": ACTION, "state": STATE, "timestamp": "timestamp"}
+BLOCK_KEYS = ("actions", "state", "timestamp")
 # Data files read ahead of the consumer by a background thread (bounds memory).
 _READ_AHEAD = 2
 
@@ -67,6 +76,7 @@ _V2_VIDEO_PATH = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_
 _V3_DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 _V3_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 _V3_EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+_LFS_POINTER = b"version https://git-lfs"
 
 
 # ====================================================================== shared helpers
@@ -81,13 +91,32 @@ def _major_version(info: Mapping[str, Any], path: Path) -> int:
     return int(major)
 
 
+def lfs_pointer_message(path: Path) -> str | None:
+    """"PATH is a git-LFS pointer ..." with the fix, if the file is one; None otherwise."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(_LFS_POINTER))
+    except OSError:
+        return None
+    if head != _LFS_POINTER:
+        return None
+    return (f"{path} is a git-LFS pointer file ({path.stat().st_size} bytes), not the data: the "
+            "dataset was cloned without its LFS objects. Fetch them (`git lfs pull` in the "
+            "dataset root, or `huggingface-cli download --repo-type dataset REPO "
+            "--local-dir ROOT`)")
+
+
+def _unreadable(path: Path, what: str, err: Exception) -> ValueError:
+    return ValueError(lfs_pointer_message(path) or f"cannot read {what} {path}: {err}")
+
+
 def _open_parquet(path: Path) -> pq.ParquetFile:
     if not path.is_file():
         raise ValueError(f"missing parquet file {path}")
     try:
         return pq.ParquetFile(path)
     except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"cannot read parquet file {path}: {err}") from err
+        raise _unreadable(path, "parquet file", err) from err
 
 
 def _read_parquet(path: Path, columns: Sequence[str]) -> pa.Table:
@@ -98,7 +127,7 @@ def _read_parquet(path: Path, columns: Sequence[str]) -> pa.Table:
     try:
         return parquet.read(columns=list(columns))
     except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"cannot read parquet file {path}: {err}") from err
+        raise _unreadable(path, "parquet file", err) from err
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -212,13 +241,15 @@ class LeRobotWriter:
       chunks_size: files per chunk folder.
       robot_type: written to info.json.
       video_codec: PyAV encoder for video features.
+      action_key, state_key: names of the action and state features.
     """
 
     def __init__(self, root: str | Path, *, version: str = "v2.1", fps: int = 30,
                  cameras: Mapping[str, tuple[int, int]] | None = None, image_format: str = "png",
                  float_dtype: Any = np.float32, frame_index: bool = True,
                  episodes_per_file: int = 100, row_group_size: int | None = None,
-                 chunks_size: int = 1000, robot_type: str = "R1Pro", video_codec: str = "libx264"):
+                 chunks_size: int = 1000, robot_type: str = "R1Pro", video_codec: str = "libx264",
+                 action_key: str = ACTION, state_key: str = STATE):
         if version not in VERSIONS:
             raise ValueError(f"version must be one of {list(VERSIONS)}, got {version!r}")
         if image_format not in ("png", "jpeg", "video"):
@@ -231,6 +262,7 @@ class LeRobotWriter:
         self.frame_index, self.episodes_per_file = frame_index, int(episodes_per_file)
         self.row_group_size, self.chunks_size = row_group_size, int(chunks_size)
         self.robot_type, self.video_codec = robot_type, video_codec
+        self.action_key, self.state_key = action_key, state_key
         self._tasks: dict[str, int] = {}
         self._records: list[dict[str, Any]] = []  # per-episode metadata
         self._pending: list[_PendingEpisode] = []  # v3.0: episodes of the file being filled
@@ -285,7 +317,8 @@ class LeRobotWriter:
         self._records.append({
             "episode_index": episode.index, "tasks": [task], "length": n,
             "dataset_from_index": self._num_frames, "dataset_to_index": self._num_frames + n,
-            "stats": {ACTION: _feature_stats(actions), STATE: _feature_stats(state)},
+            "stats": {self.action_key: _feature_stats(actions),
+                      self.state_key: _feature_stats(state)},
         })
         self._num_frames += n
         if self.version == "v3.0":
@@ -301,8 +334,8 @@ class LeRobotWriter:
         lengths = [len(e.actions) for e in episodes]
         first = self._records[episodes[0].index]["dataset_from_index"]
         columns: dict[str, pa.Array] = {
-            ACTION: _list_array(np.concatenate([e.actions for e in episodes])),
-            STATE: _list_array(np.concatenate([e.state for e in episodes])),
+            self.action_key: _list_array(np.concatenate([e.actions for e in episodes])),
+            self.state_key: _list_array(np.concatenate([e.state for e in episodes])),
         }
         if self.image_format != "video":
             for name in self.cameras:
@@ -365,8 +398,8 @@ class LeRobotWriter:
         dtype = self.float_dtype.name
         scalar = lambda d: {"dtype": d, "shape": [1], "names": None}  # noqa: E731
         features: dict[str, Any] = {
-            ACTION: {"dtype": dtype, "shape": [action_width], "names": None},
-            STATE: {"dtype": dtype, "shape": [state_width], "names": None},
+            self.action_key: {"dtype": dtype, "shape": [action_width], "names": None},
+            self.state_key: {"dtype": dtype, "shape": [state_width], "names": None},
         }
         for name, (height, width) in self.cameras.items():
             feature = {"dtype": "video" if self.image_format == "video" else "image",
@@ -412,7 +445,7 @@ class LeRobotWriter:
         tasks = sorted(self._tasks.items(), key=lambda kv: kv[1])
         if self.version != "v2.1":  # v2.1 replaced stats.json by per-episode statistics
             stats = {key: _merge_stats([r["stats"][key] for r in self._records])
-                     for key in (ACTION, STATE)}
+                     for key in (self.action_key, self.state_key)}
             (meta / "stats.json").write_text(json.dumps(stats, indent=4))
         if self.version == "v3.0":
             self._write_v3_meta(tasks)
@@ -544,20 +577,30 @@ class LeRobotSource:
 
     Args:
       root: the dataset root (holds `meta/info.json`).
-      layout: the action layout; the dataset's action width must equal `layout.real_dim`.
+      layout: the action layout; the (selected) action width must equal `layout.real_dim`.
       cameras: `data.cameras` (`{batch camera: stored name}`); None = automatic match
         (see `pi0_armfix.data.cameras`).
-      state_indices: dims of `observation.state` to keep (e.g. B1K's 23 baseline dims out of its
-        full proprioception vector); None = all.
+      action_key, state_key: the stored action and state features (`data.action_key`,
+        `data.state_key`); a dataset without the state feature gets a 0-D state.
+      state_indices, state_preset: `data.state_indices` / `data.state_preset`, the selection of
+        the stored state (`pi0_armfix.data.selection`; e.g. B1K's 256-D proprioception -> 23-D in
+        the action order); both unset = all dims.
+      action_indices: `data.action_indices`, dims of the stored actions to keep (() = all).
+      video_tolerance_frames: `data.video_tolerance_frames`, how far (in frames) a row's
+        timestamp may lie from the video frame it reads.
 
     Attributes:
       num_episodes, episode_index ([E] int64 episode ids), episode_lengths ([E] int64),
-      tasks ([E] prompts), fps, version, cameras ({batch camera: stored name}).
+      tasks ([E] prompts), fps, version, cameras ({batch camera: stored name}),
+      camera_names (every stored image/video feature), stored_state_width, state_width,
+      stored_action_width, action_width, state (the state Selection).
     """
 
     def __init__(self, root: str | Path, layout: ActionLayout, *,
-                 cameras: Mapping[str, str] | None = None,
-                 state_indices: Sequence[int] | None = None):
+                 cameras: Mapping[str, str] | None = None, action_key: str = ACTION,
+                 state_key: str = STATE, state_indices: Sequence[int] | None = None,
+                 state_preset: str = "", action_indices: Sequence[int] | None = None,
+                 video_tolerance_frames: float = 0.5):
         self.root = Path(root)
         info_path = self.root / "meta" / "info.json"
         if not info_path.is_file():
@@ -565,31 +608,47 @@ class LeRobotSource:
         try:
             info = json.loads(info_path.read_text())
         except (OSError, json.JSONDecodeError) as err:
-            raise ValueError(f"cannot read {info_path}: {err}") from err
+            raise ValueError(lfs_pointer_message(info_path)
+                             or f"cannot read {info_path}: {err}") from err
         for field in ("codebase_version", "fps", "features"):
             if field not in info:
                 raise ValueError(f"{info_path} has no {field!r} field")
         major = _major_version(info, info_path)
         self.version, self.fps = str(info["codebase_version"]), float(info["fps"])
+        if not video_tolerance_frames > 0:
+            raise ValueError(f"data.video_tolerance_frames = {video_tolerance_frames} must be > 0 "
+                             "(0.5 = the nearest frame)")
+        self.video_tolerance_frames = float(video_tolerance_frames)
         features = info["features"]
-        if ACTION not in features:
-            raise ValueError(f"{info_path}: the dataset has no {ACTION!r} feature "
-                             f"(features: {sorted(features)})")
-        self.action_width = int(np.prod(features[ACTION]["shape"]))
-        layout.check_real_dim(self.action_width, source=f"{self.root} (feature {ACTION!r})")
-        self._has_state = STATE in features
-        stored_state = int(np.prod(features[STATE]["shape"])) if self._has_state else 0
-        if state_indices is not None:
-            state_indices = np.asarray(state_indices, np.int64)
-            if state_indices.ndim != 1 or not (
-                    (state_indices >= 0) & (state_indices < stored_state)).all():
-                raise ValueError(f"data.state_indices {state_indices.tolist()} must index "
-                                 f"{STATE!r} of width {stored_state} ({self.root})")
-        self._state_indices = state_indices
-        self.state_width = stored_state if state_indices is None else len(state_indices)
+        vectors = sorted(n for n, f in features.items()
+                         if f.get("dtype") not in ("image", "video", "string"))
+        if action_key not in features:
+            raise ValueError(f"{info_path}: the dataset has no {action_key!r} feature "
+                             f"(data.action_key); its features: {vectors}")
+        self._columns = {"actions": action_key, "state": state_key, "timestamp": "timestamp"}
+        self.stored_action_width = int(np.prod(features[action_key]["shape"]))
+        self.actions = selection_lib.make_selection(
+            self.stored_action_width, indices=action_indices or None, field="data.action_indices",
+            feature=action_key, where=str(self.root))
+        self.action_width = self.actions.width
+        source = f"{self.root} (feature {action_key!r}" + (
+            f", data.action_indices of {self.stored_action_width} dims)" if action_indices
+            else ")")
+        layout.check_real_dim(self.action_width, source=source)
+        self._has_state = state_key in features
+        if not self._has_state and (state_indices or state_preset):
+            raise ValueError(f"{info_path}: the dataset has no {state_key!r} feature "
+                             f"(data.state_key) to select from; its features: {vectors}")
+        self.stored_state_width = (int(np.prod(features[state_key]["shape"])) if self._has_state
+                                   else 0)
+        self.state = selection_lib.make_selection(
+            self.stored_state_width, indices=state_indices or None, preset=state_preset or "",
+            field="data.state_indices", feature=state_key, where=str(self.root))
+        self.state_width = self.state.width
 
         stored = {name: f["dtype"] for name, f in features.items()
                   if f.get("dtype") in ("image", "video")}
+        self.camera_names = tuple(stored)
         self.cameras = cameras_lib.match_cameras(list(stored), cameras, str(self.root))
         self._camera_kind = {name: stored[name] for name in self.cameras.values()}
         video_keys = [name for name, kind in self._camera_kind.items() if kind == "video"]
@@ -624,6 +683,54 @@ class LeRobotSource:
             positions.append(self._position[int(episode)])
         return positions
 
+    # ------------------------------------------------------------------ probe
+
+    def probe(self, num_episodes: int = 4) -> None:
+        """Checks a sample of episodes before any pass over the data: their parquet files read
+        (git-LFS pointers named), the action/state columns have the declared widths, and for each
+        video camera the frame of the first row decodes and the last row's timestamp lies within
+        `video_tolerance_frames` of the video's last frame (decoded for episodes of up to
+        `_PROBE_DECODE_FRAMES` frames; from the container's frame count beyond, since B1K's HEVC
+        files have one keyframe per episode and decoding to the end costs a full pass).
+
+        Args:
+          num_episodes: episodes probed, evenly spread over the dataset (first and last included).
+
+        Raises:
+          ValueError naming the file, the episode and the time that cannot be read.
+        """
+        if num_episodes <= 0:
+            return
+        positions = np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round())
+        videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
+        for position in positions.astype(int):
+            episode = self._episodes[position]
+            keys = ("actions", "state") + (("timestamp",) if videos else ())
+            blocks = self._read_file(episode.data_file, [episode], keys)
+            if not videos:
+                continue
+            times = np.concatenate([b["timestamp"] for b in blocks]).astype(np.float64)
+            for key in videos:
+                path, start = episode.videos[key]
+                if not path.is_file():
+                    raise ValueError(f"missing video file {path} (episode {episode.index})")
+                decoder = _VideoDecoder(path, self.fps, self.video_tolerance_frames)
+                try:
+                    where = f"episode {episode.index}, camera {key!r}"
+                    _probe_frame(decoder, start + times[0], where + ", first row")
+                    last = decoder.last_frame_time()
+                    if episode.length <= _PROBE_DECODE_FRAMES or last is None:
+                        _probe_frame(decoder, start + times[-1], where + ", last row")
+                    elif start + times[-1] > last + self.video_tolerance_frames / self.fps:
+                        raise ValueError(
+                            f"{path} ends at {last:.4f} s (its last frame) but {where}'s last "
+                            f"row has timestamp {times[-1]:.4f} s"
+                            + (f" (+ from_timestamp {start:.4f} s)" if start else "")
+                            + ": the data's timestamps run past the video. If by up to a frame, "
+                            "set data.video_tolerance_frames=1 to read the nearest frame")
+                finally:
+                    decoder.close()
+
     # ------------------------------------------------------------------ streaming
 
     def iter_blocks(self, keys: Sequence[str] = ("actions", "state"),
@@ -639,9 +746,9 @@ class LeRobotSource:
           (the keys asked for), in the stored float dtype (float32 or float64), in episode order;
           a block may hold the end of one episode and the start of the next.
         """
-        unknown = [k for k in keys if k not in _COLUMNS]
+        unknown = [k for k in keys if k not in BLOCK_KEYS]
         if unknown:
-            raise ValueError(f"unknown block key(s) {unknown}; known: {sorted(_COLUMNS)}")
+            raise ValueError(f"unknown block key(s) {unknown}; known: {list(BLOCK_KEYS)}")
         positions = self.positions(episodes)
         runs = [(path, [self._episodes[p] for p in run]) for path, run in
                 itertools.groupby(positions, key=lambda p: self._episodes[p].data_file)]
@@ -663,7 +770,7 @@ class LeRobotSource:
                    keys: tuple[str, ...]) -> list[dict[str, np.ndarray]]:
         """The blocks (one per row group) of the chosen episodes of one data file."""
         parquet = _open_parquet(path)
-        columns = [_COLUMNS[k] for k in keys if k != "state" or self._has_state]
+        columns = [self._columns[k] for k in keys if k != "state" or self._has_state]
         missing = [c for c in columns if c not in parquet.schema_arrow.names]
         if missing:
             raise ValueError(f"{path} has no column(s) {missing}")
@@ -689,7 +796,7 @@ class LeRobotSource:
             try:
                 table = parquet.read_row_group(group, columns=columns, use_threads=False)
             except (pa.ArrowException, OSError) as err:
-                raise ValueError(f"cannot read parquet file {path}: {err}") from err
+                raise _unreadable(path, "parquet file", err) from err
             ranges = []  # contiguous row ranges, so that whole row groups are never copied
             for _, a, b, _ in parts:
                 if ranges and ranges[-1][1] == a:
@@ -711,13 +818,13 @@ class LeRobotSource:
             elif key == "state" and not self._has_state:
                 block[key] = np.zeros((n, 0), np.float32)
             else:
-                values = _matrix(table.column(_COLUMNS[key]), _COLUMNS[key], path)
-                if key == "actions" and values.shape[1] != self.action_width:
-                    raise ValueError(f"{path}: column {ACTION!r} has width {values.shape[1]} but "
-                                     f"meta/info.json declares {self.action_width}")
-                if key == "state" and self._state_indices is not None:
-                    values = values[:, self._state_indices]
-                block[key] = values
+                column = self._columns[key]
+                values = _matrix(table.column(column), column, path)
+                selection = self.actions if key == "actions" else self.state
+                if values.shape[1] != selection.stored_width:
+                    raise ValueError(f"{path}: column {column!r} has width {values.shape[1]} but "
+                                     f"meta/info.json declares {selection.stored_width}")
+                block[key] = selection(values)
         block["episode_index"] = np.repeat(np.array([p[3] for p in parts], np.int64),
                                            [b - a for _, a, b, _ in parts])
         return block
@@ -748,7 +855,8 @@ class LeRobotSource:
             timestamps = (np.concatenate([b["timestamp"] for b in blocks]).astype(np.float64)
                           if videos else None)
             reader = LeRobotFrameImages(self.cameras, self._camera_kind, chosen, starts,
-                                        timestamps, self.fps)
+                                        timestamps, self.fps,
+                                        video_tolerance_frames=self.video_tolerance_frames)
         return EpisodeTable(actions=actions, state=state, episode_starts=starts,
                             episode_index=np.array([e.index for e in chosen], np.int64),
                             tasks=[e.task for e in chosen], images=reader, fps=self.fps)
@@ -756,24 +864,38 @@ class LeRobotSource:
 
 # ====================================================================== lazy images
 
+# Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
+_PROBE_DECODE_FRAMES = 1800
+
+
+def _probe_frame(decoder: "_VideoDecoder", seconds: float, where: str) -> None:
+    try:
+        decoder.frame_at(seconds)
+    except ValueError as err:
+        raise ValueError(f"{err} ({where})") from None
+
 
 class _VideoDecoder:
-    """Frames of one mp4 by timestamp.
+    """Frames of one mp4 by timestamp. Not thread-safe: one per thread (`LeRobotFrameImages`).
 
     Keeps the container open and the last `max_frames` decoded frames. A request a little ahead
     of the decoder's position (within `max_gap` frames) continues decoding forward; any other miss
-    seeks to the keyframe before the requested time and decodes from there.
+    seeks to the keyframe before the requested time and decodes from there. A request is served
+    by the frame nearest to it when that lies within `tolerance` frames (0.5: the nearest frame);
+    otherwise it is an error naming the file, the time and the video's last frame.
     """
 
-    def __init__(self, path: Path, fps: float, max_frames: int = 32, max_gap: int = 32):
+    def __init__(self, path: Path, fps: float, tolerance: float = 0.5, max_frames: int = 32,
+                 max_gap: int = 32):
         import av  # PyAV is only needed for video features
 
-        self.path, self.fps, self.max_frames, self.max_gap = path, fps, max_frames, max_gap
+        self.path, self.fps, self.tolerance = path, fps, tolerance
+        self.max_frames, self.max_gap = max_frames, max_gap
         try:
             self._container = av.open(str(path))
             self._stream = self._container.streams.video[0]
         except (av.FFmpegError, IndexError) as err:
-            raise ValueError(f"cannot open video file {path}: {err}") from err
+            raise _unreadable(path, "video file", err) from err
         self._frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self._decoder = None
         self._position = -1  # number of the last frame the decoder returned
@@ -788,26 +910,48 @@ class _VideoDecoder:
         self._position = -1
 
     def frame_at(self, seconds: float) -> np.ndarray:
-        """uint8 [h, w, 3], the frame at `seconds` (to within half a frame)."""
+        """uint8 [h, w, 3], the frame nearest to `seconds` (within `tolerance` frames)."""
+        import av
+
         wanted = int(round(seconds * self.fps))
         if wanted in self._frames:
             self._frames.move_to_end(wanted)
             return self._frames[wanted]
         if self._decoder is None or not (self._position < wanted <= self._position + self.max_gap):
             self._seek(seconds)
-        for frame in self._decoder:
-            number = int(round(frame.time * self.fps))
-            self._position = number
-            self._frames[number] = frame.to_ndarray(format="rgb24")
-            while len(self._frames) > self.max_frames:
-                self._frames.popitem(last=False)
-            if number >= wanted:
-                break
-        if wanted not in self._frames:
+        try:
+            for frame in self._decoder:
+                # A stream without timestamps is numbered by decoding order from its start.
+                number = (int(round(frame.time * self.fps)) if frame.time is not None
+                          else self._position + 1)
+                self._position = number
+                self._frames[number] = frame.to_ndarray(format="rgb24")
+                while len(self._frames) > self.max_frames:
+                    self._frames.popitem(last=False)
+                if number >= wanted:
+                    break
+        except av.FFmpegError as err:
             self._decoder = None
-            raise ValueError(f"{self.path} has no frame at {seconds:.4f} s "
-                             f"(decoding stopped at frame {self._position})")
-        return self._frames[wanted]
+            raise _unreadable(self.path, "video file", err) from err
+        if wanted in self._frames:
+            return self._frames[wanted]
+        nearest = min(self._frames, key=lambda n: abs(n - seconds * self.fps), default=None)
+        if nearest is not None and abs(nearest - seconds * self.fps) <= self.tolerance:
+            return self._frames[nearest]
+        self._decoder = None
+        last = "no frame" if nearest is None else f"frame {nearest} at {nearest / self.fps:.4f} s"
+        raise ValueError(
+            f"{self.path} has no frame at {seconds:.4f} s (frame {seconds * self.fps:.2f} at "
+            f"{self.fps:g} fps; decoding ended at {last}). If the data's timestamps run past the "
+            f"video by up to a frame, set data.video_tolerance_frames=1 to read the nearest frame")
+
+    def last_frame_time(self) -> float | None:
+        """Time of the video's last frame from the container's metadata (None if unknown)."""
+        stream = self._stream
+        if stream.frames:
+            start = float(stream.start_time * stream.time_base) if stream.start_time else 0.0
+            return start + (stream.frames - 1) / self.fps
+        return None
 
 
 class LeRobotFrameImages:
@@ -822,7 +966,7 @@ class LeRobotFrameImages:
     def __init__(self, cameras: Mapping[str, str], kinds: Mapping[str, str],
                  episodes: Sequence[_Episode], episode_starts: np.ndarray,
                  timestamps: np.ndarray | None, fps: float, cache_bytes: int = 256 << 20,
-                 max_open_videos: int = 8):
+                 max_open_videos: int = 8, video_tolerance_frames: float = 0.5):
         self.cameras = tuple(cameras)
         self._features = dict(cameras)
         self._kinds = dict(kinds)
@@ -830,23 +974,26 @@ class LeRobotFrameImages:
         self._starts = np.asarray(episode_starts)
         self._timestamps = timestamps
         self._fps, self._cache_bytes, self._max_open = fps, cache_bytes, max_open_videos
-        self._reset_caches()
+        self._tolerance = video_tolerance_frames
+        self._local = threading.local()
 
-    def _reset_caches(self) -> None:
-        self._row_groups: dict[Path, np.ndarray] = {}
-        self._columns: collections.OrderedDict[tuple, pa.Array] = collections.OrderedDict()
-        self._cached_bytes = 0
-        self._videos: collections.OrderedDict[Path, _VideoDecoder] = collections.OrderedDict()
+    # Decoders and caches are per thread: a PyAV container and its frame generator must never be
+    # used by two threads at once (Grain reads with several threads when data.num_workers = 0).
+    @property
+    def _caches(self) -> _Caches:
+        caches = getattr(self._local, "caches", None)
+        if caches is None:
+            caches = self._local.caches = _Caches()
+        return caches
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
-        for key in ("_row_groups", "_columns", "_cached_bytes", "_videos"):
-            state.pop(key)
+        state.pop("_local")
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
-        self._reset_caches()
+        self._local = threading.local()
 
     def __call__(self, frame: int) -> dict[str, np.ndarray]:
         if not 0 <= frame < self._starts[-1]:
@@ -864,43 +1011,57 @@ class LeRobotFrameImages:
         return out
 
     def _image(self, feature: str, path: Path, row: int) -> np.ndarray:
-        starts = self._row_groups.get(path)
+        caches = self._caches
+        starts = caches.row_groups.get(path)
         if starts is None:
             metadata = _open_parquet(path).metadata
             starts = np.cumsum([0] + [metadata.row_group(i).num_rows
                                       for i in range(metadata.num_row_groups)])
-            self._row_groups[path] = starts
+            caches.row_groups[path] = starts
         group = int(np.searchsorted(starts, row, side="right")) - 1
         key = (path, group, feature)
-        column = self._columns.get(key)
+        column = caches.columns.get(key)
         if column is None:
             try:
                 table = _open_parquet(path).read_row_group(group, columns=[feature])
             except (pa.ArrowException, OSError) as err:
-                raise ValueError(f"cannot read parquet file {path}: {err}") from err
+                raise _unreadable(path, "parquet file", err) from err
             column = table.column(0).combine_chunks().field("bytes")
-            self._columns[key] = column
-            self._cached_bytes += column.nbytes
-            while self._cached_bytes > self._cache_bytes and len(self._columns) > 1:
-                _, dropped = self._columns.popitem(last=False)
-                self._cached_bytes -= dropped.nbytes
+            caches.columns[key] = column
+            caches.cached_bytes += column.nbytes
+            while caches.cached_bytes > self._cache_bytes and len(caches.columns) > 1:
+                _, dropped = caches.columns.popitem(last=False)
+                caches.cached_bytes -= dropped.nbytes
         else:
-            self._columns.move_to_end(key)
+            caches.columns.move_to_end(key)
         data = column[row - int(starts[group])].as_py()
         if data is None:
             raise ValueError(f"{path}: camera {feature!r} row {row} holds no image bytes")
         return cameras_lib.decode_image(data, f"{path} camera {feature!r} row {row}")
 
     def _video(self, path: Path) -> _VideoDecoder:
-        decoder = self._videos.get(path)
+        videos = self._caches.videos
+        decoder = videos.get(path)
         if decoder is None:
             if not path.is_file():
                 raise ValueError(f"missing video file {path}")
-            decoder = _VideoDecoder(path, self._fps)
-            self._videos[path] = decoder
-            if len(self._videos) > self._max_open:
-                self._videos.popitem(last=False)[1].close()
+            decoder = _VideoDecoder(path, self._fps, self._tolerance)
+            videos[path] = decoder
+            if len(videos) > self._max_open:
+                videos.popitem(last=False)[1].close()
         else:
-            self._videos.move_to_end(path)
+            videos.move_to_end(path)
         return decoder
+
+
+@dataclasses.dataclass
+class _Caches:
+    """One thread's open files of a LeRobotFrameImages."""
+
+    row_groups: dict = dataclasses.field(default_factory=dict)  # parquet -> row group starts
+    columns: collections.OrderedDict = dataclasses.field(
+        default_factory=collections.OrderedDict)  # (parquet, group, feature) -> encoded images
+    cached_bytes: int = 0
+    videos: collections.OrderedDict = dataclasses.field(
+        default_factory=collections.OrderedDict)  # mp4 -> _VideoDecoder
 

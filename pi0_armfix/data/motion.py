@@ -27,13 +27,15 @@ still `a[t+h+1] - a[t+h]`.
 The arm-heavy filter (used by `filter_arm_heavy_episodes` and by the curriculum's `arm_heavy`
 source when no episode list is given):
 
-- Arm groups: layout groups whose name contains "arm" or "gripper"; base groups: name contains
-  "base".
+- Manipulation groups: the layout's groups with role "arm" or "gripper" (`layout.roles`);
+  reference groups: those with role "base", or, for a layout without a base (a fixed-base robot),
+  every other group (torso, other). A layout without manipulation groups, or with nothing else,
+  cannot be filtered: that is an error naming `layout.roles`.
 - An episode's relative motion of group g: its mean `e_g` over its pairs divided by the mean `e_g`
   over all pairs of the analysed episodes (so 1 = a typical episode; unit-free, which makes one
   threshold work for velocity commands and joint targets alike).
-- `arm_movement` = mean relative motion over the arm groups; `base_movement` = mean over the
-  base groups; `arm_to_base_ratio = arm_movement / max(base_movement, 1e-6)`.
+- `arm_movement` = mean relative motion over the manipulation groups; `base_movement` = mean
+  over the reference groups; `arm_to_base_ratio = arm_movement / max(base_movement, 1e-6)`.
 - An episode is arm-heavy iff `arm_to_base_ratio >= arm_ratio_threshold` (1.5) and
   `arm_movement >= min_arm_movement` (0.1) and, if set, `base_movement <= max_base_movement`.
   Driving counts as base motion also at a constant speed.
@@ -48,12 +50,9 @@ from typing import Any
 import numpy as np
 import tqdm
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data.stats import NormStats
 from pi0_armfix.data.transforms import DEGENERATE, Normalizer
-
-ARM_WORDS = ("arm", "gripper")
-BASE_WORDS = ("base",)
 
 
 class LogHistograms:
@@ -331,8 +330,23 @@ class ArmHeavyThresholds:
         return dataclasses.asdict(self)
 
 
-def groups_matching(layout: ActionLayout, words: tuple[str, ...]) -> list[int]:
-    return [g for g, name in enumerate(layout.group_names) if any(w in name for w in words)]
+def arm_heavy_groups(layout: ActionLayout) -> tuple[list[int], list[int]]:
+    """Positions of the manipulation groups and of the reference groups they are compared with
+    (the base, else the rest); raises ValueError when the layout has either side empty."""
+    names = layout.group_names
+    arms = [names.index(g) for g in layout.groups_with_role(*MANIPULATION_ROLES)]
+    bases = [names.index(g) for g in layout.groups_with_role("base")]
+    if not bases:
+        bases = [g for g in range(len(names)) if g not in arms]
+    if not arms or not bases:
+        raise ValueError(
+            "the arm-heavy filter (and the curriculum's 'arm_heavy' source) compares the motion "
+            "of the manipulation groups (role 'arm' or 'gripper') with the base (role 'base') or, "
+            f"without one, with the other groups; the layout's roles are {dict(layout.roles)}. "
+            + ("Declare them with layout.roles={'<group>': 'arm', ...}" if not arms else
+               "Every group is a manipulation group here (a fixed-base arm), so every episode "
+               "is arm-heavy: drop the curriculum (data.curriculum=())"))
+    return arms, bases
 
 
 def arm_heavy_episodes(summary: MotionSummary, layout: ActionLayout,
@@ -345,10 +359,7 @@ def arm_heavy_episodes(summary: MotionSummary, layout: ActionLayout,
       per_episode: one dict per episode: episode_index, frames, arm_movement, base_movement,
         arm_to_base_ratio, the relative motion of each group, selected.
     """
-    arms, bases = groups_matching(layout, ARM_WORDS), groups_matching(layout, BASE_WORDS)
-    if not arms or not bases:
-        raise ValueError(f"the arm-heavy filter needs groups named with 'arm'/'gripper' and with "
-                         f"'base'; layout groups are {list(layout.group_names)}")
+    arms, bases = arm_heavy_groups(layout)
     typical = summary.episode_motion_sum.sum(0) / max(summary.num_pairs, 1)
     relative = summary.episode_motion() / np.where(typical > 0, typical, np.inf)
     arm = relative[:, arms].mean(1)

@@ -1,10 +1,9 @@
 """The Grain input pipeline: shuffled action chunks of the training episodes as global jax.Arrays.
 
-Entry points (what training and evaluation call):
+Entry points (what training and evaluation call; the source is opened once, and the split and
+the statistics live in `pi0_armfix.data.dataset`):
 
-    stats = load_or_compute_norm_stats(config, layout, action_horizon=H,
-                                       cache_path=workdir / "norm_stats.json")
-    it = make_train_iterator(config, layout, norm_stats=stats, action_horizon=H,
+    it = make_train_iterator(config, layout, norm_stats=stats, action_horizon=H, source=source,
                              global_batch_size=config.train.batch_size, sharding=batch_sharding,
                              tokenize=tokenize)      # tokenize(prompt) -> (int32 [L], bool [L])
                              # actions_only=True: state/actions/action_is_pad only (no images,
@@ -13,7 +12,6 @@ Entry points (what training and evaluation call):
     it.phase                # curriculum phase (index into config.data.curriculum) of that batch
     state = it.get_state()  # {"step", "global_batch_size", "seed"}: JSON-able, for the checkpoint
     it.set_state(state)     # resumes exactly after the last batch of `state`
-    table = heldout_table(config, layout)        # the last `eval.episodes` episodes, never trained
     BatchTransform(table, layout, ...)(frames)   # a numpy batch of any frames (evaluation)
 
 Samples are action chunks, one per frame of the training episodes (all but the dataset's last
@@ -39,8 +37,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from pathlib import Path
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import grain
@@ -50,7 +47,9 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import curriculum as curriculum_lib
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
+from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
@@ -58,176 +57,6 @@ from pi0_armfix.data.episodes import EpisodeTable
 
 Tokenize = Callable[[str], tuple[np.ndarray, np.ndarray]]
 ConfigLike = Mapping[str, Any]
-
-
-# ---------------------------------------------------------------------- episodes and sources
-
-def split_episodes(episode_index: np.ndarray, num_heldout: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """`[E]` dataset episode ids -> (training ids, held-out ids = the last `num_heldout`)."""
-    episode_index = np.asarray(episode_index, np.int64)
-    num_heldout = int(num_heldout)
-    if not 0 <= num_heldout < len(episode_index):
-        raise ValueError(f"eval.episodes = {num_heldout}: must be >= 0 and leave at least one of "
-                         f"the dataset's {len(episode_index)} episodes for training")
-    cut = len(episode_index) - num_heldout
-    return episode_index[:cut], episode_index[cut:]
-
-
-def training_episodes(config: ConfigLike, source) -> np.ndarray:
-    """Dataset ids of the episodes the config trains on (all but the held-out ones)."""
-    return split_episodes(source.episode_index, _num_heldout(config))[0]
-
-
-def heldout_table(config: ConfigLike, layout: ActionLayout, *, images: bool = True
-                  ) -> EpisodeTable:
-    """The held-out episodes (the dataset's last `eval.episodes`) for evaluation."""
-    source = sources.open_source(config["data"], layout)
-    heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
-    if not len(heldout):
-        raise ValueError("eval.episodes is 0: there are no held-out episodes to evaluate on")
-    return source.load_table(heldout, images=images)
-
-
-def _num_heldout(config: ConfigLike) -> int:
-    evaluation = config.get("eval") or {}
-    return int(evaluation.get("episodes", 0))
-
-
-def training_blocks(config: ConfigLike, layout: ActionLayout,
-                    keys: Sequence[str] = ("actions", "state")
-                    ) -> tuple[Iterator[dict[str, np.ndarray]], int]:
-    """A stream of blocks (`Source.iter_blocks`) of the training episodes, and their frames."""
-    source = sources.open_source(config["data"], layout)
-    episodes = training_episodes(config, source)
-    return source.iter_blocks(keys, episodes), _num_frames(source, episodes)
-
-
-def _num_frames(source, episodes: np.ndarray) -> int:
-    """Frames of `episodes` (for a progress bar)."""
-    return int(source.episode_lengths[np.isin(source.episode_index, episodes)].sum())
-
-
-# ---------------------------------------------------------------------- normalization statistics
-
-def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
-                     layout: ActionLayout, *, action_horizon: int, total_frames: int | None = None,
-                     progress: bool = True) -> dict[str, stats_lib.NormStats]:
-    """Statistics `{"actions", "state"}` of a stream of blocks (`Source.iter_blocks`), with the
-    actions in the model's action space.
-
-    Absolute action dims and the state: over frames, each frame once. The relative dims of
-    `data.delta_action_mask`: over every step of every chunk, as openpi (which computes its stats
-    through the data transforms) and exactly what the training batches hold: for each frame t and
-    h < H, `a[min(t + h, last)] - s[t]` (float32, clamped at the episode's last frame like the
-    chunker; the padded steps are included because the batch holds them too). A frame's own delta
-    `a[t] - s[t]` is far smaller than the chunk's later ones, so per-frame stats would blow the
-    normalized targets up. This pass re-cuts the stream into whole episodes and costs H times the
-    work on those dims; without a delta mask it is the plain per-frame pass.
-
-    Args:
-      blocks: `{"actions": [n, A], "state": [n, S], "episode_index": [n]}`, episodes in order.
-      data_cfg: `config.data` (`delta_action_mask`, `state_groups`).
-      layout: the action layout.
-      action_horizon: H of the model's chunks (`config.model.action_horizon` resolved against the
-        preset by the caller).
-    """
-    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
-    if mask is None:
-        return stats_lib.compute_norm_stats(blocks, total_frames=total_frames, progress=progress)
-    if action_horizon < 1:
-        raise ValueError(f"action_horizon must be >= 1 for the delta action statistics, got "
-                         f"{action_horizon}")
-
-    def chunk_steps(block: stats_lib.Block) -> stats_lib.Block:
-        actions = np.asarray(block["actions"], np.float32)  # the table's dtype
-        state = np.asarray(block["state"], np.float32)
-        transforms.check_delta_state_layout(mask, layout, data_cfg.get("state_groups"),
-                                            state.shape[1])
-        episode = np.asarray(block["episode_index"])
-        starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
-                                 [len(episode)]])
-        index, _ = transforms.chunk_indices(np.arange(len(episode)), starts, action_horizon)
-        steps = (transforms.to_delta(actions[index[:, h]], state, mask)[:, mask]
-                 for h in range(action_horizon))
-        return {"actions": actions, "delta_actions": steps, "state": state}
-
-    stats = stats_lib.compute_norm_stats(
-        stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
-        total_frames=total_frames, transform=chunk_steps, progress=progress)
-    delta = stats.pop("delta_actions")
-    fields = {}
-    for field in stats_lib.FIELDS:
-        fields[field] = getattr(stats["actions"], field).copy()
-        fields[field][mask] = getattr(delta, field)
-    stats["actions"] = stats_lib.NormStats(**fields)
-    return stats
-
-
-def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
-                       progress: bool = True) -> dict[str, stats_lib.NormStats]:
-    """Plain statistics `{"actions", "state"}` of the training episodes, one streaming pass
-    (`block_norm_stats`: the relative dims of `data.delta_action_mask` over chunks of H =
-    `action_horizon`)."""
-    blocks, total = training_blocks(config, layout, ("actions", "state"))
-    return block_norm_stats(blocks, config["data"], layout, action_horizon=action_horizon,
-                            total_frames=total, progress=progress)
-
-
-def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats_lib.NormStats,
-                   norm_mode: str = "zscore", *, progress: bool = True
-                   ) -> motion_lib.MotionSummary:
-    """Frame-to-frame motion of the training episodes, in `norm_mode` units of `action_stats`."""
-    blocks, total = training_blocks(config, layout, ("actions",))
-    return motion_lib.compute_motion(blocks, layout,
-                                     *motion_lib.normalized_units(action_stats, norm_mode),
-                                     total_frames=total, progress=progress)
-
-
-def balanced_dataset_norm_stats(config: ConfigLike, layout: ActionLayout, max_scale: float, *,
-                                action_horizon: int, progress: bool = True
-                                ) -> tuple[dict[str, stats_lib.NormStats],
-                                           list[motion_lib.BalanceReport]]:
-    """`dataset_norm_stats` with balanced action statistics (`motion.balanced_norm_stats`): two
-    streaming passes (statistics, then motion)."""
-    stats = dataset_norm_stats(config, layout, action_horizon=action_horizon, progress=progress)
-    summary = dataset_motion(config, layout, stats["actions"], progress=progress)
-    stats["actions"], reports = motion_lib.balanced_norm_stats(stats["actions"], summary, layout,
-                                                               max_scale)
-    return stats, reports
-
-
-def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
-                               cache_path: str | Path | None = None, progress: bool = True
-                               ) -> dict[str, stats_lib.NormStats]:
-    """The run's normalization statistics `{"actions", "state"}`.
-
-    Order: `data.norm_stats` if set (read as is: a file written by `recompute_balanced_norm_stats`
-    is used unchanged, whatever `data.balanced_norm` says); else `cache_path` if it exists (a
-    resumed run keeps its stats); else `dataset_norm_stats`, balanced
-    (`motion.balanced_norm_stats`, capped at `data.balanced_max_scale`) when `data.balanced_norm`,
-    and written to `cache_path`. The state entry keeps the file's width (openpi pads it);
-    `BatchTransform` cuts it to the dataset's state width.
-    """
-    data = config["data"]
-    path = data.get("norm_stats") or None
-    if path is None and cache_path is not None and Path(cache_path).is_file():
-        path = cache_path
-    if path is not None:
-        return stats_lib.load_norm_stats(path, {"actions": layout.real_dim, "state": None})
-    if data.get("balanced_norm"):
-        stats, reports = balanced_dataset_norm_stats(
-            config, layout, float(data.get("balanced_max_scale", 10.0)),
-            action_horizon=action_horizon, progress=progress)
-        for report in reports:
-            logging.info("balanced norm stats (%s): motion RMS before %s after %s",
-                         report.mode, report.before, report.after)
-    else:
-        stats = dataset_norm_stats(config, layout, action_horizon=action_horizon,
-                                   progress=progress)
-    if cache_path is not None:
-        stats_lib.save_norm_stats(cache_path, stats)
-    return stats
 
 
 # ---------------------------------------------------------------------- per-batch transform
@@ -245,12 +74,15 @@ class BatchTransform:
       tokenize: `tokenize(prompt) -> (tokens int32 [L], mask bool [L])`; required unless
         `actions_only`. Called once per distinct prompt (cached).
       actions_only: only `state`, `actions`, `action_is_pad` (no images, no prompt).
+      image_size: (height, width) of the zero images of the cameras no stored camera feeds when
+        the dataset has none at all (they are masked out; the model resizes them anyway).
     """
 
     def __init__(self, table: EpisodeTable, layout: ActionLayout, *,
                  norm_stats: Mapping[str, stats_lib.NormStats], norm_mode: str,
                  action_horizon: int, delta_mask: np.ndarray | None = None,
-                 tokenize: Tokenize | None = None, actions_only: bool = False):
+                 tokenize: Tokenize | None = None, actions_only: bool = False,
+                 image_size: tuple[int, int] = (224, 224)):
         layout.check_real_dim(table.actions.shape[1], source="the dataset's actions")
         state_width = table.state.shape[1]
         if state_width > layout.action_dim:
@@ -258,14 +90,10 @@ class BatchTransform:
                              f"layout.action_dim={layout.action_dim}: it cannot be padded")
         if action_horizon < 1:
             raise ValueError(f"action_horizon must be >= 1, got {action_horizon}")
-        if not actions_only:
-            if tokenize is None:
-                raise ValueError("a tokenize(prompt) callable is required unless actions_only")
-            if table.images is None:
-                raise ValueError("the dataset has no camera that feeds the batch "
-                                 f"{list(cameras_lib.BATCH_CAMERAS)} (see data.cameras); "
-                                 "images are required unless actions_only")
+        if not actions_only and tokenize is None:
+            raise ValueError("a tokenize(prompt) callable is required unless actions_only")
         self.table = table
+        self.image_size = tuple(image_size)
         self.action_dim = layout.action_dim
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
@@ -305,9 +133,11 @@ class BatchTransform:
         return self._tokens[prompt]
 
     def _images(self, frames: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        per_frame = [self.table.images(int(f)) for f in frames]
+        """Every batch camera: the stored one, or zeros masked out where none feeds it."""
+        reader = self.table.images
+        per_frame = [reader(int(f)) for f in frames] if reader is not None else [{}] * len(frames)
         provided = [c for c in cameras_lib.BATCH_CAMERAS if c in per_frame[0]]
-        shape = per_frame[0][provided[0]].shape
+        shape = per_frame[0][provided[0]].shape if provided else (*self.image_size, 3)
         images, masks = {}, {}
         for camera in cameras_lib.BATCH_CAMERAS:
             present = camera in provided
@@ -385,7 +215,8 @@ def source_frames(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
 def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
                   seed: int, norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                   global_batch_size: int, process_index: int = 0, process_count: int = 1,
-                  tokenize: Tokenize | None = None, actions_only: bool = False
+                  tokenize: Tokenize | None = None, actions_only: bool = False,
+                  image_size: tuple[int, int] = (224, 224)
                   ) -> tuple[grain.MapDataset, curriculum_lib.Curriculum]:
     """The infinite MapDataset of this process's numpy batches (element i = step i), and the
     curriculum (for the phase of a step)."""
@@ -395,7 +226,7 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
     curriculum = curriculum_lib.Curriculum.from_config(data_cfg, seed)
     mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
     if mask is not None:
-        transforms.check_delta_state_layout(mask, layout, data_cfg.get("state_groups"),
+        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
                                             table.state.shape[1])
     frames = source_frames(table, layout, data_cfg, curriculum.sources, norm_stats["actions"])
     streams = [grain.MapDataset.source(frames[name]).shuffle(seed=stream_seed(seed, i)).repeat()
@@ -405,7 +236,7 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
     transform = BatchTransform(table, layout, norm_stats=norm_stats,
                                norm_mode=data_cfg.get("norm", "zscore"),
                                action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
-                               actions_only=actions_only)
+                               actions_only=actions_only, image_size=image_size)
     batches = (grain.MapDataset.range(sys.maxsize)
                .map(selector)
                .batch(selector.local_batch_size, drop_remainder=True)
@@ -496,18 +327,22 @@ class TrainIterator:
 def make_train_iterator(config: ConfigLike, layout: ActionLayout, *,
                         norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                         global_batch_size: int, sharding: jax.sharding.Sharding,
-                        tokenize: Tokenize | None = None, actions_only: bool = False
-                        ) -> TrainIterator:
+                        tokenize: Tokenize | None = None, actions_only: bool = False,
+                        source=None, image_size: tuple[int, int] = (224, 224)) -> TrainIterator:
     """Training batches of `config` (see the module docstring). This process reads its slice
-    `jax.process_index()` of `jax.process_count()` of every global batch."""
+    `jax.process_index()` of `jax.process_count()` of every global batch. `source`: the run's
+    opened source (None = open it); `image_size`: of the zero images of a dataset with no
+    camera."""
     data = config["data"]
-    source = sources.open_source(config["data"], layout)
-    table = source.load_table(training_episodes(config, source), images=not actions_only)
+    if source is None:
+        source = sources.open_source(data, layout)
+    table = source.load_table(dataset_lib.training_episodes(config, source),
+                              images=not actions_only)
     batches, curriculum = train_batches(
         table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,
         action_horizon=action_horizon, global_batch_size=global_batch_size,
         process_index=jax.process_index(), process_count=jax.process_count(),
-        tokenize=tokenize, actions_only=actions_only)
+        tokenize=tokenize, actions_only=actions_only, image_size=image_size)
     return TrainIterator(batches, curriculum, sharding=sharding,
                          global_batch_size=global_batch_size, seed=int(config.get("seed", 0)),
                          num_workers=int(data.get("num_workers", 0)),

@@ -121,14 +121,25 @@ class RldsSource:
         self._prompt_key = prompt_key if prompt_key in features else None
         images = [path for path, f in features.items()
                   if isinstance(f, tfds.features.Image) and f.shape[-1] == 3]
+        self.camera_names = tuple(images)
         self.cameras = cameras_lib.match_cameras(images, cameras, str(self.root))
         self._image_paths = list(self.cameras.values())
+        self.state_width = (int(np.prod(features[state_key].shape)) if self._keys["state"]
+                            else 0)
         self.num_episodes = int(builder.info.splits[split].num_examples)
         self.episode_index = np.arange(self.num_episodes, dtype=np.int64)
 
     def __repr__(self) -> str:
         return (f"RldsSource({str(self.root)!r}, split={self.split!r}, {self.num_episodes} "
                 f"episodes, cameras={self.cameras})")
+
+    def probe(self, num_episodes: int = 4) -> None:
+        """Reads a sample of `num_episodes` episodes, first and last included (their array_record
+        records and images decode), before any pass over the data."""
+        if num_episodes <= 0:
+            return
+        for episode in np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round()):
+            self._data[int(episode)]
 
     @functools.cached_property
     def _data(self):

@@ -6,8 +6,11 @@ Config keys read here (`config.data`):
                  (a TFDS builder directory of array_record files, read with `tfds.data_source`).
   cameras        optional {batch camera: stored camera name}; unset = automatic match
                  (`pi0_armfix.data.cameras`).
-  state_indices  optional, LeRobot only: dims of `observation.state` to keep (B1K stores its full
-                 proprioception vector there; the baseline keeps 23 of its dims).
+  action_key, state_key     LeRobot: the stored action / state features (default `action`,
+                 `observation.state`).
+  state_preset, state_indices, action_indices   LeRobot: which stored dims the model sees
+                 (`pi0_armfix.data.selection`; B1K's 256-D state needs `state_preset='b1k_r1pro'`).
+  video_tolerance_frames    LeRobot: how far a row's timestamp may lie from its video frame.
   split          optional, RLDS only: the split to read (default "train").
 """
 
@@ -63,5 +66,10 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         from pi0_armfix.data.demo import demo_root
 
         root = demo_root()
-    state_indices = data_cfg.get("state_indices") or None
-    return LeRobotSource(root, layout, cameras=cameras, state_indices=state_indices)
+    return LeRobotSource(
+        root, layout, cameras=cameras, action_key=data_cfg.get("action_key") or "action",
+        state_key=data_cfg.get("state_key") or "observation.state",
+        state_indices=data_cfg.get("state_indices") or None,
+        state_preset=data_cfg.get("state_preset") or "",
+        action_indices=data_cfg.get("action_indices") or None,
+        video_tolerance_frames=float(data_cfg.get("video_tolerance_frames") or 0.5))

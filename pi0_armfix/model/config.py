@@ -231,9 +231,12 @@ def get_preset(name: str, **changes) -> Pi0Config:
 def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
     """Builds the model config from the training config's `model` section.
 
-    Reads `preset`; `dtype` and `action_horizon` override the preset when set (non-empty / > 0).
+    Reads `preset`; `dtype`, `action_horizon` and `action_dim` override the preset when set
+    (non-empty / > 0).
     """
     changes = {}
+    if model_cfg.get("action_dim"):
+        changes["action_dim"] = int(model_cfg["action_dim"])
     if model_cfg.get("dtype"):
         changes["dtype"] = model_cfg["dtype"]
     if model_cfg.get("action_horizon"):

@@ -39,10 +39,11 @@ from matplotlib.figure import Figure  # pyplot-free: renders with Agg, no displa
 from ml_collections import config_flags
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import pipeline
-from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.data.transforms import DEGENERATE
 
 GRIPPER_END_FRACTION = 0.1  # "near an end": within this fraction of [q01, q99] from it
@@ -86,7 +87,8 @@ def suggested_weights(layout: ActionLayout, motion_rms: np.ndarray) -> dict[str,
     moving = motion_rms > 0
     if not moving.any():
         return {name: 1.0 for name in layout.group_names}
-    bases = [g for g in motion_lib.groups_matching(layout, motion_lib.BASE_WORDS) if moving[g]]
+    names = layout.group_names
+    bases = [names.index(g) for g in layout.groups_with_role("base") if moving[names.index(g)]]
     reference = motion_rms[bases].mean() if bases else np.median(motion_rms[moving])
     return {name: float(reference / motion_rms[g]) if moving[g] else 1.0
             for g, name in enumerate(layout.group_names)}
@@ -149,12 +151,18 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
     layout = ActionLayout.from_config(config.layout)
     norm_mode = config.data.get("norm", "zscore")
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    norm_stats = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
-    blocks, total = pipeline.training_blocks(config, layout, ("actions",))
+    source = sources.open_source(config.data, layout)
+    dataset_lib.check_data(config, layout, source, images=False)
+    episodes = dataset_lib.training_episodes(config, source)
+    print(dataset_lib.describe_episodes(config, source, episodes))
+    norm_stats = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=horizon,
+                                                        source=source)
+    blocks, total = dataset_lib.training_blocks(config, layout, ("actions",), source=source)
     actions = stats_lib.compute_stats(blocks, ("actions",), total_frames=total)["actions"]
     layout.check_real_dim(actions.width, source="the dataset's actions")
     constant = actions.std < DEGENERATE
-    summary = pipeline.dataset_motion(config, layout, norm_stats["actions"], norm_mode)
+    summary = dataset_lib.dataset_motion(config, layout, norm_stats["actions"], norm_mode,
+                                         source=source)
     unit, active = motion_lib.normalized_units(norm_stats["actions"], norm_mode)
     report = {
         "normalization": norm_mode,

@@ -2,21 +2,25 @@
 
     python -m pi0_armfix.tools.filter_arm_heavy_episodes --config=configs/arm_curriculum.py \
         [--config.data.root=DIR] --output=arm_heavy.json \
-        [--arm_ratio_threshold=1.5] [--min_arm_movement=0.1] [--max_base_movement=X]
+        [--arm_ratio_threshold=1.5] [--min_arm_movement=0.1] [--max_base_movement=X] \
+        [--episodes=train|all]
 
 Per episode, over its real frame pairs (never across an episode boundary), the motion of each
 group in z-score units of the run's norm stats, relative to the group's mean over all analysed
 episodes (1 = typical): the frame-to-frame change for a position group (arms, torso, grippers),
 the magnitude of the command itself for a velocity group (`layout.velocity_groups`, the B1K base),
-so a base driving at a constant speed counts as moving. Arm groups: names containing "arm" or
-"gripper"; base groups: names containing "base". `arm_movement` / `base_movement` are the mean
+so a base driving at a constant speed counts as moving. Manipulation groups: role "arm" or
+"gripper" (`layout.roles`); they are compared with the base (role "base") or, on a fixed-base
+robot, with the other groups. `arm_movement` / `base_movement` are the mean
 relative motion over the arm / base groups, `arm_to_base_ratio` their ratio; an episode is
 selected iff ratio >= arm_ratio_threshold, arm_movement >= min_arm_movement and (if given)
 base_movement <= max_base_movement. Full definitions: `pi0_armfix.data.motion`.
 
 Writes `{"episodes": [dataset episode ids], "per_episode": [...], "thresholds": {...}}`; set
 `--config.data.arm_heavy_episodes` to it. With that key '' the curriculum selects the same
-episodes on the fly with the default thresholds. Held-out episodes are never analysed.
+episodes on the fly with the default thresholds. `--episodes=train` (the default) analyses the
+training episodes only, as the curriculum does; `--episodes=all` adds the held-out ones (the
+curriculum never trains on them). The tool prints which episodes and how many frames it reads.
 """
 
 from __future__ import annotations
@@ -30,18 +34,26 @@ from absl import app, flags
 from ml_collections import config_flags
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import pipeline
+from pi0_armfix.data import sources
 from pi0_armfix.model import config as model_config_lib
 
 
 def run(config: ml_collections.ConfigDict, output: str | Path,
-        thresholds: motion_lib.ArmHeavyThresholds = motion_lib.ArmHeavyThresholds()
-        ) -> dict[str, Any]:
+        thresholds: motion_lib.ArmHeavyThresholds = motion_lib.ArmHeavyThresholds(),
+        episodes: str = "train") -> dict[str, Any]:
     layout = ActionLayout.from_config(config.layout)
+    motion_lib.arm_heavy_groups(layout)  # the layout can be filtered, before any pass
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    stats = pipeline.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
-    summary = pipeline.dataset_motion(config, layout, stats["actions"])
+    source = sources.open_source(config.data, layout)
+    chosen = dataset_lib.select_episodes(config, source, episodes)
+    dataset_lib.check_data(config, layout, source, images=False)
+    print(dataset_lib.describe_episodes(config, source, chosen))
+    stats = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=horizon,
+                                                   source=source, episodes=chosen)
+    summary = dataset_lib.dataset_motion(config, layout, stats["actions"], source=source,
+                                         episodes=chosen)
     selected, per_episode = motion_lib.arm_heavy_episodes(summary, layout, thresholds)
     result = {"episodes": selected.tolist(), "per_episode": per_episode,
               "thresholds": thresholds.to_json()}
@@ -58,9 +70,9 @@ def main(argv: list[str]) -> None:
         arm_ratio_threshold=flags.FLAGS.arm_ratio_threshold,
         min_arm_movement=flags.FLAGS.min_arm_movement,
         max_base_movement=flags.FLAGS.max_base_movement)
-    result = run(flags.FLAGS.config, flags.FLAGS.output, thresholds)
+    result = run(flags.FLAGS.config, flags.FLAGS.output, thresholds, flags.FLAGS.episodes)
     total = len(result["per_episode"])
-    print(f"{len(result['episodes'])} of {total} training episodes are arm-heavy "
+    print(f"{len(result['episodes'])} of the {total} episodes read are arm-heavy "
           f"({thresholds.to_json()}); wrote {flags.FLAGS.output}")
 
 
@@ -70,5 +82,7 @@ if __name__ == "__main__":
     flags.DEFINE_float("arm_ratio_threshold", 1.5, "minimum arm-to-base relative motion ratio")
     flags.DEFINE_float("min_arm_movement", 0.1, "minimum relative arm motion")
     flags.DEFINE_float("max_base_movement", None, "maximum relative base motion (unset = none)")
+    flags.DEFINE_enum("episodes", "train", dataset_lib.EPISODE_CHOICES,
+                      "train: all but the eval.episodes held out (as the curriculum); all: every one")
     flags.mark_flag_as_required("config")
     app.run(main)

@@ -22,21 +22,28 @@ from absl import app, flags
 from ml_collections import config_flags
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import pipeline
-from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.model import config as model_config_lib
 
 
-def run(config: ml_collections.ConfigDict, output: str | Path, max_scale: float | None = None
+def run(config: ml_collections.ConfigDict, output: str | Path, max_scale: float | None = None,
+        episodes: str = "train"
         ) -> tuple[dict[str, stats_lib.NormStats], list[motion_lib.BalanceReport]]:
-    """max_scale: the cap on each group's change of scale; None = `data.balanced_max_scale`."""
+    """max_scale: the cap on each group's change of scale; None = `data.balanced_max_scale`.
+    episodes: "train" (all but the held-out ones, as training) or "all"."""
     layout = ActionLayout.from_config(config.layout)
     if max_scale is None:
         max_scale = float(config.data.get("balanced_max_scale", 10.0))
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    stats, reports = pipeline.balanced_dataset_norm_stats(config, layout, max_scale,
-                                                          action_horizon=horizon)
+    source = sources.open_source(config.data, layout)
+    chosen = dataset_lib.select_episodes(config, source, episodes)
+    dataset_lib.check_data(config, layout, source, images=False)
+    print(dataset_lib.describe_episodes(config, source, chosen))
+    stats, reports = dataset_lib.balanced_dataset_norm_stats(
+        config, layout, max_scale, action_horizon=horizon, source=source, episodes=chosen)
     stats_lib.save_norm_stats(output, stats)
     return stats, reports
 
@@ -56,7 +63,8 @@ def format_reports(reports: list[motion_lib.BalanceReport]) -> str:
 def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    _, reports = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.max_scale)
+    _, reports = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.max_scale,
+                     flags.FLAGS.episodes)
     print(format_reports(reports))
     print(f"wrote {flags.FLAGS.output}")
 
@@ -66,5 +74,7 @@ if __name__ == "__main__":
     flags.DEFINE_string("output", None, "norm_stats.json to write", required=True)
     flags.DEFINE_float("max_scale", None, "cap on each group's change of scale "
                        "(unset = config.data.balanced_max_scale)")
+    flags.DEFINE_enum("episodes", "train", dataset_lib.EPISODE_CHOICES,
+                      "train: all but the eval.episodes held out (as training); all: every one")
     flags.mark_flag_as_required("config")
     app.run(main)

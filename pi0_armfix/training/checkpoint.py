@@ -25,6 +25,13 @@ from etils import epath
 from pi0_armfix.training import sharding as sharding_lib
 
 
+def has_checkpoints(directory: epath.PathLike) -> bool:
+    """Whether `directory` (`<workdir>/checkpoints`) holds a finished checkpoint (a step folder),
+    without creating anything."""
+    directory = epath.Path(directory)
+    return directory.is_dir() and any(p.name.isdigit() for p in directory.iterdir())
+
+
 class Checkpoints:
     """The checkpoints of one run folder.
 

@@ -1,0 +1,398 @@
+"""The dataset a config names, opened once: its train / held-out split, the checks that run before
+any pass over it, and the passes that compute its statistics.
+
+    source = sources.open_source(config.data, layout)       # once per run; pass it down
+    check_data(config, layout, source, ...)                 # every check that can fail, no pass
+    stats = load_or_compute_norm_stats(config, layout, source=source, action_horizon=H,
+                                       cache_path=workdir / "norm_stats.json")
+
+Split: the dataset's last `eval.episodes` episodes are held out (evaluation only); the rest train.
+The tools read `which="train"` (default) or `"all"` episodes and say which.
+
+The workdir's `norm_stats.json` is keyed to what it was computed from (`norm_stats_key`: the
+dataset's identity, the feature selection, the split, the stats options) in the sidecar
+`norm_stats.key.json`: a cached file whose key differs is recomputed (fresh run) or refused (a run
+with checkpoints, whose weights were trained with the old stats), never reused silently.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data import curriculum as curriculum_lib
+from pi0_armfix.data import motion as motion_lib
+from pi0_armfix.data import selection as selection_lib
+from pi0_armfix.data import sources
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data import transforms
+from pi0_armfix.data.episodes import EpisodeTable
+
+ConfigLike = Mapping[str, Any]
+EPISODE_CHOICES = ("train", "all")
+
+
+# ---------------------------------------------------------------------- episodes
+
+def split_episodes(episode_index: np.ndarray, num_heldout: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """`[E]` dataset episode ids -> (training ids, held-out ids = the last `num_heldout`)."""
+    episode_index = np.asarray(episode_index, np.int64)
+    num_heldout = int(num_heldout)
+    if not 0 <= num_heldout < len(episode_index):
+        raise ValueError(f"eval.episodes = {num_heldout}: must be >= 0 and leave at least one of "
+                         f"the dataset's {len(episode_index)} episodes for training")
+    cut = len(episode_index) - num_heldout
+    return episode_index[:cut], episode_index[cut:]
+
+
+def _num_heldout(config: ConfigLike) -> int:
+    evaluation = config.get("eval") or {}
+    return int(evaluation.get("episodes", 0))
+
+
+def _source(config: ConfigLike, layout: ActionLayout, source):
+    return source if source is not None else sources.open_source(config["data"], layout)
+
+
+def training_episodes(config: ConfigLike, source) -> np.ndarray:
+    """Dataset ids of the episodes the config trains on (all but the held-out ones)."""
+    return split_episodes(source.episode_index, _num_heldout(config))[0]
+
+
+def select_episodes(config: ConfigLike, source, which: str = "train") -> np.ndarray:
+    """Dataset ids of the training episodes (`which="train"`) or of every episode (`"all"`)."""
+    if which not in EPISODE_CHOICES:
+        raise ValueError(f"--episodes={which!r}: choose one of {list(EPISODE_CHOICES)}")
+    return source.episode_index if which == "all" else training_episodes(config, source)
+
+
+def describe_episodes(config: ConfigLike, source, episodes: np.ndarray) -> str:
+    """"reading 8 of 12 episodes (ids 10..20030), 9,310 frames; held out: ..." for the tools."""
+    frames = num_frames(source, episodes)
+    line = (f"reading {len(episodes)} of {source.num_episodes} episodes (ids {_ids(episodes)}), "
+            f"{frames:,} frames")
+    left_out = np.setdiff1d(source.episode_index, episodes)
+    if len(left_out):
+        line += (f"; left out: the {len(left_out)} held-out episodes (eval.episodes="
+                 f"{_num_heldout(config)}: ids {_ids(left_out)}); --episodes=all reads them too")
+    return line
+
+
+def _ids(ids: np.ndarray) -> str:
+    ids = [int(i) for i in ids]
+    return ", ".join(map(str, ids)) if len(ids) <= 6 else f"{ids[0]}..{ids[-1]}"
+
+
+def num_frames(source, episodes: np.ndarray) -> int:
+    """Frames of `episodes`."""
+    return int(source.episode_lengths[np.isin(source.episode_index, episodes)].sum())
+
+
+def heldout_table(config: ConfigLike, layout: ActionLayout, *, images: bool = True,
+                  source=None) -> EpisodeTable:
+    """The held-out episodes (the dataset's last `eval.episodes`) for evaluation."""
+    source = _source(config, layout, source)
+    heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
+    if not len(heldout):
+        raise ValueError("eval.episodes is 0: there are no held-out episodes to evaluate on")
+    return source.load_table(heldout, images=images)
+
+
+def training_blocks(config: ConfigLike, layout: ActionLayout,
+                    keys: Sequence[str] = ("actions", "state"), *, source=None,
+                    episodes: np.ndarray | None = None
+                    ) -> tuple[Iterator[dict[str, np.ndarray]], int]:
+    """A stream of blocks (`Source.iter_blocks`) of `episodes` (default: the training episodes),
+    and their number of frames."""
+    source = _source(config, layout, source)
+    if episodes is None:
+        episodes = training_episodes(config, source)
+    return source.iter_blocks(keys, episodes), num_frames(source, episodes)
+
+
+# ---------------------------------------------------------------------- checks before any pass
+
+def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool = True
+               ) -> list[str]:
+    """Every check of the data that can fail, before any pass over it (cheap: metadata, plus the
+    probe of `data.probe_episodes` episodes' files and first/last video frames).
+
+    Checks the action width (when the source opened), the state width against
+    `layout.action_dim` (naming the fix), the delta-action state layout, the curriculum's
+    arm-heavy layout and episode list, the split, and the probe.
+
+    Returns:
+      warnings to print once (e.g. batch cameras that no stored camera feeds).
+    """
+    data = config["data"]
+    where = str(getattr(source, "root", "the dataset"))
+    heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
+    evaluation = config.get("eval") or {}
+    if int(evaluation.get("every", 0)) > 0:
+        frames = num_frames(source, heldout)
+        if frames < int(evaluation["batch_size"]):
+            raise ValueError(
+                f"eval.every = {evaluation['every']} evaluates on the held-out episodes, but the "
+                f"{len(heldout)} held out (eval.episodes) have {frames} frames, fewer than "
+                f"eval.batch_size = {evaluation['batch_size']}: raise eval.episodes, lower "
+                "eval.batch_size, or set eval.every=0")
+    if source.state_width > layout.action_dim:
+        stored = getattr(source, "stored_state_width", source.state_width)
+        presets = selection_lib.presets_for(stored)
+        hint = (f"data.state_preset={presets[0]!r} ({stored}-D state -> "
+                f"{selection_lib.STATE_PRESETS[presets[0]].width} dims in the action order) or "
+                if presets else "")
+        raise ValueError(
+            f"{where}: the state ({data.get('state_key') or 'observation.state'!r}) has "
+            f"{source.state_width} dims, more than layout.action_dim={layout.action_dim}: it "
+            f"cannot be padded into the model's state. Select the dims the policy needs: "
+            f"{hint}data.state_indices=(...)")
+    mask = transforms.delta_action_mask(data.get("delta_action_mask"), layout)
+    if mask is not None:
+        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data),
+                                            source.state_width)
+    curriculum = curriculum_lib.Curriculum.from_config(data, int(config.get("seed", 0)))
+    if "arm_heavy" in curriculum.sources:
+        listed = data.get("arm_heavy_episodes") or ""
+        if listed:
+            chosen = curriculum_lib.load_episode_list(listed)
+            unknown = np.setdiff1d(chosen, source.episode_index)
+            if len(unknown):
+                raise ValueError(
+                    f"data.arm_heavy_episodes ({listed}) lists {len(unknown)} episode(s) that "
+                    f"{where} does not have (ids {_ids(unknown)}): it was made for other data; "
+                    "rerun filter_arm_heavy_episodes on this dataset")
+            heldout = np.setdiff1d(chosen, training_episodes(config, source))
+            if len(heldout):
+                logging.warning("data.arm_heavy_episodes lists %d held-out episode(s) (ids %s): "
+                                "they are never trained on", len(heldout), _ids(heldout))
+        else:
+            motion_lib.arm_heavy_groups(layout)
+    warnings = []
+    if images:
+        missing = cameras_lib.missing_cameras_message(
+            source.cameras, getattr(source, "camera_names", ()), where)
+        if missing:
+            warnings.append(missing)
+    source.probe(int(data.get("probe_episodes", 4)))
+    return warnings
+
+
+# ---------------------------------------------------------------------- normalization statistics
+def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
+                     layout: ActionLayout, *, action_horizon: int, total_frames: int | None = None,
+                     progress: bool = True) -> dict[str, stats_lib.NormStats]:
+    """Statistics `{"actions", "state"}` of a stream of blocks (`Source.iter_blocks`), with the
+    actions in the model's action space.
+
+    Absolute action dims and the state: over frames, each frame once. The relative dims of
+    `data.delta_action_mask`: over every step of every chunk, as openpi (which computes its stats
+    through the data transforms) and exactly what the training batches hold: for each frame t and
+    h < H, `a[min(t + h, last)] - s[t]` (float32, clamped at the episode's last frame like the
+    chunker; the padded steps are included because the batch holds them too). A frame's own delta
+    `a[t] - s[t]` is far smaller than the chunk's later ones, so per-frame stats would blow the
+    normalized targets up. This pass re-cuts the stream into whole episodes and costs H times the
+    work on those dims; without a delta mask it is the plain per-frame pass.
+
+    Args:
+      blocks: `{"actions": [n, A], "state": [n, S], "episode_index": [n]}`, episodes in order.
+      data_cfg: `config.data` (`delta_action_mask`, `state_groups`).
+      layout: the action layout.
+      action_horizon: H of the model's chunks (`config.model.action_horizon` resolved against the
+        preset by the caller).
+    """
+    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
+    if mask is None:
+        return stats_lib.compute_norm_stats(blocks, total_frames=total_frames, progress=progress)
+    if action_horizon < 1:
+        raise ValueError(f"action_horizon must be >= 1 for the delta action statistics, got "
+                         f"{action_horizon}")
+
+    def chunk_steps(block: stats_lib.Block) -> stats_lib.Block:
+        actions = np.asarray(block["actions"], np.float32)  # the table's dtype
+        state = np.asarray(block["state"], np.float32)
+        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
+                                            state.shape[1])
+        episode = np.asarray(block["episode_index"])
+        starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
+                                 [len(episode)]])
+        index, _ = transforms.chunk_indices(np.arange(len(episode)), starts, action_horizon)
+        steps = (transforms.to_delta(actions[index[:, h]], state, mask)[:, mask]
+                 for h in range(action_horizon))
+        return {"actions": actions, "delta_actions": steps, "state": state}
+
+    stats = stats_lib.compute_norm_stats(
+        stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
+        total_frames=total_frames, transform=chunk_steps, progress=progress)
+    delta = stats.pop("delta_actions")
+    fields = {}
+    for field in stats_lib.FIELDS:
+        fields[field] = getattr(stats["actions"], field).copy()
+        fields[field][mask] = getattr(delta, field)
+    stats["actions"] = stats_lib.NormStats(**fields)
+    return stats
+
+
+def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
+                       progress: bool = True, source=None, episodes: np.ndarray | None = None
+                       ) -> dict[str, stats_lib.NormStats]:
+    """Plain statistics `{"actions", "state"}` of `episodes` (default: the training episodes),
+    one streaming pass (`block_norm_stats`: the relative dims of `data.delta_action_mask` over
+    chunks of H = `action_horizon`)."""
+    blocks, total = training_blocks(config, layout, ("actions", "state"), source=source,
+                                    episodes=episodes)
+    return block_norm_stats(blocks, config["data"], layout, action_horizon=action_horizon,
+                            total_frames=total, progress=progress)
+
+
+def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats_lib.NormStats,
+                   norm_mode: str = "zscore", *, progress: bool = True, source=None,
+                   episodes: np.ndarray | None = None) -> motion_lib.MotionSummary:
+    """Frame-to-frame motion of `episodes` (default: the training episodes), in `norm_mode` units
+    of `action_stats`."""
+    blocks, total = training_blocks(config, layout, ("actions",), source=source,
+                                    episodes=episodes)
+    return motion_lib.compute_motion(blocks, layout,
+                                     *motion_lib.normalized_units(action_stats, norm_mode),
+                                     total_frames=total, progress=progress)
+
+
+def balanced_dataset_norm_stats(config: ConfigLike, layout: ActionLayout, max_scale: float, *,
+                                action_horizon: int, progress: bool = True, source=None,
+                                episodes: np.ndarray | None = None
+                                ) -> tuple[dict[str, stats_lib.NormStats],
+                                           list[motion_lib.BalanceReport]]:
+    """`dataset_norm_stats` with balanced action statistics (`motion.balanced_norm_stats`): two
+    streaming passes (statistics, then motion)."""
+    source = _source(config, layout, source)
+    stats = dataset_norm_stats(config, layout, action_horizon=action_horizon, progress=progress,
+                               source=source, episodes=episodes)
+    summary = dataset_motion(config, layout, stats["actions"], progress=progress, source=source,
+                             episodes=episodes)
+    stats["actions"], reports = motion_lib.balanced_norm_stats(stats["actions"], summary, layout,
+                                                               max_scale)
+    return stats, reports
+
+
+def norm_stats_key(config: ConfigLike, layout: ActionLayout, source, *, action_horizon: int
+                   ) -> dict[str, Any]:
+    """What the run's statistics are computed from: the dataset's identity (root, metadata,
+    episode ids and lengths), the feature selection, the training split and the stats options.
+    JSON-able; two equal keys give equal statistics."""
+    data = config["data"]
+    root = Path(getattr(source, "root", "") or ".").resolve()
+    info = root / "meta" / "info.json"
+    identity = hashlib.sha256()
+    if info.is_file():
+        identity.update(info.read_bytes())
+    identity.update(np.asarray(source.episode_index, np.int64).tobytes())
+    identity.update(np.asarray(source.episode_lengths, np.int64).tobytes())
+    mask = transforms.delta_action_mask(data.get("delta_action_mask"), layout)
+    key = {
+        "data.root": str(root),
+        "dataset": identity.hexdigest(),
+        "training episodes": len(training_episodes(config, source)),
+        "eval.episodes": _num_heldout(config),
+        "layout.real_dim": layout.real_dim,
+    }
+    for field in ("format", "action_key", "state_key", "state_preset", "state_indices",
+                  "action_indices", "balanced_norm"):
+        key[f"data.{field}"] = _jsonable(data.get(field))
+    if data.get("balanced_norm"):
+        key["data.balanced_max_scale"] = float(data.get("balanced_max_scale", 10.0))
+        key["layout.groups"] = {g: list(b) for g, b in layout.groups.items()}
+    if mask is not None:
+        key["data.delta_action_mask"] = np.flatnonzero(mask).tolist()
+        key["data.state_groups"] = _jsonable(selection_lib.state_groups(data))
+        key["model.action_horizon"] = int(action_horizon)
+    return key
+
+
+def _jsonable(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=lambda v: list(v) if hasattr(v, "__iter__")
+                                 else str(v)))
+
+
+def _key_path(cache_path: Path) -> Path:
+    return cache_path.with_name(cache_path.stem + ".key.json")
+
+
+def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
+                               cache_path: str | Path | None = None, progress: bool = True,
+                               source=None, resuming: bool = False,
+                               episodes: np.ndarray | None = None
+                               ) -> dict[str, stats_lib.NormStats]:
+    """The run's normalization statistics `{"actions", "state"}`.
+
+    Order: `data.norm_stats` if set (read as is: a file written by `recompute_balanced_norm_stats`
+    is used unchanged, whatever `data.balanced_norm` says); else `cache_path` if it exists and its
+    key (`norm_stats_key`) equals this config's; else `dataset_norm_stats`, balanced
+    (`motion.balanced_norm_stats`, capped at `data.balanced_max_scale`) when `data.balanced_norm`,
+    written to `cache_path` with its key. A cache whose key differs is recomputed, or refused
+    when `resuming` (a run whose checkpoints were trained with the cached stats). `episodes`:
+    those the statistics are computed over (default: the training episodes; the tools' --episodes
+    only, without a cache). The state entry
+    keeps the file's width (openpi pads it); `BatchTransform` cuts it to the dataset's state width.
+    """
+    data = config["data"]
+    widths = {"actions": layout.real_dim, "state": None}
+    if data.get("norm_stats"):
+        return stats_lib.load_norm_stats(data["norm_stats"], widths)
+    source = _source(config, layout, source)
+    key = norm_stats_key(config, layout, source, action_horizon=action_horizon)
+    if episodes is not None and cache_path is not None:
+        raise ValueError("load_or_compute_norm_stats: a cache holds the training episodes' stats")
+    if cache_path is not None and Path(cache_path).is_file():
+        cache_path = Path(cache_path)
+        cached = _read_key(_key_path(cache_path))
+        if cached == key:
+            return stats_lib.load_norm_stats(cache_path, widths)
+        differing = sorted(k for k in set(key) | set(cached or {})
+                           if (cached or {}).get(k) != key.get(k))
+        if resuming:
+            if cached is None:  # a run from before the key existed: keep what it trained with
+                logging.warning("%s has no key file; reusing it for the resumed run", cache_path)
+                _write_key(_key_path(cache_path), key)
+                return stats_lib.load_norm_stats(cache_path, widths)
+            raise ValueError(
+                f"{cache_path} was computed from other data or options than this config "
+                f"(differing: {differing}) and the run's checkpoints were trained with it: "
+                "resume with the config it was started with, or start a new --workdir")
+        logging.warning("%s was computed from other data or options (differing: %s): "
+                        "recomputing it", cache_path, differing)
+    if data.get("balanced_norm"):
+        stats, reports = balanced_dataset_norm_stats(
+            config, layout, float(data.get("balanced_max_scale", 10.0)),
+            action_horizon=action_horizon, progress=progress, source=source, episodes=episodes)
+        for report in reports:
+            logging.info("balanced norm stats (%s): motion RMS before %s after %s",
+                         report.mode, report.before, report.after)
+    else:
+        stats = dataset_norm_stats(config, layout, action_horizon=action_horizon,
+                                   progress=progress, source=source, episodes=episodes)
+    if cache_path is not None:
+        stats_lib.save_norm_stats(cache_path, stats)
+        _write_key(_key_path(Path(cache_path)), key)
+    return stats
+
+
+def _read_key(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _write_key(path: Path, key: Mapping[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(key, indent=2))
+    tmp.replace(path)

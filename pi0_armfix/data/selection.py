@@ -1,0 +1,181 @@
+"""Which stored dims become the model's state and actions: state presets and index selections.
+
+A dataset's stored vectors are often wider than what the policy should see. B1K 2025 stores the
+R1Pro's full 256-D proprioception in `observation.state` (index map in
+`shared/reference/b1k_2025_dataset.md`); the model needs a 23-D state *in the action order*, so
+that delta actions can subtract state dim d from action dim d. A state preset names that
+selection once (`data.state_preset`), with its groups, instead of hand-written index lists.
+
+`b1k_r1pro` (256-D B1K 2025 `observation.state` -> 23-D, the `b1k_r1pro` action order):
+
+  | state dims | group         | stored dims (256-D)                      |
+  |------------|---------------|------------------------------------------|
+  | 0:3        | base          | 253:256 base_qvel (x, y, yaw velocity)   |
+  | 3:7        | torso         | 236:240 trunk_qpos                       |
+  | 7:14       | left_arm      | 158:165 arm_left_qpos                    |
+  | 14         | left_gripper  | 193 + 194: width = sum of the two finger qpos (gripper_left_qpos) |
+  | 15:22      | right_arm     | 197:204 arm_right_qpos                   |
+  | 22         | right_gripper | 232 + 233: width = sum of the two finger qpos (gripper_right_qpos) |
+
+  The gripper width is the sum of the two finger joint positions, the quantity the official
+  baseline's 23-D state carries (its published stats put both widths in [0, 0.1]).
+
+`b1k_baseline23` (a 23-D state in the official baseline's order -> the action order): the
+baseline (and the demo dataset) store base 0:3, torso 3:7, left arm 7:14, right arm 14:21 and
+both gripper widths last (21, 22); this preset moves the left gripper to 14 and the right arm to
+15:22.
+
+`data.state_indices` / `data.action_indices` are plain index selections for any other dataset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class StatePart:
+    """One group of the selected state: the stored dims it is read from, and how."""
+
+    group: str
+    dims: tuple[int, ...]  # stored dims
+    reduce: str = "select"  # "select": one output dim per stored dim; "sum": one output dim
+
+
+@dataclasses.dataclass(frozen=True)
+class StatePreset:
+    """A named selection of a stored state vector into a state in the action order."""
+
+    name: str
+    stored_width: int
+    parts: tuple[StatePart, ...]
+
+    @property
+    def width(self) -> int:
+        return sum(len(p.dims) if p.reduce == "select" else 1 for p in self.parts)
+
+    @property
+    def groups(self) -> dict[str, tuple[int, int]]:
+        """The selected state's `{group: (start, stop)}` (`data.state_groups`)."""
+        groups, start = {}, 0
+        for part in self.parts:
+            stop = start + (len(part.dims) if part.reduce == "select" else 1)
+            groups[part.group] = (start, stop)
+            start = stop
+        return groups
+
+
+def _span(start: int, stop: int) -> tuple[int, ...]:
+    return tuple(range(start, stop))
+
+
+STATE_PRESETS: dict[str, StatePreset] = {
+    "b1k_r1pro": StatePreset("b1k_r1pro", 256, (
+        StatePart("base", _span(253, 256)),
+        StatePart("torso", _span(236, 240)),
+        StatePart("left_arm", _span(158, 165)),
+        StatePart("left_gripper", _span(193, 195), "sum"),
+        StatePart("right_arm", _span(197, 204)),
+        StatePart("right_gripper", _span(232, 234), "sum"),
+    )),
+    "b1k_baseline23": StatePreset("b1k_baseline23", 23, (
+        StatePart("base", _span(0, 3)),
+        StatePart("torso", _span(3, 7)),
+        StatePart("left_arm", _span(7, 14)),
+        StatePart("left_gripper", (21,)),
+        StatePart("right_arm", _span(14, 21)),
+        StatePart("right_gripper", (22,)),
+    )),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+    """Stored `[n, W]` vectors -> selected `[n, S]` (a preset, an index list, or everything).
+
+    Attributes:
+      field: the config key that asked for it (named in errors).
+      stored_width: W.
+      indices: `[S]` stored dims for an index selection (None otherwise).
+      preset: a state preset (None otherwise).
+    """
+
+    field: str
+    stored_width: int
+    indices: tuple[int, ...] | None = None
+    preset: StatePreset | None = None
+
+    @property
+    def width(self) -> int:
+        if self.preset is not None:
+            return self.preset.width
+        return self.stored_width if self.indices is None else len(self.indices)
+
+    @property
+    def groups(self) -> dict[str, tuple[int, int]] | None:
+        """The selected vector's groups when a preset defines them."""
+        return None if self.preset is None else self.preset.groups
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        """`[n, W]` -> `[n, S]`."""
+        if self.preset is not None:
+            columns = [values[:, list(p.dims)] if p.reduce == "select"
+                       else values[:, list(p.dims)].sum(1, keepdims=True)
+                       for p in self.preset.parts]
+            return np.concatenate(columns, axis=1)
+        return values if self.indices is None else values[:, list(self.indices)]
+
+
+def make_selection(stored_width: int, *, indices: Sequence[int] | None = None,
+                   preset: str = "", field: str, feature: str, where: str) -> Selection:
+    """Validates `data.{state,action}_preset / _indices` against the stored width.
+
+    Args:
+      stored_width: W of the stored feature.
+      indices: an index selection (`data.state_indices` / `data.action_indices`); () or None = all.
+      preset: a state preset name ('' = none); exclusive with `indices`.
+      field: the config key of `indices` (`data.state_indices`), named in errors.
+      feature: the stored feature (`observation.state`), named in errors.
+      where: the dataset, named in errors.
+    """
+    preset_field = field.replace("_indices", "_preset")
+    if preset and indices:
+        raise ValueError(f"{preset_field}={preset!r} and {field}={tuple(indices)} are both set; "
+                         "choose one")
+    if preset:
+        if preset not in STATE_PRESETS:
+            raise ValueError(f"{preset_field}={preset!r} is not a state preset; known: "
+                             f"{sorted(STATE_PRESETS)}")
+        chosen = STATE_PRESETS[preset]
+        if chosen.stored_width != stored_width:
+            raise ValueError(f"{preset_field}={preset!r} selects from a {chosen.stored_width}-D "
+                             f"state but {where} stores {feature!r} with {stored_width} dims; "
+                             f"presets for this width: {presets_for(stored_width) or 'none'} "
+                             f"(or set {field})")
+        return Selection(field, stored_width, preset=chosen)
+    if not indices:
+        return Selection(field, stored_width)
+    chosen = np.asarray(indices)
+    if chosen.ndim != 1 or not np.issubdtype(chosen.dtype, np.integer) or not (
+            (chosen >= 0) & (chosen < stored_width)).all():
+        raise ValueError(f"{field}={tuple(indices)} must be dims of {feature!r}, which has "
+                         f"{stored_width} dims in {where}")
+    return Selection(field, stored_width, indices=tuple(int(i) for i in chosen))
+
+
+def presets_for(stored_width: int) -> list[str]:
+    """Names of the state presets that read a stored state of this width."""
+    return [name for name, p in STATE_PRESETS.items() if p.stored_width == stored_width]
+
+
+def state_groups(data_cfg: Mapping[str, Any]) -> Mapping[str, Sequence[int]] | None:
+    """`data.state_groups`, or the groups of `data.state_preset` when that is set instead."""
+    explicit = data_cfg.get("state_groups")
+    if explicit:
+        return explicit
+    preset = data_cfg.get("state_preset") or ""
+    return STATE_PRESETS[preset].groups if preset in STATE_PRESETS else None
