@@ -1,0 +1,244 @@
+"""The faults a new user met on real LeRobot datasets (issue: real data), one test each:
+1 shared video decoders, 2 B1K's 256-D state, 3 checks after the stats pass and a reused cache,
+4 a last row past the end of its video, 5 hard-coded keys and names, 6 camera names and git-LFS
+pointers, 7 tools that silently leave episodes out."""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+
+import numpy as np
+import pytest
+
+import b1k_fixture
+import train_fixtures as tf
+from train_fixtures import cache_dir  # noqa: F401  (pytest fixture)
+from configs import base
+from data_fixtures import identify_frame, make_episodes, write_dataset
+from pi0_armfix import evaluate, train
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data import dataset as dataset_lib
+from pi0_armfix.data import sources
+from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.tools import compute_norm_stats
+
+LAYOUT = ActionLayout.preset("b1k_r1pro")
+
+
+@pytest.fixture(scope="module")
+def b1k_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("b1k") / "b1k"
+    b1k_fixture.write_b1k_dataset(root)
+    return root
+
+
+def config_for(root, **overrides):
+    config = base.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(root, **overrides))
+    return config
+
+
+@pytest.fixture
+def no_stats_pass(monkeypatch):
+    """Fails the test if any pass over the data computes statistics."""
+    def fail(*args, **kwargs):
+        raise AssertionError("a pass over the data ran before the checks")
+    monkeypatch.setattr(dataset_lib, "dataset_norm_stats", fail)
+
+
+# ---------------------------------------------------------------------- 1: threads
+
+
+def test_video_frames_read_by_several_threads_at_once_are_the_right_frames(b1k_root):
+    source = LeRobotSource(b1k_root, LAYOUT, state_preset="b1k_r1pro")
+    table = source.load_table()
+    frames = np.random.default_rng(0).integers(0, table.num_frames, 96)
+
+    def read(frame):
+        position = int(table.episode_of_frame(np.array([frame]))[0])
+        offset = int(frame - table.episode_starts[position])
+        length = int(table.episode_lengths[position])
+        return identify_frame(table.images(int(frame))["base_0_rgb"], position, length, 0), offset
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=4) as pool:
+        for decoded, expected in pool.map(read, frames):
+            assert decoded == expected
+
+
+# ---------------------------------------------------------------------- 2, 3: checks first
+
+
+def test_b1k_256d_state_without_a_preset_fails_before_any_pass_naming_the_preset(
+        b1k_root, tmp_path, no_stats_pass):
+    config = config_for(b1k_root)
+    with pytest.raises(ValueError, match=r"256 dims.*data.state_preset='b1k_r1pro'"):
+        train.train_and_evaluate(config, str(tmp_path / "run"))
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"data.cameras": {"base_0_rgb": "observation.images.rgb.top"}},
+     r"'observation.images.rgb.top' is not a camera.*observation.images.rgb.head"),
+    ({"eval.every": 1, "eval.gripper_groups": ("claw",), "eval.plot_groups": ("hand",)},
+     r"eval.gripper_groups names \['claw'\]; eval.plot_groups names \['hand'\]"),
+    ({"eval.every": 1, "eval.episodes": 1, "eval.batch_size": 16, "eval.max_chunks": 16},
+     r"fewer than eval.batch_size = 16"),
+    ({"data.delta_action_mask": (7, 8)}, r"data.state_groups"),
+])
+def test_camera_eval_and_layout_errors_come_before_the_stats_pass(
+        b1k_root, tmp_path, no_stats_pass, overrides, message):
+    config = config_for(b1k_root, data__state_preset="b1k_r1pro")
+    config.update_from_flattened_dict(overrides)
+    if "data.delta_action_mask" in overrides:  # an index selection has no groups
+        config.data.state_preset = ""
+        config.data.state_indices = tuple(range(23))
+    with pytest.raises(ValueError, match=message):
+        train.train_and_evaluate(config, str(tmp_path / "run"))
+    assert not (tmp_path / "run" / "norm_stats.json").exists()
+
+
+def test_cached_norm_stats_of_other_data_are_recomputed_or_refused(tmp_path):
+    roots = [write_dataset(tmp_path / name, make_episodes(4, seed=seed), "v2.1")
+             for name, seed in (("a", 0), ("b", 1))]
+    cache = tmp_path / "run" / "norm_stats.json"
+    cache.parent.mkdir()
+
+    def stats(root, **kwargs):
+        config = config_for(root, eval__episodes=1)
+        return dataset_lib.load_or_compute_norm_stats(config, LAYOUT, action_horizon=4,
+                                                      cache_path=cache, progress=False, **kwargs)
+
+    first = stats(roots[0])
+    second = stats(roots[1])  # a fix-and-rerun in the same workdir with other data
+    fresh = dataset_lib.dataset_norm_stats(config_for(roots[1], eval__episodes=1), LAYOUT,
+                                           action_horizon=4, progress=False)
+    assert not np.allclose(first["actions"].mean, second["actions"].mean)
+    np.testing.assert_array_equal(second["actions"].mean, fresh["actions"].mean)
+    with pytest.raises(ValueError, match=r"differing: \[.*'data.root'.*new --workdir"):
+        stats(roots[0], resuming=True)
+
+
+# ---------------------------------------------------------------------- 4: timestamps
+
+
+def test_a_last_row_past_the_end_of_its_video_is_named_before_training(tmp_path):
+    root = tmp_path / "b1k"
+    b1k_fixture.write_b1k_dataset(root, timestamp_offset_frames=1)
+    config = config_for(root, data__state_preset="b1k_r1pro")
+    source = sources.open_source(config.data, LAYOUT)
+    with pytest.raises(ValueError, match=r"episode_00000010.mp4 has no frame at 0.4667 s.*"
+                                         r"data.video_tolerance_frames=1.*episode 10"):
+        dataset_lib.check_data(config, LAYOUT, source)
+    config.data.video_tolerance_frames = 1.0
+    source = sources.open_source(config.data, LAYOUT)
+    dataset_lib.check_data(config, LAYOUT, source)
+    table = source.load_table([10])
+    last = table.images(table.num_frames - 1)["base_0_rgb"]  # reads the video's last frame
+    assert identify_frame(last, 0, table.num_frames, 0) == table.num_frames - 1
+
+
+# ---------------------------------------------------------------------- 5: generality
+
+
+def test_feature_keys_are_configurable(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3), "v3.0", action_key="actions",
+                         state_key="state")
+    source = sources.open_source({"root": str(root), "action_key": "actions",
+                                  "state_key": "state"}, LAYOUT)
+    assert source.load_table(images=False).actions.shape[1] == 23
+    with pytest.raises(ValueError, match=r"no 'action' feature \(data.action_key\).*'actions'"):
+        sources.open_source({"root": str(root)}, LAYOUT)
+
+
+def test_action_indices_select_the_dims_of_a_wider_dataset(tmp_path):
+    episodes = make_episodes(3, action_width=44)
+    root = write_dataset(tmp_path / "ds", episodes, "v2.0", float_dtype=np.float64)
+    chosen = tuple(range(21)) + (30, 43)
+    source = sources.open_source({"root": str(root), "action_indices": chosen}, LAYOUT)
+    np.testing.assert_allclose(source.load_table([0], images=False).actions,
+                               episodes[0]["actions"][:, chosen], rtol=1e-6)
+
+
+def test_actions_wider_than_32_train_without_cameras_with_eval_groups_from_roles(tmp_path,
+                                                                               cache_dir):
+    episodes = make_episodes(6, action_width=44, state_width=44, cameras={})
+    root = write_dataset(tmp_path / "ds", episodes, "v2.0", float_dtype=np.float64)
+    groups = {"torso": (0, 2), "left_arm": (2, 22), "right_arm": (22, 42), "grippers": (42, 44)}
+    roles = {"torso": "torso", "left_arm": "arm", "right_arm": "arm", "grippers": "gripper"}
+    overrides = tf.tiny_overrides(
+        root, layout__groups=groups, layout__real_dim=44, layout__action_dim=48,
+        layout__roles=roles, model__action_dim=48, loss__strategy="uniform", eval__every=2)
+    result = tf.run_train("configs/uniform.py", tmp_path / "run", overrides, cache_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "no camera feeds" in result.stdout + result.stderr  # one warning, then masked
+    records = [json.loads(line) for line in
+               (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    evaluation = [r for r in records if "gripper_switch_recall" in r]
+    assert evaluation and "motion_gain/left_arm" in evaluation[-1]
+
+
+def test_eval_defaults_follow_the_layout_roles():
+    layout = ActionLayout(groups={"arm": (0, 6), "claw": (6, 7)}, real_dim=7,
+                          roles={"arm": "arm", "claw": "gripper"})
+    eval_cfg = dict(gripper_groups=(), plot_groups=(), batch_size=8, max_chunks=16, num_steps=2)
+    evaluate.check_eval_config(eval_cfg, layout, 1)
+    assert evaluate.eval_groups(eval_cfg, layout) == {"gripper_groups": ("claw",),
+                                                      "plot_groups": ("arm", "claw")}
+    assert evaluate.eval_groups(eval_cfg, LAYOUT)["gripper_groups"] == (
+        "left_gripper", "right_gripper")
+
+
+# ---------------------------------------------------------------------- 6: names and pointers
+
+
+@pytest.mark.parametrize("names, expected", [
+    (["observation.images.cam_high", "observation.images.cam_low",
+      "observation.images.cam_left_wrist", "observation.images.cam_right_wrist"],
+     {"base_0_rgb": "observation.images.cam_high",
+      "left_wrist_0_rgb": "observation.images.cam_left_wrist",
+      "right_wrist_0_rgb": "observation.images.cam_right_wrist"}),
+    (["observation.images.ego_view"], {"base_0_rgb": "observation.images.ego_view"}),
+    (["observation.images.front", "observation.images.wrist"],
+     {"base_0_rgb": "observation.images.front", "left_wrist_0_rgb": "observation.images.wrist"}),
+    (["observation.images.top"], {"base_0_rgb": "observation.images.top"}),
+    (["image", "wrist_image"], {"base_0_rgb": "image", "left_wrist_0_rgb": "wrist_image"}),
+])
+def test_common_camera_names_match_the_alias_table(names, expected):
+    assert cameras_lib.match_cameras(names, None, "ds") == expected
+
+
+def test_missing_cameras_are_named_with_the_datasets_own_cameras():
+    message = cameras_lib.missing_cameras_message(
+        {"base_0_rgb": "observation.images.laptop"},
+        ["observation.images.laptop", "observation.images.phone"], "ds")
+    assert "['left_wrist_0_rgb', 'right_wrist_0_rgb']" in message
+    assert "'observation.images.phone'" in message and "data.cameras" in message
+
+
+@pytest.mark.parametrize("target", ["data/task-0000/episode_00000010.parquet",
+                                    "videos/task-0000/observation.images.rgb.head/"
+                                    "episode_00000010.mp4"])
+def test_git_lfs_pointer_files_are_named_as_such(tmp_path, target):
+    root = tmp_path / "b1k"
+    b1k_fixture.write_b1k_dataset(root, lengths=(6, 6, 6, 6, 6, 6))
+    (root / target).write_text("version https://git-lfs.github.com/spec/v1\n"
+                               "oid sha256:4d7a2146\nsize 1234567\n")
+    config = config_for(root, data__state_preset="b1k_r1pro")
+    source = sources.open_source(config.data, LAYOUT)
+    with pytest.raises(ValueError, match=r"is a git-LFS pointer file.*git lfs pull"):
+        dataset_lib.check_data(config, LAYOUT, source)
+
+
+# ---------------------------------------------------------------------- 7: tools
+
+
+def test_stats_tool_says_which_episodes_it_reads_and_can_read_all(tmp_path, capsys):
+    root = write_dataset(tmp_path / "ds", make_episodes(12), "v2.1")
+    config = config_for(root, eval__episodes=4)
+    train_stats = compute_norm_stats.run(config, tmp_path / "train.json")
+    out = capsys.readouterr().out
+    assert "reading 8 of 12 episodes" in out and "left out: the 4 held-out episodes" in out
+    all_stats = compute_norm_stats.run(config, tmp_path / "all.json", episodes="all")
+    assert "reading 12 of 12 episodes" in capsys.readouterr().out
+    assert not np.allclose(train_stats["actions"].mean, all_stats["actions"].mean)
