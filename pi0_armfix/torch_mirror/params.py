@@ -16,7 +16,6 @@ without JAX, and `check_state_dict` is the strict key check used by conversion a
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 from pi0_armfix.model.config import GemmaConfig, Pi0Config, dense_shapes
 
