@@ -72,6 +72,11 @@ class NonFiniteLossError(RuntimeError):
     """The loss or gradient of a step is NaN or infinite."""
 
 
+class DataError(RuntimeError):
+    """A file of the dataset could not be read during training (the probe before the first step
+    reads only a sample of episodes)."""
+
+
 def check_train_config(train: Mapping[str, Any]) -> None:
     for field in ("total_steps", "log_every", "checkpoint_every", "keep_checkpoints"):
         if int(train[field]) <= 0:
@@ -229,7 +234,12 @@ def train_loop(run: Run) -> dict[str, float]:
             step_metrics = None
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 fetch_start = time.perf_counter()
-                batch, data_state, batch_phase = next(batches)
+                try:
+                    batch, data_state, batch_phase = next(batches)
+                except ValueError as e:  # the readers name the file, episode and time
+                    raise DataError(
+                        f"reading the batch of step {step}: {e}. The last checkpoint is intact; "
+                        "fix or remove the named file, then rerun to resume") from e
                 if step_metrics is None or step_metrics["loss"].is_ready():  # the device idles
                     wait += time.perf_counter() - fetch_start
                 if batch_phase != phase:
@@ -287,6 +297,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     Raises:
       ConfigurationError: a config, layout, data or checkpoint error, before any step.
       NonFiniteLossError: a step's loss or gradient is not finite.
+      DataError: a dataset file could not be read during training.
     """
     try:
         run = prepare(config, workdir)
@@ -366,7 +377,7 @@ def main(argv: Sequence[str]) -> None:
     workdir = FLAGS.workdir or default_workdir(config_flags.get_config_filename(FLAGS["config"]))
     try:
         record = train_and_evaluate(config, workdir)
-    except (ConfigurationError, NonFiniteLossError) as e:
+    except (ConfigurationError, NonFiniteLossError, DataError) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
     if jax.process_index() == 0:
         layout = ActionLayout.from_config(config.layout)

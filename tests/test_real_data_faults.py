@@ -138,6 +138,19 @@ def test_a_last_row_past_the_end_of_its_video_is_named_before_training(tmp_path)
     assert identify_frame(last, 0, table.num_frames, 0) == table.num_frames - 1
 
 
+def test_an_unreadable_video_met_during_training_stops_with_one_message(tmp_path):
+    root = tmp_path / "b1k"
+    b1k_fixture.write_b1k_dataset(root)
+    # Episode 20 (position 1) is not among the probed ones (positions 0, 2, 3, 5).
+    video = root / "videos/task-0000/observation.images.rgb.head/episode_00000020.mp4"
+    video.write_bytes(b"\0" * 4096)
+    config = config_for(root, data__state_preset="b1k_r1pro", train__total_steps=4,
+                        train__checkpoint_every=4)
+    with pytest.raises(train.DataError, match=r"reading the batch of step \d+: cannot read "
+                                              r"video file .*episode_00000020.mp4"):
+        train.train_and_evaluate(config, str(tmp_path / "run"))
+
+
 # ---------------------------------------------------------------------- 5: generality
 
 
