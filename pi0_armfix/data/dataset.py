@@ -361,7 +361,7 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
         if resuming:
             if cached is None:  # a run from before the key existed: keep what it trained with
                 logging.warning("%s has no key file; reusing it for the resumed run", cache_path)
-                _write_key(_key_path(cache_path), key)
+                stats_lib.write_json_atomic(_key_path(cache_path), key)
                 return stats_lib.load_norm_stats(cache_path, widths)
             raise ValueError(
                 f"{cache_path} was computed from other data or options than this config "
@@ -381,7 +381,7 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
                                    progress=progress, source=source, episodes=episodes)
     if cache_path is not None:
         stats_lib.save_norm_stats(cache_path, stats)
-        _write_key(_key_path(Path(cache_path)), key)
+        stats_lib.write_json_atomic(_key_path(Path(cache_path)), key)
     return stats
 
 
@@ -391,8 +391,3 @@ def _read_key(path: Path) -> dict[str, Any] | None:
     except (OSError, json.JSONDecodeError):
         return None
 
-
-def _write_key(path: Path, key: Mapping[str, Any]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(key, indent=2))
-    tmp.replace(path)

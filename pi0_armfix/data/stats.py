@@ -380,9 +380,13 @@ def compute_norm_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions"
 def save_norm_stats(path: str | Path, stats: Mapping[str, NormStats]) -> None:
     """Writes openpi's `norm_stats.json` (real widths, no padding), atomically: several processes
     of a run may write the same file at once, and a reader never sees a partial file."""
+    write_json_atomic(path, {"norm_stats": {key: value.to_json() for key, value in stats.items()}})
+
+
+def write_json_atomic(path: str | Path, payload: Any) -> None:
+    """Writes `payload` as JSON through a private temporary file and a rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {"norm_stats": {key: value.to_json() for key, value in stats.items()}}
     with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
                                      delete=False) as tmp:
         tmp.write(json.dumps(payload, indent=2))
