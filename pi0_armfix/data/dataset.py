@@ -318,8 +318,12 @@ def norm_stats_key(config: ConfigLike, layout: ActionLayout, source, *, action_h
 
 
 def _jsonable(value: Any) -> Any:
-    return json.loads(json.dumps(value, default=lambda v: list(v) if hasattr(v, "__iter__")
-                                 else str(v)))
+    """A config value as plain JSON; a mapping-like value (a ConfigDict) keeps its values."""
+    def plain(v: Any) -> Any:
+        if isinstance(v, Mapping) or hasattr(v, "items"):
+            return dict(v.items())
+        return list(v) if hasattr(v, "__iter__") else str(v)
+    return json.loads(json.dumps(value, default=plain))
 
 
 def _key_path(cache_path: Path) -> Path:

@@ -593,7 +593,8 @@ class LeRobotSource:
       num_episodes, episode_index ([E] int64 episode ids), episode_lengths ([E] int64),
       tasks ([E] prompts), fps, version, cameras ({batch camera: stored name}),
       camera_names (every stored image/video feature), stored_state_width, state_width,
-      stored_action_width, action_width, state (the state Selection).
+      stored_action_width, action_width, action_selection and state_selection (the
+      `selection.Selection` of each stored vector).
     """
 
     def __init__(self, root: str | Path, layout: ActionLayout, *,
@@ -627,10 +628,10 @@ class LeRobotSource:
                              f"(data.action_key); its features: {vectors}")
         self._columns = {"actions": action_key, "state": state_key, "timestamp": "timestamp"}
         self.stored_action_width = int(np.prod(features[action_key]["shape"]))
-        self.actions = selection_lib.make_selection(
+        self.action_selection = selection_lib.make_selection(
             self.stored_action_width, indices=action_indices or None, field="data.action_indices",
             feature=action_key, where=str(self.root))
-        self.action_width = self.actions.width
+        self.action_width = self.action_selection.width
         source = f"{self.root} (feature {action_key!r}" + (
             f", data.action_indices of {self.stored_action_width} dims)" if action_indices
             else ")")
@@ -641,10 +642,10 @@ class LeRobotSource:
                              f"(data.state_key) to select from; its features: {vectors}")
         self.stored_state_width = (int(np.prod(features[state_key]["shape"])) if self._has_state
                                    else 0)
-        self.state = selection_lib.make_selection(
+        self.state_selection = selection_lib.make_selection(
             self.stored_state_width, indices=state_indices or None, preset=state_preset or "",
             field="data.state_indices", feature=state_key, where=str(self.root))
-        self.state_width = self.state.width
+        self.state_width = self.state_selection.width
 
         stored = {name: f["dtype"] for name, f in features.items()
                   if f.get("dtype") in ("image", "video")}
@@ -820,7 +821,8 @@ class LeRobotSource:
             else:
                 column = self._columns[key]
                 values = _matrix(table.column(column), column, path)
-                selection = self.actions if key == "actions" else self.state
+                selection = (self.action_selection if key == "actions"
+                             else self.state_selection)
                 if values.shape[1] != selection.stored_width:
                     raise ValueError(f"{path}: column {column!r} has width {values.shape[1]} but "
                                      f"meta/info.json declares {selection.stored_width}")
