@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import pipeline, sources, transforms
+from pi0_armfix.data import batching, sources, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy
@@ -178,7 +178,7 @@ class Evaluator:
         self.eval_cfg = eval_cfg
         self.groups = eval_groups(eval_cfg, layout)
         table = dataset_lib.heldout_table(config, layout, source=source)
-        transform = pipeline.BatchTransform(
+        transform = batching.BatchTransform(
             table, layout, norm_stats=norm_stats, norm_mode=config.data.norm,
             action_horizon=model_config.action_horizon,
             delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),

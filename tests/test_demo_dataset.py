@@ -30,7 +30,7 @@ def default_demo(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("PI0_ARMFIX_CACHE", str(cache))
         source = open_source(ConfigDict({"root": "", "format": "lerobot"}), LAYOUT)
-    assert source.root == cache / "demo-v1-seed0"
+    assert source.root == demo.demo_cache_path(cache, demo.DemoSpec())
     return source
 
 
@@ -155,9 +155,17 @@ def test_demo_root_generates_once_and_reuses_the_cache(tmp_path, monkeypatch):
     monkeypatch.setattr(demo, "DemoSpec", functools.partial(demo.DemoSpec, num_episodes=2))
     root = demo.demo_root(tmp_path)
     stamp = (root / "meta" / "info.json").stat().st_mtime_ns
-    assert demo.demo_root(tmp_path) == root == tmp_path / "demo-v1-seed0"
+    assert demo.demo_root(tmp_path) == root == demo.demo_cache_path(tmp_path, demo.DemoSpec())
     assert (root / "meta" / "info.json").stat().st_mtime_ns == stamp
     assert LeRobotSource(root, LAYOUT).num_episodes == 2
+
+
+def test_the_demo_cache_folder_is_named_by_the_generator_spec(tmp_path):
+    spec = demo.DemoSpec()
+    same = demo.demo_cache_path(tmp_path, demo.DemoSpec())
+    assert demo.demo_cache_path(tmp_path, spec) == same
+    for change in ({"seed": 1}, {"image_size": 64}, {"max_speed": 0.3}):
+        assert demo.demo_cache_path(tmp_path, dataclasses.replace(spec, **change)) != same
 
 
 def test_a_crash_while_generating_leaves_no_half_dataset(tmp_path, monkeypatch):

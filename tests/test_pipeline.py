@@ -16,7 +16,7 @@ from configs import base as base_config
 from data_fixtures import make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import pipeline, transforms
+from pi0_armfix.data import batching, pipeline, sampling, sources, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
 from pi0_armfix.data.episodes import EpisodeTable
@@ -159,7 +159,7 @@ def test_training_batches_need_a_tokenizer():
 def test_a_dataset_without_cameras_gives_masked_zero_images_of_the_model_size():
     table = frame_table()
     table.images = None
-    transform = pipeline.BatchTransform(
+    transform = batching.BatchTransform(
         table, LAYOUT, norm_stats=table_stats(table), norm_mode="zscore", action_horizon=4,
         tokenize=CountingTokenizer(), image_size=(16, 24))
     batch = transform(np.arange(3))
@@ -202,7 +202,7 @@ ARM_DELTA = {"delta_action_mask": list(range(7, 14)), "state_groups": {"left_arm
 def chunk_targets(table, norm_stats):
     """`[frames * H, 23]` float64: the action targets of every chunk of the table as batched."""
     mask = transforms.delta_action_mask(ARM_DELTA["delta_action_mask"], LAYOUT)
-    transform = pipeline.BatchTransform(table, LAYOUT, norm_stats=norm_stats, norm_mode="zscore",
+    transform = batching.BatchTransform(table, LAYOUT, norm_stats=norm_stats, norm_mode="zscore",
                                         action_horizon=HORIZON, delta_mask=mask,
                                         actions_only=True)
     return transform(np.arange(table.num_frames))["actions"][..., :23].reshape(-1, 23).astype(
@@ -392,9 +392,9 @@ def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
     layout = ActionLayout.from_config(lerobot_config.layout)
     stats = dataset_lib.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
                                         progress=False)
-    source = pipeline.sources.open_source(lerobot_config.data, layout)
+    source = sources.open_source(lerobot_config.data, layout)
     training = source.load_table(source.episode_index[:4], images=False)
-    np.testing.assert_allclose(stats["actions"].mean, training.actions.mean(0, dtype=np.float64),
+    np.testing.assert_allclose(stats["actions"].mean, np.asarray(training.actions).mean(0, dtype=np.float64),
                                rtol=1e-6, atol=1e-9)
     assert stats["actions"].q99[0] <= 3  # dim 0 is the episode: 4 and 5 are held out
 

@@ -3,7 +3,7 @@
 import importlib
 import sys
 
-BENCHMARKS = ("data", "model", "train")
+BENCHMARKS = ("data", "model", "train", "video")
 
 
 def main(argv: list[str]) -> None:

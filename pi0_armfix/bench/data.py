@@ -12,6 +12,15 @@ stats     `compute_norm_stats`' work (mean/std/q01/q99 of actions and state, one
 pipeline  the training iterator in `actions_only` mode (normalized, padded action chunks and
           state, no images): `--batch_size` x `--horizon` chunks per step as global jax.Arrays on
           one CPU device; samples/s over `--steps` steps after `--warmup`. Target >= 20k/s.
+memory    (`--part=memory`, not in `all`) peak memory of the pipeline at B1K scale: for each of
+          `--memory_frames` (default 10 M and 100 M), a synthetic source with B1K's metadata
+          (episodes of 3k..21k frames, mean ~12k, 50 task prompts, 23-D float32 actions and
+          state) is written into its on-disk frame store by the real builder (disk: 184
+          bytes per frame, deleted afterwards), then a fresh process runs the training iterator
+          (`--memory_workers` Grain workers, `--batch_size` x `--horizon` chunks, `--steps`
+          steps). Prints each process's peak RSS (VmHWM) and its private (RssAnon) and
+          file-backed, shared (RssFile) parts, and the builder's peak. Target: < 2 GiB per
+          process, growing < 10 % from 10 M to 100 M frames.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -29,14 +39,14 @@ from pathlib import Path
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data.lerobot import LeRobotWriter
+from pi0_armfix.data.lerobot_writer import LeRobotWriter
 
 _LAYOUT = "b1k_r1pro"
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m pi0_armfix.bench data")
-    parser.add_argument("--part", choices=("all", "stats", "pipeline"), default="all")
+    parser.add_argument("--part", choices=("all", "stats", "pipeline", "memory"), default="all")
     parser.add_argument("--frames", type=int, default=5_000_000)
     parser.add_argument("--episode_frames", type=int, default=500)
     parser.add_argument("--episodes_per_file", type=int, default=1000)
@@ -46,7 +56,10 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--num_workers", type=int, default=0)
+    parser.add_argument("--memory_frames", default="10000000,100000000")
+    parser.add_argument("--memory_workers", type=int, default=2)
     parser.add_argument("--stats_child", default="", help=argparse.SUPPRESS)
+    parser.add_argument("--memory_child", default="", help=argparse.SUPPRESS)
     return parser.parse_args(argv[1:])
 
 
@@ -180,10 +193,182 @@ def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup
             "batch_size": batch_size, "setup_s": setup}
 
 
+# ---------------------------------------------------------------------- memory at B1K scale
+
+B1K_TASKS = tuple(f"behavior task {t}: tidy the room and put the items away" for t in range(50))
+
+
+class SyntheticSource:
+    """A Source with B1K 2025's metadata and `frames` frames of synthetic 23-D actions and state
+    (a fixed random block repeated: the store's bytes, not their values, are what is measured)."""
+
+    block_keys = ("actions", "state")
+    fps = 30.0
+    cameras: dict = {}
+
+    def __init__(self, frames: int, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        lengths = []
+        while sum(lengths) < frames:
+            lengths.append(int(rng.integers(3_000, 21_000)))
+        lengths[-1] -= sum(lengths) - frames
+        self.episode_lengths = np.array(lengths, np.int64)
+        tasks = np.sort(rng.integers(0, 50, len(lengths)))  # ids task * 10000 + 10 n, sorted
+        first = np.searchsorted(tasks, tasks)
+        self.episode_index = (tasks * 10_000 + (np.arange(len(lengths)) - first) * 10
+                              ).astype(np.int64)
+        self.tasks = tuple(B1K_TASKS[t] for t in tasks)
+        self.num_episodes = len(lengths)
+        self.root = f"synthetic-b1k-{frames}"
+        self._block = rng.normal(size=(65_536, 23)).astype(np.float32)
+
+    def identity(self) -> dict:
+        return {"root": self.root, "synthetic": 1}
+
+    def iter_blocks(self, keys=("actions", "state"), episodes=None):
+        assert episodes is None  # the store reads every episode
+        starts = np.concatenate([[0], np.cumsum(self.episode_lengths)])
+        for start in range(0, int(starts[-1]), len(self._block)):
+            n = min(len(self._block), int(starts[-1]) - start)
+            episode = np.searchsorted(starts, np.arange(start, start + n), side="right") - 1
+            block = {key: self._block[:n] for key in keys}
+            block["episode_index"] = self.episode_index[episode]
+            yield block
+
+    @property
+    def frame_store(self):
+        from pi0_armfix.data.frame_store import FrameStore
+
+        return FrameStore.open(self, progress=False)
+
+    def load_table(self, episodes=None, *, images=True, image_size=None):
+        from pi0_armfix.data.episodes import EpisodeTable
+
+        positions = np.searchsorted(self.episode_index, episodes) if episodes is not None \
+            else np.arange(self.num_episodes)
+        lengths = self.episode_lengths[positions]
+        store = self.frame_store
+        return EpisodeTable(
+            actions=store.column("actions", positions), state=store.column("state", positions),
+            episode_starts=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+            episode_index=self.episode_index[positions],
+            tasks=[self.tasks[p] for p in positions], fps=self.fps)
+
+
+def _memory(pid: int | str = "self") -> dict[str, float]:
+    """MiB of VmHWM, VmRSS, RssAnon, RssFile of a process."""
+    fields = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmHWM", "VmRSS", "RssAnon", "RssFile"):
+            fields[key] = int(value.split()[0]) / 1024
+    return fields
+
+
+def _descendants(pid: int) -> list[int]:
+    children = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        children += [int(c) for c in text]
+    return [d for c in children for d in [c, *_descendants(c)]]
+
+
+def _memory_child(arg: str) -> None:
+    """In a fresh process: `build:FRAMES` builds the store; `train:FRAMES:WORKERS:B:H:STEPS`
+    runs the iterator. Prints the memory as JSON."""
+    parts = arg.split(":")
+    source = SyntheticSource(int(parts[1]))
+    if parts[0] == "build":
+        start = time.perf_counter()
+        store = source.frame_store
+        print(json.dumps({"seconds": time.perf_counter() - start, "root": str(store.root),
+                          "main": _memory()}))
+        return
+    import jax
+    import ml_collections
+    from absl import flags
+
+    from pi0_armfix.data import pipeline
+    from pi0_armfix.data import stats as stats_lib
+
+    flags.FLAGS.mark_as_parsed()
+    workers, batch_size, horizon, steps = (int(p) for p in parts[2:])
+    config = ml_collections.ConfigDict({
+        "seed": 0, "eval": {"episodes": 0},
+        "data": {"root": source.root, "norm": "zscore", "curriculum": (),
+                 "num_workers": workers, "prefetch": 2}})
+    unit = stats_lib.NormStats(mean=np.zeros(23), std=np.ones(23), q01=-np.ones(23),
+                               q99=np.ones(23))
+    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    before = _memory()
+    iterator = pipeline.make_train_iterator(
+        config, ActionLayout.preset(_LAYOUT), norm_stats={"actions": unit, "state": unit},
+        action_horizon=horizon, global_batch_size=batch_size, sharding=sharding,
+        actions_only=True, source=source)
+    try:
+        for _ in range(steps):
+            jax.block_until_ready(next(iterator))
+        workers_memory = []
+        for pid in _descendants(os.getpid()):
+            command = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")
+            role = ("resource tracker" if "resource_tracker" in command else
+                    "Grain worker" if "python" in command else command[:40])
+            workers_memory.append({**_memory(pid), "role": role})
+        print(json.dumps({"main": _memory(), "main_before": before,
+                          "workers": workers_memory}))
+    finally:
+        iterator.close()
+
+
+def bench_memory(frames: int, workers: int, batch_size: int, horizon: int, steps: int
+                 ) -> dict:
+    run = lambda arg: json.loads(subprocess.run(  # noqa: E731
+        [sys.executable, "-m", "pi0_armfix.bench", "data", f"--memory_child={arg}"],
+        capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1])
+    build = run(f"build:{frames}")
+    try:
+        train = run(f"train:{frames}:{workers}:{batch_size}:{horizon}:{steps}")
+    finally:
+        shutil.rmtree(build["root"], ignore_errors=True)
+    return {"build": build, "train": train}
+
+
+def _print_memory(frames: int, result: dict) -> None:
+    build, train = result["build"], result["train"]
+    line = lambda m: (f"peak {m['VmHWM']:.0f} MiB (now {m['RssAnon']:.0f} private + "  # noqa: E731
+                      f"{m['RssFile']:.0f} file-backed)")
+    print(f"memory @ {frames / 1e6:.0f} M frames: store built in {build['seconds']:.0f} s, "
+          f"builder {line(build['main'])}")
+    print(f"  training process: {line(train['main'])}; before the iterator "
+          f"{train['main_before']['VmHWM']:.0f} MiB (imports)")
+    for worker in train["workers"]:
+        print(f"  {worker['role']}: {line(worker)}")
+
+
 def main(argv: list[str]) -> None:
     args = _parse(argv)
     if args.stats_child:
         _stats_child(args.stats_child)
+        return
+    if args.memory_child:
+        _memory_child(args.memory_child)
+        return
+    if args.part == "memory":
+        results = {}
+        for frames in (int(f) for f in args.memory_frames.split(",")):
+            results[frames] = bench_memory(frames, args.memory_workers, args.batch_size,
+                                           args.horizon, args.steps)
+            _print_memory(frames, results[frames])
+        if len(results) > 1:
+            low, high = results[min(results)]["train"], results[max(results)]["train"]
+            peaks = lambda r: [r["main"]["VmHWM"]] + [  # noqa: E731
+                w["VmHWM"] for w in r["workers"] if w["role"] == "Grain worker"]
+            growth = max(b / a - 1 for a, b in zip(peaks(low), peaks(high)))
+            print(f"growth of the peak RSS from {min(results) / 1e6:.0f} M to "
+                  f"{max(results) / 1e6:.0f} M frames: {100 * growth:+.1f} % at most over the "
+                  f"processes (target < 10 %); largest peak {max(peaks(high)):.0f} MiB "
+                  "(target < 2048)")
         return
     root = bench_root(args.frames, args.episode_frames, args.episodes_per_file, args.cache_dir)
     print(f"dataset: {root} (LeRobot v3.0, {args.frames:,} frames, {os.cpu_count()} cores)")

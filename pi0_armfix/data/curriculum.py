@@ -13,7 +13,7 @@ Selection is a pure function of the *global* sample index `g = step * global_bat
 a counter-based hash (splitmix64 of seed and g) draws the source by the phase's weights, so the
 sample order, phase switches included, is the same on any number of processes and after a
 restart from a checkpointed step. (The sample within the source is position g of that source's
-shuffled stream, see `pipeline.py`.) Zero weights are allowed and skipped.
+shuffled stream, see `sampling.py`.) Zero weights are allowed and skipped.
 """
 
 from __future__ import annotations

@@ -58,7 +58,6 @@ folder, atomically.
 from __future__ import annotations
 
 import dataclasses
-import fcntl
 import math
 import os
 import shutil
@@ -69,7 +68,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from pi0_armfix.data.lerobot import LeRobotWriter
+from pi0_armfix.cache import build_lock, cache_root, digest
+from pi0_armfix.data.lerobot_writer import LeRobotWriter
 
 DEMO_VERSION = "demo-v1"
 CAMERAS = ("observation.images.rgb.head", "observation.images.rgb.left_wrist",
@@ -483,22 +483,24 @@ def write_demo_dataset(output: str | Path, spec: DemoSpec = DemoSpec()) -> Path:
     return output
 
 
-def demo_root(cache_dir: str | Path | None = None) -> Path:
+def demo_root(cache_dir: str | Path | None = None, spec: DemoSpec | None = None) -> Path:
     """The default demo dataset, generated on first use (~30 s).
 
-    Lives in `<cache>/demo-v1-seed0`, where `<cache>` is `cache_dir`, else the environment
-    variable PI0_ARMFIX_CACHE, else ~/.cache/pi0_armfix. Concurrent callers (several training
-    processes) wait on a file lock; a crash leaves no half-written dataset.
+    Lives in `<cache>/demo-<hash>`, where `<cache>` is `cache_root(cache_dir)` and the hash is of
+    the generator version and every field of `spec` (default `DemoSpec()`): a changed generator
+    or spec is a new folder, never the old files. Concurrent callers (several training processes)
+    wait on a file lock; a crash leaves no half-written dataset.
     """
-    cache = Path(cache_dir or os.environ.get("PI0_ARMFIX_CACHE") or
-                 Path.home() / ".cache" / "pi0_armfix")
-    spec = DemoSpec()
-    root = cache / f"{DEMO_VERSION}-seed{spec.seed}"
+    spec = spec or DemoSpec()
+    root = demo_cache_path(cache_root(cache_dir), spec)
     if (root / "meta" / "info.json").is_file():
         return root
-    cache.mkdir(parents=True, exist_ok=True)
-    with open(cache / f".{root.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with build_lock(root):
         if not (root / "meta" / "info.json").is_file():
             write_demo_dataset(root, spec)
     return root
+
+
+def demo_cache_path(cache: Path, spec: DemoSpec) -> Path:
+    """`<cache>/demo-<hash of the generator version and the spec>`."""
+    return cache / f"demo-{digest([DEMO_VERSION, dataclasses.asdict(spec)])}"

@@ -34,10 +34,11 @@ Files fetched without git-LFS are pointer files of ~130 bytes; they are named as
 The reader takes an episode's prompt from the `tasks` list of its own metadata record (its first
 task); the tasks files map `task_index` to the same strings and are written but not needed to read.
 
-`LeRobotWriter` writes all three layouts (the demo dataset and the tests use it); `LeRobotSource`
-reads them: `iter_blocks` streams actions/state one parquet row group at a time without per-row
-Python, `load_table` builds an `EpisodeTable` whose images are decoded lazily by
-`LeRobotFrameImages`.
+`pi0_armfix.data.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource` reads
+them: `iter_blocks` streams actions/state one parquet row group at a time without per-row Python
+(the statistics passes, and the one-time build of the on-disk `FrameStore`), `load_table`
+builds an `EpisodeTable` whose columns are read by row from that store and whose images are
+decoded lazily by `LeRobotFrameImages`.
 """
 
 from __future__ import annotations
@@ -45,10 +46,8 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import dataclasses
-import fractions
 import itertools
 import json
-import math
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -61,7 +60,11 @@ import pyarrow.parquet as pq
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import selection as selection_lib
+from pi0_armfix.cache import digest
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.frame_store import FrameStore, FrameColumn
+from pi0_armfix.data.files import lfs_pointer_message, unreadable
+from pi0_armfix.data.video import VideoDecoder
 
 ACTION = "action"
 STATE = "observation.state"
@@ -71,12 +74,11 @@ BLOCK_KEYS = ("actions", "state", "timestamp")
 # Data files read ahead of the consumer by a background thread (bounds memory).
 _READ_AHEAD = 2
 
-_V2_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
-_V2_VIDEO_PATH = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
-_V3_DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-_V3_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
-_V3_EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-_LFS_POINTER = b"version https://git-lfs"
+V2_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+V2_VIDEO_PATH = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
+V3_DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+V3_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+V3_EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 
 
 # ====================================================================== shared helpers
@@ -91,32 +93,13 @@ def _major_version(info: Mapping[str, Any], path: Path) -> int:
     return int(major)
 
 
-def lfs_pointer_message(path: Path) -> str | None:
-    """"PATH is a git-LFS pointer ..." with the fix, if the file is one; None otherwise."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(len(_LFS_POINTER))
-    except OSError:
-        return None
-    if head != _LFS_POINTER:
-        return None
-    return (f"{path} is a git-LFS pointer file ({path.stat().st_size} bytes), not the data: the "
-            "dataset was cloned without its LFS objects. Fetch them (`git lfs pull` in the "
-            "dataset root, or `huggingface-cli download --repo-type dataset REPO "
-            "--local-dir ROOT`)")
-
-
-def _unreadable(path: Path, what: str, err: Exception) -> ValueError:
-    return ValueError(lfs_pointer_message(path) or f"cannot read {what} {path}: {err}")
-
-
 def _open_parquet(path: Path) -> pq.ParquetFile:
     if not path.is_file():
         raise ValueError(f"missing parquet file {path}")
     try:
         return pq.ParquetFile(path)
     except (pa.ArrowException, OSError) as err:
-        raise _unreadable(path, "parquet file", err) from err
+        raise unreadable(path, "parquet file", err) from err
 
 
 def _read_parquet(path: Path, columns: Sequence[str]) -> pa.Table:
@@ -127,7 +110,7 @@ def _read_parquet(path: Path, columns: Sequence[str]) -> pa.Table:
     try:
         return parquet.read(columns=list(columns))
     except (pa.ArrowException, OSError) as err:
-        raise _unreadable(path, "parquet file", err) from err
+        raise unreadable(path, "parquet file", err) from err
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -166,318 +149,6 @@ def _vector(column: pa.ChunkedArray, name: str, path: Path) -> np.ndarray:
     if pa.types.is_list(array.type) or pa.types.is_fixed_size_list(array.type):
         return _matrix(array, name, path)[:, 0]
     return array.to_numpy(zero_copy_only=False)
-
-
-# ====================================================================== writer
-
-
-def _list_array(values: np.ndarray) -> pa.Array:
-    """[n, w] numpy -> arrow list<dtype> array (what Hugging Face `datasets` writes)."""
-    n, width = values.shape
-    offsets = pa.array(np.arange(n + 1, dtype=np.int32) * width)
-    return pa.ListArray.from_arrays(offsets, pa.array(values.reshape(-1)))
-
-
-def _feature_stats(x: np.ndarray) -> dict[str, list]:
-    x = x.astype(np.float64)
-    return {"min": x.min(0).tolist(), "max": x.max(0).tolist(), "mean": x.mean(0).tolist(),
-            "std": x.std(0).tolist(), "count": [len(x)]}
-
-
-def _merge_stats(parts: Sequence[Mapping[str, list]]) -> dict[str, list]:
-    """Pooled statistics of several parts (count-weighted mean and variance)."""
-    counts = np.array([p["count"][0] for p in parts], np.float64)[:, None]
-    means = np.array([p["mean"] for p in parts])
-    second = np.array([p["std"] for p in parts]) ** 2 + means ** 2
-    mean = (counts * means).sum(0) / counts.sum()
-    var = np.maximum((counts * second).sum(0) / counts.sum() - mean ** 2, 0.0)
-    return {"min": np.min([p["min"] for p in parts], 0).tolist(),
-            "max": np.max([p["max"] for p in parts], 0).tolist(),
-            "mean": mean.tolist(), "std": np.sqrt(var).tolist(), "count": [int(counts.sum())]}
-
-
-def _write_video(path: Path, frames: np.ndarray, fps: int, codec: str) -> None:
-    """uint8 [n, h, w, 3] -> mp4, one keyframe every 2 frames as LeRobot encodes (fast seeking)."""
-    import av  # PyAV is only needed for video features
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream(codec, rate=fps)
-        stream.height, stream.width = frames.shape[1:3]
-        stream.pix_fmt = "yuv420p"
-        stream.options = {"g": "2", "crf": "10"}
-        for i, image in enumerate(frames):
-            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
-            frame.pts, frame.time_base = i, fractions.Fraction(1, fps)
-            container.mux(stream.encode(frame))
-        container.mux(stream.encode())
-
-
-@dataclasses.dataclass
-class _PendingEpisode:
-    index: int
-    task: str
-    task_index: int
-    actions: np.ndarray
-    state: np.ndarray
-    images: dict[str, Any]  # camera -> list of encoded bytes, or uint8 [n, h, w, 3] for video
-
-
-class LeRobotWriter:
-    """Writes a LeRobot dataset root one episode at a time, in any of the three layouts.
-
-    Use as a context manager (or call `close`): the metadata is written at the end.
-
-    Args:
-      root: output folder; must not contain `meta/info.json` yet.
-      version: "v2.0", "v2.1" or "v3.0".
-      fps: frames per second.
-      cameras: stored camera name (e.g. "observation.images.rgb.head") -> (height, width).
-      image_format: "png" / "jpeg" (image features inside parquet) or "video" (mp4 features).
-      float_dtype: dtype of the `action` and `observation.state` list columns.
-      frame_index: whether to write the `frame_index` column.
-      episodes_per_file: v3.0 only: episodes per data (and video) file.
-      row_group_size: parquet rows per row group; None = pyarrow's default.
-      chunks_size: files per chunk folder.
-      robot_type: written to info.json.
-      video_codec: PyAV encoder for video features.
-      action_key, state_key: names of the action and state features.
-    """
-
-    def __init__(self, root: str | Path, *, version: str = "v2.1", fps: int = 30,
-                 cameras: Mapping[str, tuple[int, int]] | None = None, image_format: str = "png",
-                 float_dtype: Any = np.float32, frame_index: bool = True,
-                 episodes_per_file: int = 100, row_group_size: int | None = None,
-                 chunks_size: int = 1000, robot_type: str = "R1Pro", video_codec: str = "libx264",
-                 action_key: str = ACTION, state_key: str = STATE):
-        if version not in VERSIONS:
-            raise ValueError(f"version must be one of {list(VERSIONS)}, got {version!r}")
-        if image_format not in ("png", "jpeg", "video"):
-            raise ValueError(f"image_format must be 'png', 'jpeg' or 'video', got {image_format!r}")
-        self.root = Path(root)
-        if (self.root / "meta" / "info.json").exists():
-            raise ValueError(f"{self.root} already holds a LeRobot dataset")
-        self.version, self.fps, self.cameras = version, int(fps), dict(cameras or {})
-        self.image_format, self.float_dtype = image_format, np.dtype(float_dtype)
-        self.frame_index, self.episodes_per_file = frame_index, int(episodes_per_file)
-        self.row_group_size, self.chunks_size = row_group_size, int(chunks_size)
-        self.robot_type, self.video_codec = robot_type, video_codec
-        self.action_key, self.state_key = action_key, state_key
-        self._tasks: dict[str, int] = {}
-        self._records: list[dict[str, Any]] = []  # per-episode metadata
-        self._pending: list[_PendingEpisode] = []  # v3.0: episodes of the file being filled
-        self._num_files = 0  # v3.0 data files written
-        self._num_frames = 0
-        self._widths: tuple[int, int] | None = None
-        self._closed = False
-
-    def __enter__(self) -> "LeRobotWriter":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-
-    def add_episode(self, actions: np.ndarray, state: np.ndarray, task: str,
-                    images: Mapping[str, np.ndarray] | None = None) -> None:
-        """Appends one episode.
-
-        Args:
-          actions: [n, A] float.
-          state: [n, S] float.
-          task: the episode's prompt.
-          images: stored camera name -> uint8 [n, h, w, 3], for every camera given at construction.
-        """
-        actions, state = np.asarray(actions), np.asarray(state)
-        n = len(actions)
-        if actions.ndim != 2 or state.ndim != 2 or len(state) != n or n == 0:
-            raise ValueError(f"episode {len(self._records)}: actions {actions.shape} and state "
-                             f"{state.shape} must be [n, A] and [n, S] with the same n > 0")
-        widths = (actions.shape[1], state.shape[1])
-        if self._widths not in (None, widths):
-            raise ValueError(f"episode {len(self._records)}: action/state widths {widths} differ "
-                             f"from the first episode's {self._widths}")
-        self._widths = widths
-        images = dict(images or {})
-        if set(images) != set(self.cameras):
-            raise ValueError(f"episode {len(self._records)}: images for {sorted(images)}, "
-                             f"expected {sorted(self.cameras)}")
-        encoded = {}
-        for name, frames in images.items():
-            expected = (n, *self.cameras[name], 3)
-            if frames.shape != expected or frames.dtype != np.uint8:
-                raise ValueError(f"episode {len(self._records)}: camera {name!r} has "
-                                 f"{frames.dtype} {frames.shape}, expected uint8 {expected}")
-            encoded[name] = (frames if self.image_format == "video" else
-                             [cameras_lib.encode_image(f, self.image_format) for f in frames])
-        task_index = self._tasks.setdefault(task, len(self._tasks))
-        episode = _PendingEpisode(len(self._records), task, task_index,
-                                  actions.astype(self.float_dtype), state.astype(self.float_dtype),
-                                  encoded)
-        self._records.append({
-            "episode_index": episode.index, "tasks": [task], "length": n,
-            "dataset_from_index": self._num_frames, "dataset_to_index": self._num_frames + n,
-            "stats": {self.action_key: _feature_stats(actions),
-                      self.state_key: _feature_stats(state)},
-        })
-        self._num_frames += n
-        if self.version == "v3.0":
-            self._pending.append(episode)
-            if len(self._pending) == self.episodes_per_file:
-                self._flush_v3()
-        else:
-            self._write_v2(episode)
-
-    # ------------------------------------------------------------------ frames
-
-    def _frames_table(self, episodes: Sequence[_PendingEpisode]) -> pa.Table:
-        lengths = [len(e.actions) for e in episodes]
-        first = self._records[episodes[0].index]["dataset_from_index"]
-        columns: dict[str, pa.Array] = {
-            self.action_key: _list_array(np.concatenate([e.actions for e in episodes])),
-            self.state_key: _list_array(np.concatenate([e.state for e in episodes])),
-        }
-        if self.image_format != "video":
-            for name in self.cameras:
-                data = pa.array([b for e in episodes for b in e.images[name]], pa.binary())
-                paths = pa.nulls(len(data), pa.string())
-                columns[name] = pa.StructArray.from_arrays([data, paths], names=["bytes", "path"])
-        frame = np.concatenate([np.arange(n) for n in lengths])
-        columns["timestamp"] = pa.array((frame / self.fps).astype(np.float32))
-        if self.frame_index:
-            columns["frame_index"] = pa.array(frame.astype(np.int64))
-        columns["episode_index"] = pa.array(np.repeat([e.index for e in episodes], lengths))
-        columns["index"] = pa.array(np.arange(first, first + sum(lengths), dtype=np.int64))
-        columns["task_index"] = pa.array(np.repeat([e.task_index for e in episodes], lengths))
-        return pa.table(columns)
-
-    def _write_table(self, table: pa.Table, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(table, path, row_group_size=self.row_group_size)
-
-    def _write_v2(self, episode: _PendingEpisode) -> None:
-        chunk = episode.index // self.chunks_size
-        self._write_table(self._frames_table([episode]), self.root / _V2_DATA_PATH.format(
-            episode_chunk=chunk, episode_index=episode.index))
-        if self.image_format == "video":
-            for name, frames in episode.images.items():
-                _write_video(self.root / _V2_VIDEO_PATH.format(
-                    episode_chunk=chunk, video_key=name, episode_index=episode.index),
-                    frames, self.fps, self.video_codec)
-
-    def _flush_v3(self) -> None:
-        chunk, file = divmod(self._num_files, self.chunks_size)
-        self._write_table(self._frames_table(self._pending), self.root / _V3_DATA_PATH.format(
-            chunk_index=chunk, file_index=file))
-        start = 0.0
-        for episode in self._pending:
-            record = self._records[episode.index]
-            record.update({"data/chunk_index": chunk, "data/file_index": file})
-            duration = len(episode.actions) / self.fps
-            if self.image_format == "video":
-                for name in self.cameras:
-                    record.update({f"videos/{name}/chunk_index": chunk,
-                                   f"videos/{name}/file_index": file,
-                                   f"videos/{name}/from_timestamp": start,
-                                   f"videos/{name}/to_timestamp": start + duration})
-            start += duration
-        if self.image_format == "video":
-            for name in self.cameras:
-                frames = np.concatenate([e.images[name] for e in self._pending])
-                _write_video(self.root / _V3_VIDEO_PATH.format(
-                    video_key=name, chunk_index=chunk, file_index=file),
-                    frames, self.fps, self.video_codec)
-        self._num_files += 1
-        self._pending = []
-
-    # ------------------------------------------------------------------ metadata
-
-    def _info(self) -> dict[str, Any]:
-        num_episodes = len(self._records)
-        action_width, state_width = self._widths or (0, 0)
-        dtype = self.float_dtype.name
-        scalar = lambda d: {"dtype": d, "shape": [1], "names": None}  # noqa: E731
-        features: dict[str, Any] = {
-            self.action_key: {"dtype": dtype, "shape": [action_width], "names": None},
-            self.state_key: {"dtype": dtype, "shape": [state_width], "names": None},
-        }
-        for name, (height, width) in self.cameras.items():
-            feature = {"dtype": "video" if self.image_format == "video" else "image",
-                       "shape": [height, width, 3], "names": ["height", "width", "channels"]}
-            if self.image_format == "video":
-                feature["info"] = {"video.fps": self.fps, "video.codec": self.video_codec,
-                                   "video.pix_fmt": "yuv420p", "has_audio": False}
-            features[name] = feature
-        features["timestamp"] = scalar("float32")
-        if self.frame_index:
-            features["frame_index"] = scalar("int64")
-        for name in ("episode_index", "index", "task_index"):
-            features[name] = scalar("int64")
-        video = self.image_format == "video" and self.cameras
-        info: dict[str, Any] = {"codebase_version": self.version, "robot_type": self.robot_type,
-                                "total_episodes": num_episodes, "total_frames": self._num_frames,
-                                "total_tasks": len(self._tasks)}
-        if self.version == "v3.0":
-            info.update(chunks_size=self.chunks_size, data_files_size_in_mb=100,
-                        video_files_size_in_mb=500, fps=self.fps,
-                        splits={"train": f"0:{num_episodes}"}, data_path=_V3_DATA_PATH,
-                        video_path=_V3_VIDEO_PATH if video else None)
-        else:
-            info.update(total_videos=num_episodes * len(self.cameras) if video else 0,
-                        total_chunks=math.ceil(num_episodes / self.chunks_size),
-                        chunks_size=self.chunks_size, fps=self.fps,
-                        splits={"train": f"0:{num_episodes}"}, data_path=_V2_DATA_PATH,
-                        video_path=_V2_VIDEO_PATH if video else None)
-        info["features"] = features
-        return info
-
-    def close(self) -> None:
-        """Writes any buffered v3.0 file and the metadata."""
-        if self._closed:
-            return
-        if not self._records:
-            raise ValueError(f"{self.root}: no episodes were added")
-        if self._pending:
-            self._flush_v3()
-        meta = self.root / "meta"
-        meta.mkdir(parents=True, exist_ok=True)
-        (meta / "info.json").write_text(json.dumps(self._info(), indent=4))
-        tasks = sorted(self._tasks.items(), key=lambda kv: kv[1])
-        if self.version != "v2.1":  # v2.1 replaced stats.json by per-episode statistics
-            stats = {key: _merge_stats([r["stats"][key] for r in self._records])
-                     for key in (self.action_key, self.state_key)}
-            (meta / "stats.json").write_text(json.dumps(stats, indent=4))
-        if self.version == "v3.0":
-            self._write_v3_meta(tasks)
-        else:
-            lines = lambda rows: "".join(json.dumps(r) + "\n" for r in rows)  # noqa: E731
-            (meta / "episodes.jsonl").write_text(lines(
-                {k: r[k] for k in ("episode_index", "tasks", "length")} for r in self._records))
-            (meta / "tasks.jsonl").write_text(lines(
-                {"task_index": i, "task": t} for t, i in tasks))
-            if self.version == "v2.1":
-                (meta / "episodes_stats.jsonl").write_text(lines(
-                    {"episode_index": r["episode_index"], "stats": r["stats"]}
-                    for r in self._records))
-        self._closed = True
-
-    def _write_v3_meta(self, tasks: Sequence[tuple[str, int]]) -> None:
-        columns: dict[str, Any] = {"episode_index": [], "tasks": [], "length": []}
-        for record in self._records:
-            for key, value in record.items():
-                if key == "stats":
-                    for feature, stats in value.items():
-                        for stat, v in stats.items():
-                            columns.setdefault(f"stats/{feature}/{stat}", []).append(v)
-                else:
-                    columns.setdefault(key, []).append(value)
-        columns["meta/episodes/chunk_index"] = [0] * len(self._records)
-        columns["meta/episodes/file_index"] = [0] * len(self._records)
-        self._write_table(pa.table(columns),
-                          self.root / _V3_EPISODES_PATH.format(chunk_index=0, file_index=0))
-        self._write_table(pa.table({"task_index": [i for _, i in tasks],
-                                    "task": [t for t, _ in tasks]}),
-                          self.root / "meta" / "tasks.parquet")
 
 
 # ====================================================================== reader
@@ -661,6 +332,9 @@ class LeRobotSource:
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
+        self._store: FrameStore | None = None
+
+    block_keys = BLOCK_KEYS
 
     @property
     def num_episodes(self) -> int:
@@ -715,7 +389,7 @@ class LeRobotSource:
                 path, start = episode.videos[key]
                 if not path.is_file():
                     raise ValueError(f"missing video file {path} (episode {episode.index})")
-                decoder = _VideoDecoder(path, self.fps, self.video_tolerance_frames)
+                decoder = VideoDecoder(path, self.fps, self.video_tolerance_frames)
                 try:
                     where = f"episode {episode.index}, camera {key!r}"
                     _probe_frame(decoder, start + times[0], where + ", first row")
@@ -797,7 +471,7 @@ class LeRobotSource:
             try:
                 table = parquet.read_row_group(group, columns=columns, use_threads=False)
             except (pa.ArrowException, OSError) as err:
-                raise _unreadable(path, "parquet file", err) from err
+                raise unreadable(path, "parquet file", err) from err
             ranges = []  # contiguous row ranges, so that whole row groups are never copied
             for _, a, b, _ in parts:
                 if ranges and ranges[-1][1] == a:
@@ -833,10 +507,38 @@ class LeRobotSource:
 
     # ------------------------------------------------------------------ tables
 
-    def load_table(self, episodes: Sequence[int] | None = None, *,
-                   images: bool = True) -> EpisodeTable:
-        """Actions and state of the chosen episodes in memory; images lazy (None if `images` is
-        False or the dataset has no matched camera)."""
+    def identity(self) -> dict[str, Any]:
+        """What the frames read from this source depend on (the key of its `FrameStore`): the
+        root, layout version, info.json, every data file's size and modification time, the
+        episodes, and the feature keys and selections."""
+        files = []
+        for path in sorted({e.data_file for e in self._episodes}):
+            try:
+                stat = path.stat()
+            except OSError as err:
+                raise ValueError(f"missing parquet file {path}: {err}") from err
+            files.append((str(path.relative_to(self.root)), stat.st_size, stat.st_mtime_ns))
+        info = self.root / "meta" / "info.json"
+        return {"root": str(self.root.resolve()), "version": self.version,
+                "info.json": digest(info.read_text()), "data files": digest(files),
+                "episodes": digest([self.episode_index.tolist(), self.episode_lengths.tolist()]),
+                "actions": [self._columns["actions"], repr(self.action_selection)],
+                "state": [self._columns["state"] if self._has_state else None,
+                          repr(self.state_selection)]}
+
+    @property
+    def frame_store(self) -> FrameStore:
+        """The on-disk frame columns of this source (built on first use)."""
+        if self._store is None:
+            self._store = FrameStore.open(self)
+        return self._store
+
+    def load_table(self, episodes: Sequence[int] | None = None, *, images: bool = True,
+                   image_size: tuple[int, int] | None = None) -> EpisodeTable:
+        """The chosen episodes (None = all): actions, state (and the timestamps the video reader
+        needs) read by row from the `frame_store`; images lazy (None if `images` is False or
+        the dataset has no matched camera). `image_size`: (height, width) video frames are
+        resized to fit inside, in the decoder; None = as stored."""
         positions = self.positions(episodes)
         if not positions:
             raise ValueError(f"{self.root}: load_table needs at least one episode")
@@ -847,19 +549,16 @@ class LeRobotSource:
                 for path, _ in episode.videos.values():
                     if not path.is_file():
                         raise ValueError(f"missing video file {path} (episode {episode.index})")
-        keys = ("actions", "state") + (("timestamp",) if videos else ())
-        blocks = list(self.iter_blocks(keys, [e.index for e in chosen]))
+        store = self.frame_store
         starts = np.concatenate([[0], np.cumsum([e.length for e in chosen])]).astype(np.int64)
-        actions = np.concatenate([b["actions"] for b in blocks]).astype(np.float32, copy=False)
-        state = np.concatenate([b["state"] for b in blocks]).astype(np.float32, copy=False)
         reader = None
         if images and self.cameras:
-            timestamps = (np.concatenate([b["timestamp"] for b in blocks]).astype(np.float64)
-                          if videos else None)
-            reader = LeRobotFrameImages(self.cameras, self._camera_kind, chosen, starts,
-                                        timestamps, self.fps,
-                                        video_tolerance_frames=self.video_tolerance_frames)
-        return EpisodeTable(actions=actions, state=state, episode_starts=starts,
+            reader = LeRobotFrameImages(
+                self.cameras, self._camera_kind, chosen, starts,
+                store.column("timestamp", positions) if videos else None, self.fps,
+                video_tolerance_frames=self.video_tolerance_frames, image_size=image_size)
+        return EpisodeTable(actions=store.column("actions", positions),
+                            state=store.column("state", positions), episode_starts=starts,
                             episode_index=np.array([e.index for e in chosen], np.int64),
                             tasks=[e.task for e in chosen], images=reader, fps=self.fps)
 
@@ -870,90 +569,11 @@ class LeRobotSource:
 _PROBE_DECODE_FRAMES = 1800
 
 
-def _probe_frame(decoder: "_VideoDecoder", seconds: float, where: str) -> None:
+def _probe_frame(decoder: "VideoDecoder", seconds: float, where: str) -> None:
     try:
         decoder.frame_at(seconds)
     except ValueError as err:
         raise ValueError(f"{err} ({where})") from None
-
-
-class _VideoDecoder:
-    """Frames of one mp4 by timestamp. Not thread-safe: one per thread (`LeRobotFrameImages`).
-
-    Keeps the container open and the last `max_frames` decoded frames. A request a little ahead
-    of the decoder's position (within `max_gap` frames) continues decoding forward; any other miss
-    seeks to the keyframe before the requested time and decodes from there. A request is served
-    by the frame nearest to it when that lies within `tolerance` frames (0.5: the nearest frame);
-    otherwise it is an error naming the file, the time and the video's last frame.
-    """
-
-    def __init__(self, path: Path, fps: float, tolerance: float = 0.5, max_frames: int = 32,
-                 max_gap: int = 32):
-        import av  # PyAV is only needed for video features
-
-        self.path, self.fps, self.tolerance = path, fps, tolerance
-        self.max_frames, self.max_gap = max_frames, max_gap
-        try:
-            self._container = av.open(str(path))
-            self._stream = self._container.streams.video[0]
-        except (av.FFmpegError, IndexError) as err:
-            raise _unreadable(path, "video file", err) from err
-        self._frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
-        self._decoder = None
-        self._position = -1  # number of the last frame the decoder returned
-
-    def close(self) -> None:
-        self._container.close()
-
-    def _seek(self, seconds: float) -> None:
-        offset = int(max(seconds, 0.0) / self._stream.time_base)
-        self._container.seek(offset, stream=self._stream, backward=True, any_frame=False)
-        self._decoder = self._container.decode(self._stream)
-        self._position = -1
-
-    def frame_at(self, seconds: float) -> np.ndarray:
-        """uint8 [h, w, 3], the frame nearest to `seconds` (within `tolerance` frames)."""
-        import av
-
-        wanted = int(round(seconds * self.fps))
-        if wanted in self._frames:
-            self._frames.move_to_end(wanted)
-            return self._frames[wanted]
-        if self._decoder is None or not (self._position < wanted <= self._position + self.max_gap):
-            self._seek(seconds)
-        try:
-            for frame in self._decoder:
-                # A stream without timestamps is numbered by decoding order from its start.
-                number = (int(round(frame.time * self.fps)) if frame.time is not None
-                          else self._position + 1)
-                self._position = number
-                self._frames[number] = frame.to_ndarray(format="rgb24")
-                while len(self._frames) > self.max_frames:
-                    self._frames.popitem(last=False)
-                if number >= wanted:
-                    break
-        except av.FFmpegError as err:
-            self._decoder = None
-            raise _unreadable(self.path, "video file", err) from err
-        if wanted in self._frames:
-            return self._frames[wanted]
-        nearest = min(self._frames, key=lambda n: abs(n - seconds * self.fps), default=None)
-        if nearest is not None and abs(nearest - seconds * self.fps) <= self.tolerance:
-            return self._frames[nearest]
-        self._decoder = None
-        last = "no frame" if nearest is None else f"frame {nearest} at {nearest / self.fps:.4f} s"
-        raise ValueError(
-            f"{self.path} has no frame at {seconds:.4f} s (frame {seconds * self.fps:.2f} at "
-            f"{self.fps:g} fps; decoding ended at {last}). If the data's timestamps run past the "
-            f"video by up to a frame, set data.video_tolerance_frames=1 to read the nearest frame")
-
-    def last_frame_time(self) -> float | None:
-        """Time of the video's last frame from the container's metadata (None if unknown)."""
-        stream = self._stream
-        if stream.frames:
-            start = float(stream.start_time * stream.time_base) if stream.start_time else 0.0
-            return start + (stream.frames - 1) / self.fps
-        return None
 
 
 class LeRobotFrameImages:
@@ -961,14 +581,16 @@ class LeRobotFrameImages:
 
     Parquet images: one row group of one camera column (still encoded) is read at a time and kept
     in an LRU cache of at most `cache_bytes`; a request decodes one PNG/JPEG. Videos: one
-    `_VideoDecoder` per file (LRU of `max_open_videos`). Picklable for worker processes: files are
-    reopened lazily and every process starts with empty caches.
+    `VideoDecoder` per file (LRU of `max_open_videos`), resizing to fit inside `image_size` in the
+    decoder. `timestamps` ([N] row timestamps, for videos) is a `FrameColumn`. Picklable
+    for worker processes: files are reopened lazily and every process starts with empty caches.
     """
 
     def __init__(self, cameras: Mapping[str, str], kinds: Mapping[str, str],
                  episodes: Sequence[_Episode], episode_starts: np.ndarray,
-                 timestamps: np.ndarray | None, fps: float, cache_bytes: int = 256 << 20,
-                 max_open_videos: int = 8, video_tolerance_frames: float = 0.5):
+                 timestamps: FrameColumn | None, fps: float, cache_bytes: int = 256 << 20,
+                 max_open_videos: int = 8, video_tolerance_frames: float = 0.5,
+                 image_size: tuple[int, int] | None = None):
         self.cameras = tuple(cameras)
         self._features = dict(cameras)
         self._kinds = dict(kinds)
@@ -977,6 +599,7 @@ class LeRobotFrameImages:
         self._timestamps = timestamps
         self._fps, self._cache_bytes, self._max_open = fps, cache_bytes, max_open_videos
         self._tolerance = video_tolerance_frames
+        self._image_size = tuple(image_size) if image_size else None
         self._local = threading.local()
 
     # Decoders and caches are per thread: a PyAV container and its frame generator must never be
@@ -1027,7 +650,7 @@ class LeRobotFrameImages:
             try:
                 table = _open_parquet(path).read_row_group(group, columns=[feature])
             except (pa.ArrowException, OSError) as err:
-                raise _unreadable(path, "parquet file", err) from err
+                raise unreadable(path, "parquet file", err) from err
             column = table.column(0).combine_chunks().field("bytes")
             caches.columns[key] = column
             caches.cached_bytes += column.nbytes
@@ -1041,13 +664,13 @@ class LeRobotFrameImages:
             raise ValueError(f"{path}: camera {feature!r} row {row} holds no image bytes")
         return cameras_lib.decode_image(data, f"{path} camera {feature!r} row {row}")
 
-    def _video(self, path: Path) -> _VideoDecoder:
+    def _video(self, path: Path) -> VideoDecoder:
         videos = self._caches.videos
         decoder = videos.get(path)
         if decoder is None:
             if not path.is_file():
                 raise ValueError(f"missing video file {path}")
-            decoder = _VideoDecoder(path, self._fps, self._tolerance)
+            decoder = VideoDecoder(path, self._fps, self._tolerance, size=self._image_size)
             videos[path] = decoder
             if len(videos) > self._max_open:
                 videos.popitem(last=False)[1].close()
@@ -1065,5 +688,5 @@ class _Caches:
         default_factory=collections.OrderedDict)  # (parquet, group, feature) -> encoded images
     cached_bytes: int = 0
     videos: collections.OrderedDict = dataclasses.field(
-        default_factory=collections.OrderedDict)  # mp4 -> _VideoDecoder
+        default_factory=collections.OrderedDict)  # mp4 -> VideoDecoder
 

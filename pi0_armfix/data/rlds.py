@@ -23,7 +23,9 @@ import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.cache import digest
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.frame_store import FrameStore
 
 _KEYS = ("actions", "state")
 
@@ -129,6 +131,20 @@ class RldsSource:
         self.num_episodes = int(builder.info.splits[split].num_examples)
         self.episode_index = np.arange(self.num_episodes, dtype=np.int64)
 
+    block_keys = _KEYS
+
+    def identity(self) -> dict[str, Any]:
+        """What the frames read from this source depend on (the key of its `FrameStore`)."""
+        files = sorted((str(p.relative_to(self.root)), p.stat().st_size, p.stat().st_mtime_ns)
+                       for p in self.root.iterdir() if p.is_file())
+        return {"root": str(self.root.resolve()), "format": "rlds", "split": self.split,
+                "files": digest(files), "keys": dict(self._keys)}
+
+    @functools.cached_property
+    def frame_store(self) -> FrameStore:
+        """The on-disk frame columns of this source (built on first use)."""
+        return FrameStore.open(self)
+
     def __repr__(self) -> str:
         return (f"RldsSource({str(self.root)!r}, split={self.split!r}, {self.num_episodes} "
                 f"episodes, cameras={self.cameras})")
@@ -194,20 +210,21 @@ class RldsSource:
             block["episode_index"] = np.full(len(rows), position, np.int64)
             yield block
 
-    def load_table(self, episodes: Sequence[int] | None = None, *,
-                   images: bool = True) -> EpisodeTable:
+    def load_table(self, episodes: Sequence[int] | None = None, *, images: bool = True,
+                   image_size: tuple[int, int] | None = None) -> EpisodeTable:
+        """The chosen episodes (None = all), actions and state read by row from the
+        `frame_store`, images lazy. `image_size` is unused (images are stored decoded-size)."""
         positions = self._positions(episodes)
         if not positions:
             raise ValueError(f"{self.root}: load_table needs at least one episode")
-        blocks = list(self.iter_blocks(_KEYS, positions))
-        lengths = [len(b["actions"]) for b in blocks]
+        lengths = self.episode_lengths[positions]
         starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
         reader = None
         if images and self.cameras:
             reader = RldsFrameImages(self.root, self.split, self.cameras, positions, starts)
+        store = self.frame_store
         return EpisodeTable(
-            actions=np.concatenate([b["actions"] for b in blocks]).astype(np.float32, copy=False),
-            state=np.concatenate([b["state"] for b in blocks]).astype(np.float32, copy=False),
+            actions=store.column("actions", positions), state=store.column("state", positions),
             episode_starts=starts, episode_index=np.array(positions, np.int64),
             tasks=[self.tasks[p] for p in positions], images=reader, fps=self.fps)
 

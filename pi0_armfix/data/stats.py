@@ -16,7 +16,7 @@ not grow with the dataset:
   placed inside its bin, so its error is below one bin: `|q - np.quantile| < 2 * range / bins`,
   i.e. < 4.9e-4 of the dim's range with the default `bins = 4096`. A constant dim is exact.
 
-Statistics that need whole episodes (delta actions over chunks, see `pipeline.block_norm_stats`)
+Statistics that need whole episodes (delta actions over chunks, see `dataset.block_norm_stats`)
 re-cut the stream with `whole_episode_blocks`, and a block transform may expand a block lazily
 into pieces (one `[n, D]` array per chunk step), so memory stays one block plus one episode.
 
@@ -269,13 +269,13 @@ Block = Mapping[str, np.ndarray]
 
 def table_blocks(table: EpisodeTable, keys: Sequence[str] = ("actions", "state"),
                  block_frames: int = 65536) -> Iterator[dict[str, np.ndarray]]:
-    """Blocks of an in-memory table in the format of `Source.iter_blocks`: `{key: [n, ...],
+    """Blocks of a table (in memory or on disk) in the format of `Source.iter_blocks`: `{key: [n, ...],
     "episode_index": [n] int64 (dataset episode index of each frame)}`."""
-    frame_episode = np.repeat(table.episode_index, table.episode_lengths)
     for start in range(0, table.num_frames, block_frames):
         stop = min(start + block_frames, table.num_frames)
-        block = {key: getattr(table, key)[start:stop] for key in keys}
-        block["episode_index"] = frame_episode[start:stop]
+        block = {key: np.asarray(getattr(table, key)[start:stop]) for key in keys}
+        block["episode_index"] = table.episode_index[table.episode_of_frame(
+            np.arange(start, stop))]
         yield block
 
 

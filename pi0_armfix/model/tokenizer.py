@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import sentencepiece
 
+from pi0_armfix.cache import cache_root
 from pi0_armfix.model.config import from_model_config
 
 # PaliGemma's special ids: pad 0 (also the padding token of tokenized prompts), eos 1, bos 2, unk 3.
@@ -84,12 +85,6 @@ def train_sentencepiece(prompts: Iterable[str], vocab_size: int) -> bytes:
         normalization_rule_name="identity", add_dummy_prefix=False, user_defined_symbols=["\n"],
         num_threads=1, minloglevel=2, **_SPECIAL_IDS)
     return model.getvalue()
-
-
-def cache_root(cache_dir: str | os.PathLike | None = None) -> pathlib.Path:
-    """`cache_dir`, else $PI0_ARMFIX_CACHE, else ~/.cache/pi0_armfix (the demo dataset's cache)."""
-    return pathlib.Path(cache_dir or os.environ.get("PI0_ARMFIX_CACHE")
-                        or pathlib.Path.home() / ".cache" / "pi0_armfix")
 
 
 def cached_sentencepiece(prompts: Iterable[str], vocab_size: int,

@@ -8,7 +8,7 @@ One streaming pass over the training episodes (`--episodes=train`, the default: 
 tool prints which episodes and how many frames it reads. Exact
 float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.stats`), for actions
 (in the model's action space: the dims of `data.delta_action_mask` relative to the state, over
-every step of the model's chunks of `model.action_horizon`, see `pipeline.block_norm_stats`) and
+every step of the model's chunks of `model.action_horizon`, see `dataset.block_norm_stats`) and
 state. These are plain statistics whatever `data.balanced_norm` says;
 `recompute_balanced_norm_stats` writes balanced ones. Point `--config.data.norm_stats` at the
 output to train with them.

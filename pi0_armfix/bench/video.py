@@ -1,0 +1,200 @@
+"""Video benchmark: can the pipeline feed a GPU from B1K-like camera videos?
+
+    python -m pi0_armfix.bench video [--episodes=6] [--episode_frames=240] [--batch_size=16]
+                                     [--steps=8] [--num_workers=2] [--gop=8] [--size=224]
+
+dataset    a LeRobot v2.1 root like BEHAVIOR-1K 2025's cameras: head 720², wrists 480², HEVC
+           (libx265) with ONE keyframe per episode, `--episodes` x `--episode_frames` frames of
+           textured moving scenes, generated once into `<cache>/bench-b1k-video-<hash>`.
+original   random frames read as training reads them (3 cameras, resized in the decoder to
+           `--size`²): ms per sample and frames decoded per sample. The cost grows with the
+           position in the episode (decode from the episode's only keyframe); the line also
+           extrapolates to B1K's mean episode (119 M frames / 10 000 episodes = 11 900 frames).
+reencode   `python -m pi0_armfix.tools.reencode_videos --size --gop` on it: frames/s on this
+           machine, and the hours B1K's 3 x 119 M camera frames would take per core.
+training   the training iterator (images, prompts, chunks) on the re-encoded copy with
+           `--num_workers` Grain workers: samples/s. Target >= 20 samples/s on 2 cores
+           (one H100 at openpi's speed consumes ~19).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.cache import build_lock, cache_root, digest
+from pi0_armfix.data.lerobot_writer import LeRobotWriter
+
+_LAYOUT = "b1k_r1pro"
+_CAMERAS = ("observation.images.rgb.head", "observation.images.rgb.left_wrist",
+            "observation.images.rgb.right_wrist")
+B1K_MEAN_EPISODE_FRAMES = 11_900
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m pi0_armfix.bench video")
+    parser.add_argument("--episodes", type=int, default=6)
+    parser.add_argument("--episode_frames", type=int, default=240)
+    parser.add_argument("--head", type=int, default=720)
+    parser.add_argument("--wrist", type=int, default=480)
+    parser.add_argument("--size", type=int, default=224)
+    parser.add_argument("--gop", type=int, default=8)
+    parser.add_argument("--samples", type=int, default=12, help="random reads of the original")
+    parser.add_argument("--batch_size", type=int, default=16)
+    parser.add_argument("--steps", type=int, default=8)
+    parser.add_argument("--num_workers", type=int, default=2)
+    return parser.parse_args(argv[1:])
+
+
+# ---------------------------------------------------------------------- dataset
+
+def _camera_frames(rng: np.random.Generator, n: int, side: int) -> np.ndarray:
+    """uint8 [n, side, side, 3]: a textured scene panning under a moving object (what a codec
+    has to work for, unlike flat colours)."""
+    texture = rng.integers(0, 256, (side // 8, side // 8, 3), np.uint8)
+    texture = np.repeat(np.repeat(texture, 8, 0), 8, 1)
+    frames = np.empty((n, side, side, 3), np.uint8)
+    for t in range(n):
+        frame = np.roll(texture, (t * side // 240, t * side // 360), axis=(0, 1))
+        y, x = (side // 4 + t * 3) % (side - side // 5), (side // 3 + t * 2) % (side - side // 5)
+        frame[y:y + side // 5, x:x + side // 5] = (255, 120, 0)
+        frames[t] = frame
+    return frames
+
+
+def bench_root(episodes: int, frames: int, head: int, wrist: int) -> Path:
+    """The B1K-like video dataset, generated on first use (atomically, under a lock)."""
+    spec = {"episodes": episodes, "frames": frames, "head": head, "wrist": wrist, "v": 1}
+    root = cache_root() / f"bench-b1k-video-{digest(spec)}"
+    with build_lock(root):
+        if (root / "meta" / "info.json").is_file():
+            return root
+        staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=root.parent))
+        rng = np.random.default_rng(0)
+        start = time.perf_counter()
+        sides = dict(zip(_CAMERAS, (head, wrist, wrist)))
+        with LeRobotWriter(staging / "dataset", version="v2.1", fps=30, image_format="video",
+                           cameras={c: (s, s) for c, s in sides.items()}, video_codec="libx265",
+                           video_gop=frames + 1, video_crf=28,
+                           video_options={"preset": "ultrafast",
+                                          "x265-params": "log-level=none"}) as writer:
+            for _ in range(episodes):
+                t = np.arange(frames)[:, None] / 30.0
+                actions = np.sin(t + rng.uniform(0, 6, 23)).astype(np.float32)
+                writer.add_episode(actions, actions + 0.01, "tidy up the kitchen",
+                                   {c: _camera_frames(rng, frames, s) for c, s in sides.items()})
+        os.rename(staging / "dataset", root)
+        staging.rmdir()
+        print(f"generated {episodes} x {frames} frames x 3 HEVC cameras into {root} in "
+              f"{time.perf_counter() - start:.0f} s")
+    return root
+
+
+# ---------------------------------------------------------------------- measurements
+
+def random_reads(root: Path, size: int, samples: int) -> dict[str, float]:
+    """Random frames of the original through the training reader (fresh decoders per sample,
+    as a shuffled stream across thousands of episodes meets them)."""
+    from pi0_armfix.data.lerobot import LeRobotSource
+
+    source = LeRobotSource(root, ActionLayout.preset(_LAYOUT))
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, int(source.episode_lengths.sum()), samples)
+    seconds, positions = [], []
+    for frame in frames:
+        table = source.load_table(images=True, image_size=(size, size))  # empty decoder caches
+        start = time.perf_counter()
+        table.images(int(frame))
+        seconds.append(time.perf_counter() - start)
+        episode = int(table.episode_of_frame(np.array([frame]))[0])
+        positions.append(int(frame - table.episode_starts[episode]))
+    seconds, positions = np.array(seconds), np.array(positions)
+    # Decoding from the keyframe: cost ~ a + b * position; fit it to extrapolate to B1K.
+    slope, intercept = np.polyfit(positions, seconds, 1)
+    return {"ms_per_sample": 1000 * seconds.mean(), "mean_position": positions.mean(),
+            "ms_per_position": 1000 * slope, "ms_fixed": 1000 * intercept,
+            "b1k_ms_per_sample": 1000 * (intercept + slope * B1K_MEAN_EPISODE_FRAMES / 2)}
+
+
+def _tokenize(prompt: str) -> tuple[np.ndarray, np.ndarray]:
+    """A stand-in tokenizer (picklable for the workers): 48 tokens."""
+    tokens = np.zeros(48, np.int32)
+    tokens[:len(prompt)] = [ord(c) % 256 for c in prompt[:48]]
+    return tokens, tokens > 0
+
+
+def training_throughput(root: Path, size: int, batch_size: int, steps: int,
+                        num_workers: int) -> dict[str, float]:
+    import jax
+    import ml_collections
+    from absl import flags
+
+    from pi0_armfix.data import dataset as dataset_lib
+    from pi0_armfix.data import pipeline, sources
+
+    flags.FLAGS.mark_as_parsed()  # grain's worker processes read absl flags
+    config = ml_collections.ConfigDict({
+        "seed": 0, "eval": {"episodes": 0},
+        "data": {"root": str(root), "format": "lerobot", "norm": "zscore", "curriculum": (),
+                 "num_workers": num_workers, "prefetch": 2}})
+    layout = ActionLayout.preset(_LAYOUT)
+    source = sources.open_source(config.data, layout)
+    stats = dataset_lib.dataset_norm_stats(config, layout, action_horizon=50, source=source,
+                                           progress=False)
+    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    iterator = pipeline.make_train_iterator(
+        config, layout, norm_stats=stats, action_horizon=50, global_batch_size=batch_size,
+        sharding=sharding, tokenize=_tokenize, source=source, image_size=(size, size))
+    try:
+        batch = next(iterator)  # workers start, decoders open
+        shapes = {c: tuple(batch["image"][c].shape[1:]) for c in batch["image"]}
+        start = time.perf_counter()
+        for _ in range(steps):
+            jax.block_until_ready(next(iterator))
+        seconds = time.perf_counter() - start
+    finally:
+        iterator.close()
+    return {"samples_per_s": steps * batch_size / seconds, "shapes": shapes}
+
+
+def main(argv: list[str]) -> None:
+    from pi0_armfix.tools.reencode_videos import reencode_dataset
+
+    args = _parse(argv)
+    root = bench_root(args.episodes, args.episode_frames, args.head, args.wrist)
+    cores = os.cpu_count()
+    print(f"dataset: {root} ({args.episodes} episodes x {args.episode_frames} frames; HEVC "
+          f"{args.head}² head, {args.wrist}² wrists, one keyframe per episode; {cores} cores)")
+
+    reads = random_reads(root, args.size, args.samples)
+    print(f"original, random reads: {reads['ms_per_sample']:.0f} ms per sample (3 cameras -> "
+          f"{args.size}², mean position {reads['mean_position']:.0f} frames into its episode; "
+          f"{reads['ms_fixed']:.0f} ms + {reads['ms_per_position']:.2f} ms per frame from the "
+          f"keyframe) -> at B1K's mean episode ({B1K_MEAN_EPISODE_FRAMES} frames) "
+          f"~{reads['b1k_ms_per_sample'] / 1000:.1f} s per sample = "
+          f"{1000 * cores / reads['b1k_ms_per_sample']:.2f} samples/s on {cores} cores")
+
+    with tempfile.TemporaryDirectory(dir=root.parent) as scratch:
+        output = Path(scratch) / "reencoded"
+        done = reencode_dataset(root, output, size=args.size, gop=args.gop, workers=cores,
+                                progress=False)
+        per_core = done["frames_per_s"] / cores
+        b1k_hours = 3 * 119e6 / per_core / 3600
+        print(f"re-encode to {args.size}², gop {args.gop}: {done['frames']:,} frames in "
+              f"{done['seconds']:.1f} s = {done['frames_per_s']:.0f} frames/s on {cores} cores "
+              f"({per_core:.0f} per core; B1K's 3 x 119 M camera frames: ~{b1k_hours:,.0f} "
+              f"core-hours, {b1k_hours / 64:.0f} h on 64 cores)")
+        for workers in sorted({0, args.num_workers}):
+            result = training_throughput(output, args.size, args.batch_size, args.steps,
+                                         workers)
+            print(f"training iterator on the re-encoded copy, {workers} workers: "
+                  f"{result['samples_per_s']:.1f} samples/s (target >= 20; batches of "
+                  f"{args.batch_size}: 3 cameras {sorted(set(result['shapes'].values()))}, "
+                  "50-step chunks, prompt tokens)")

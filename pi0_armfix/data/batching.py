@@ -1,0 +1,107 @@
+"""`BatchTransform`: frame indices of an EpisodeTable -> a numpy batch of the team contract.
+
+Vectorized over the batch: one fancy-index per column (a positioned read of just the rows the
+batch needs), the chunk gather, delta actions, normalization and padding; then the prompt tokens
+(cached per prompt) and the cameras (read lazily through the table's image reader).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data import transforms
+from pi0_armfix.data.episodes import EpisodeTable
+
+Tokenize = Callable[[str], tuple[np.ndarray, np.ndarray]]
+
+
+class BatchTransform:
+    """Frame indices of a table -> a numpy batch of the contract.
+
+    Args:
+      table: the episodes to draw from (its images are only read unless `actions_only`).
+      layout: the action layout (padding width `action_dim`).
+      norm_stats: `{"actions": [A], "state": [S] (or padded)}` statistics.
+      norm_mode: `data.norm`, "zscore" or "quantile".
+      action_horizon: H.
+      delta_mask: `[A]` bool relative action dims, or None.
+      tokenize: `tokenize(prompt) -> (tokens int32 [L], mask bool [L])`; required unless
+        `actions_only`. Called once per distinct prompt (cached).
+      actions_only: only `state`, `actions`, `action_is_pad` (no images, no prompt).
+      image_size: (height, width) of the zero images of the cameras no stored camera feeds when
+        the dataset has none at all (they are masked out; the model resizes them anyway).
+    """
+
+    def __init__(self, table: EpisodeTable, layout: ActionLayout, *,
+                 norm_stats: Mapping[str, stats_lib.NormStats], norm_mode: str,
+                 action_horizon: int, delta_mask: np.ndarray | None = None,
+                 tokenize: Tokenize | None = None, actions_only: bool = False,
+                 image_size: tuple[int, int] = (224, 224)):
+        layout.check_real_dim(table.actions.shape[1], source="the dataset's actions")
+        state_width = table.state.shape[1]
+        if state_width > layout.action_dim:
+            raise ValueError(f"the dataset's state has {state_width} dims, more than "
+                             f"layout.action_dim={layout.action_dim}: it cannot be padded")
+        if action_horizon < 1:
+            raise ValueError(f"action_horizon must be >= 1, got {action_horizon}")
+        if not actions_only and tokenize is None:
+            raise ValueError("a tokenize(prompt) callable is required unless actions_only")
+        self.table = table
+        self.image_size = tuple(image_size)
+        self.action_dim = layout.action_dim
+        self.horizon = int(action_horizon)
+        self.delta_mask = delta_mask
+        self.tokenize = tokenize
+        self.actions_only = actions_only
+        actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
+                                      "norm stats 'actions'")
+        state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
+        self.action_norm = transforms.Normalizer.from_stats(actions, norm_mode)
+        self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)
+        self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, frames: np.ndarray) -> dict[str, Any]:
+        """frames: `[b]` frame indices of the table -> batch (see the team contract)."""
+        frames = np.asarray(frames, np.int64)
+        index, is_pad = transforms.chunk_indices(frames, self.table.episode_starts, self.horizon)
+        actions = self.table.actions[index]  # [b, H, A]
+        state = self.table.state[frames]  # [b, S]
+        if self.delta_mask is not None:
+            actions = transforms.to_delta(actions, state, self.delta_mask)
+        batch = {
+            "state": transforms.pad_last(self.state_norm(state), self.action_dim),
+            "actions": transforms.pad_last(self.action_norm(actions), self.action_dim),
+            "action_is_pad": is_pad,
+        }
+        if not self.actions_only:
+            episodes = self.table.episode_of_frame(frames)
+            tokens, masks = zip(*(self._tokenized(self.table.tasks[e]) for e in episodes))
+            batch["tokenized_prompt"] = np.stack(tokens).astype(np.int32)
+            batch["tokenized_prompt_mask"] = np.stack(masks).astype(bool)
+            batch["image"], batch["image_mask"] = self._images(frames)
+        return batch
+
+    def _tokenized(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
+        if prompt not in self._tokens:
+            self._tokens[prompt] = self.tokenize(prompt)
+        return self._tokens[prompt]
+
+    def _images(self, frames: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Every batch camera: the stored one, or zeros masked out where none feeds it."""
+        reader = self.table.images
+        per_frame = [reader(int(f)) for f in frames] if reader is not None else [{}] * len(frames)
+        provided = [c for c in cameras_lib.BATCH_CAMERAS if c in per_frame[0]]
+        shape = per_frame[0][provided[0]].shape if provided else (*self.image_size, 3)
+        images, masks = {}, {}
+        for camera in cameras_lib.BATCH_CAMERAS:
+            present = camera in provided
+            images[camera] = (np.stack([p[camera] for p in per_frame]) if present
+                              else np.zeros((len(frames), *shape), np.uint8))
+            masks[camera] = np.full(len(frames), present)
+        return images, masks

@@ -1,0 +1,209 @@
+"""mp4 video through PyAV: frames by timestamp (`VideoDecoder`) and encoding (`VideoWriter`).
+
+Reading cost is set by the file's GOP: a request that is not a little ahead of the decoder's
+position seeks to the keyframe before it and decodes forward from there, so random access into a
+file with one keyframe per episode (BEHAVIOR-1K 2025's HEVC) decodes half an episode on average.
+`python -m pi0_armfix.tools.reencode_videos` rewrites such a dataset with short GOPs at the
+model's resolution; `python -m pi0_armfix.bench video` measures both.
+
+A decoder resizes in the decoder (libswscale, area filter) when asked for a `size`: the frame is
+scaled to fit inside it with its aspect ratio kept, never up, so the model's resize-with-pad of a
+square camera has nothing left to do and a 720² frame is never carried to the host at full size.
+"""
+
+from __future__ import annotations
+
+import collections
+import fractions
+from pathlib import Path
+
+import numpy as np
+
+from pi0_armfix.data.files import unreadable
+
+
+def fit_inside(height: int, width: int, size: tuple[int, int] | None) -> tuple[int, int]:
+    """(height, width) scaled to fit inside `size` = (H, W) keeping the aspect ratio; never
+    enlarged; even sides (what yuv420p needs). `size` None: unchanged."""
+    if size is None:
+        return height, width
+    scale = min(size[0] / height, size[1] / width, 1.0)
+    if scale == 1.0:
+        return height, width
+    return max(2, int(round(height * scale / 2)) * 2), max(2, int(round(width * scale / 2)) * 2)
+
+
+class VideoDecoder:
+    """Frames of one mp4 by timestamp. Not thread-safe: use one per thread.
+
+    Keeps the container open and the last `max_frames` decoded frames. A request a little ahead
+    of the decoder's position (within `max_gap` frames) continues decoding forward; any other miss
+    seeks to the keyframe before the requested time and decodes from there. A request is served
+    by the frame nearest to it when that lies within `tolerance` frames (0.5: the nearest frame);
+    otherwise it is an error naming the file, the time and the video's last frame.
+
+    Args:
+      path: the mp4 file.
+      fps: the dataset's frame rate (frame numbers are `round(time * fps)`).
+      tolerance: see above.
+      size: (height, width) to fit frames inside, in the decoder (see the module docstring);
+        None = as stored.
+      max_frames, max_gap: see above.
+    """
+
+    def __init__(self, path: Path, fps: float, tolerance: float = 0.5,
+                 size: tuple[int, int] | None = None, max_frames: int = 32, max_gap: int = 32):
+        import av  # PyAV is only needed for video features
+
+        self.path, self.fps, self.tolerance = Path(path), fps, tolerance
+        self.max_frames, self.max_gap = max_frames, max_gap
+        try:
+            self._container = av.open(str(path))
+            self._stream = self._container.streams.video[0]
+        except (av.FFmpegError, IndexError) as err:
+            raise unreadable(self.path, "video file", err) from err
+        # Frame threads decode HEVC several times faster than one; slices as well for h264.
+        self._stream.thread_type = "AUTO"
+        context = self._stream.codec_context
+        self.height, self.width = fit_inside(context.height, context.width, size)
+        self._resize = (self.height, self.width) != (context.height, context.width)
+        self._frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
+        self._decoder = None
+        self._position = -1  # number of the last frame the decoder returned
+        self.decoded = 0  # frames decoded so far (what a request cost, for benchmarks)
+
+    def close(self) -> None:
+        self._container.close()
+
+    def _seek(self, seconds: float) -> None:
+        offset = int(max(seconds, 0.0) / self._stream.time_base)
+        self._container.seek(offset, stream=self._stream, backward=True, any_frame=False)
+        self._decoder = self._container.decode(self._stream)
+        self._position = -1
+
+    def _array(self, frame) -> np.ndarray:
+        if self._resize:
+            return frame.to_ndarray(format="rgb24", width=self.width, height=self.height,
+                                    interpolation="AREA")
+        return frame.to_ndarray(format="rgb24")
+
+    def frame_at(self, seconds: float) -> np.ndarray:
+        """uint8 [h, w, 3], the frame nearest to `seconds` (within `tolerance` frames)."""
+        import av
+
+        wanted = int(round(seconds * self.fps))
+        if wanted in self._frames:
+            self._frames.move_to_end(wanted)
+            return self._frames[wanted]
+        if self._decoder is None or not (self._position < wanted <= self._position + self.max_gap):
+            self._seek(seconds)
+        try:
+            for frame in self._decoder:
+                self.decoded += 1
+                # A stream without timestamps is numbered by decoding order from its start.
+                number = (int(round(frame.time * self.fps)) if frame.time is not None
+                          else self._position + 1)
+                self._position = number
+                # Frames before the wanted one are kept only when a later request may want them.
+                if number >= wanted - self.max_frames:
+                    self._frames[number] = self._array(frame)
+                    while len(self._frames) > self.max_frames:
+                        self._frames.popitem(last=False)
+                if number >= wanted:
+                    break
+        except av.FFmpegError as err:
+            self._decoder = None
+            raise unreadable(self.path, "video file", err) from err
+        if wanted in self._frames:
+            return self._frames[wanted]
+        nearest = min(self._frames, key=lambda n: abs(n - seconds * self.fps), default=None)
+        if nearest is not None and abs(nearest - seconds * self.fps) <= self.tolerance:
+            return self._frames[nearest]
+        self._decoder = None
+        last = "no frame" if nearest is None else f"frame {nearest} at {nearest / self.fps:.4f} s"
+        raise ValueError(
+            f"{self.path} has no frame at {seconds:.4f} s (frame {seconds * self.fps:.2f} at "
+            f"{self.fps:g} fps; decoding ended at {last}). If the data's timestamps run past the "
+            f"video by up to a frame, set data.video_tolerance_frames=1 to read the nearest frame")
+
+    def frames(self):
+        """Every frame in order from the start: yields (time in seconds or None, uint8 [h, w, 3])
+        (the sequential read a re-encode needs; no seeking)."""
+        import av
+
+        self._container.seek(0, stream=self._stream, backward=True, any_frame=False)
+        try:
+            for frame in self._container.decode(self._stream):
+                self.decoded += 1
+                yield frame.time, self._array(frame)
+        except av.FFmpegError as err:
+            raise unreadable(self.path, "video file", err) from err
+        finally:
+            self._decoder = None
+
+    def last_frame_time(self) -> float | None:
+        """Time of the video's last frame from the container's metadata (None if unknown)."""
+        stream = self._stream
+        if stream.frames:
+            start = float(stream.start_time * stream.time_base) if stream.start_time else 0.0
+            return start + (stream.frames - 1) / self.fps
+        return None
+
+
+class VideoWriter:
+    """Encodes uint8 [h, w, 3] frames into an mp4, frame i at time i / fps (or a given time).
+
+    Args:
+      path: the mp4 to write (its folder is created).
+      fps: frame rate.
+      height, width: frame size.
+      codec: PyAV encoder ("libx264", "libx265", "libsvtav1", ...).
+      gop: frames between keyframes (2 as LeRobot writes; B1K 2025's files have one per episode).
+      crf: constant rate factor (quality; lower is better).
+      options: further encoder options.
+    """
+
+    def __init__(self, path: Path, *, fps: float, height: int, width: int,
+                 codec: str = "libx264", gop: int = 2, crf: int = 10,
+                 options: dict[str, str] | None = None):
+        import av
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._fps = fractions.Fraction(fps).limit_denominator(1001)
+        self._container = av.open(str(path), "w")
+        self._stream = self._container.add_stream(codec, rate=self._fps)
+        self._stream.height, self._stream.width = height, width
+        self._stream.pix_fmt = "yuv420p"
+        self._stream.options = {"g": str(int(gop)), "crf": str(int(crf)), **(options or {})}
+        self._count = 0
+
+    def write(self, image: np.ndarray, seconds: float | None = None) -> None:
+        """Appends a frame, at `seconds` (default: count / fps)."""
+        import av
+
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format="rgb24")
+        time_base = 1 / self._fps
+        frame.pts = self._count if seconds is None else int(round(seconds * self._fps))
+        frame.time_base = time_base
+        self._container.mux(self._stream.encode(frame))
+        self._count += 1
+
+    def close(self) -> None:
+        self._container.mux(self._stream.encode())
+        self._container.close()
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_video(path: Path, frames: np.ndarray, fps: float, codec: str = "libx264", *,
+                gop: int = 2, crf: int = 10, options: dict[str, str] | None = None) -> None:
+    """uint8 [n, h, w, 3] -> mp4 (see `VideoWriter`)."""
+    with VideoWriter(path, fps=fps, height=frames.shape[1], width=frames.shape[2], codec=codec,
+                     gop=gop, crf=crf, options=options) as writer:
+        for image in frames:
+            writer.write(image)

@@ -1,0 +1,174 @@
+"""Memory-mapped frame columns: exactly what the parquet files hold, keyed, bounded, shareable."""
+
+import os
+import pickle
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+import b1k_fixture
+from data_fixtures import make_episodes, write_dataset
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import frame_store as frame_store_lib
+from pi0_armfix.data.frame_store import FrameStore, FrameColumn
+from pi0_armfix.data.lerobot import VERSIONS, LeRobotSource
+from pi0_armfix.data.sampling import EpisodeFrames
+
+LAYOUT = ActionLayout.preset("b1k_r1pro")
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("PI0_ARMFIX_CACHE", str(tmp_path / "cache"))
+
+
+def parquet_rows(root, column):
+    """{episode id: [n, ...] the column's values as stored} read straight from every data file."""
+    rows = {}
+    for path in sorted(root.glob("data/**/*.parquet")):
+        table = pq.read_table(path, columns=[column, "episode_index"])
+        values = table.column(column).to_pylist()
+        for episode, value in zip(table.column("episode_index").to_pylist(), values):
+            rows.setdefault(episode, []).append(value)
+    return {e: np.array(v) for e, v in rows.items()}
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("version", VERSIONS)
+def test_memory_mapped_columns_hold_exactly_what_the_parquet_holds(tmp_path, version, dtype):
+    root = write_dataset(tmp_path / "ds", make_episodes(6, cameras={}), version,
+                         float_dtype=dtype, episodes_per_file=4, row_group_size=5)
+    source = LeRobotSource(root, LAYOUT)
+    chosen = [4, 1, 2]  # non-contiguous and out of order
+    table = source.load_table(chosen, images=False)
+
+    assert isinstance(table.actions, FrameColumn) and table.actions.dtype == np.float32
+    for key, column in (("actions", "action"), ("state", "observation.state")):
+        stored = parquet_rows(root, column)
+        expected = np.concatenate([stored[e] for e in chosen]).astype(dtype).astype(np.float32)
+        np.testing.assert_array_equal(np.asarray(getattr(table, key)), expected)
+    timestamps = source.frame_store.column("timestamp", source.positions(chosen))
+    stored = parquet_rows(root, "timestamp")
+    np.testing.assert_array_equal(np.asarray(timestamps),
+                                  np.concatenate([stored[e] for e in chosen]))
+
+
+def test_b1k_non_contiguous_episode_ids_map_to_their_own_rows(tmp_path):
+    data = b1k_fixture.write_b1k_dataset(tmp_path / "b1k", lengths=(5, 4, 6, 3, 4, 5))
+    source = LeRobotSource(tmp_path / "b1k", LAYOUT, state_preset="b1k_r1pro")
+    ids = [20010, 10, 10020]
+    table = source.load_table(ids, images=False)
+    np.testing.assert_array_equal(np.asarray(table.actions),
+                                  np.concatenate([data[e]["action"] for e in ids]))
+    np.testing.assert_array_equal(
+        np.asarray(table.state),
+        np.concatenate([source.state_selection(data[e]["state"]) for e in ids]))
+
+
+def test_mapped_column_indexes_like_the_array_it_maps():
+    values = np.arange(60, dtype=np.float32).reshape(20, 3)
+    path = os.path.join(os.environ["PI0_ARMFIX_CACHE"], "col.npy")
+    os.makedirs(os.path.dirname(path))
+    np.save(path, values)
+    column = FrameColumn(path, starts=[12, 2, 5], lengths=[4, 3, 2])  # rows 12..15, 2..6
+    expected = np.concatenate([values[12:16], values[2:7]])  # [2:5] and [5:7] merge into one run
+
+    assert column.shape == expected.shape and len(column) == 9 and column.ndim == 2
+    index = np.array([[0, 8], [4, 3]])
+    np.testing.assert_array_equal(column[index], expected[index])
+    np.testing.assert_array_equal(column[2:7], expected[2:7])
+    np.testing.assert_array_equal(column[-1], expected[-1])
+    np.testing.assert_array_equal(column[5, 1], expected[5, 1])
+    np.testing.assert_array_equal(column[index, 2], expected[index, 2])
+    np.testing.assert_array_equal(column[:, 1:], expected[:, 1:])
+    with pytest.raises(IndexError):
+        column[np.array([9])]
+
+
+def test_a_pickled_table_carries_its_file_name_not_its_rows(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(6, cameras={}, min_length=200,
+                                                        max_length=300), "v2.1")
+    table = LeRobotSource(root, LAYOUT).load_table(images=False)
+    payload = pickle.dumps(table)
+    assert table.num_frames >= 1200 and len(payload) < 4000  # 1200 x 46 floats would be 220 kB
+    copy = pickle.loads(payload)
+    np.testing.assert_array_equal(copy.actions[np.arange(0, 1200, 7)],
+                                  table.actions[np.arange(0, 1200, 7)])
+
+
+def test_the_store_is_built_once_and_rebuilt_when_a_data_file_changes(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3, cameras={}), "v2.1")
+    first = LeRobotSource(root, LAYOUT).frame_store
+    built = (first.root / "actions.npy").stat().st_mtime_ns
+    assert LeRobotSource(root, LAYOUT).frame_store.root == first.root
+    assert (first.root / "actions.npy").stat().st_mtime_ns == built
+
+    path = root / "data" / "chunk-000" / "episode_000001.parquet"
+    table = pq.read_table(path)
+    doubled = pa.array([[2 * v for v in row] for row in table.column("action").to_pylist()],
+                       table.schema.field("action").type)
+    pq.write_table(table.set_column(table.schema.get_field_index("action"), "action", doubled),
+                   path)
+    source = LeRobotSource(root, LAYOUT)
+    assert source.frame_store.root != first.root
+    np.testing.assert_allclose(np.asarray(source.load_table([1], images=False).actions),
+                               np.array(doubled.to_pylist(), np.float32))
+
+
+def test_another_selection_is_another_store(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3, cameras={}), "v2.1")
+    everything = LeRobotSource(root, LAYOUT).frame_store
+    some = LeRobotSource(root, LAYOUT, state_indices=[0, 2, 4]).frame_store
+    assert some.root != everything.root
+    assert np.load(some.root / "state.npy", mmap_mode="r").shape[1] == 3
+
+
+def test_a_crash_while_building_leaves_no_store(tmp_path, monkeypatch):
+    root = write_dataset(tmp_path / "ds", make_episodes(3, cameras={}), "v2.1")
+    source = LeRobotSource(root, LAYOUT)
+    original = source.iter_blocks
+
+    def crash_after_first_block(*args, **kwargs):
+        for i, block in enumerate(original(*args, **kwargs)):
+            if i == 1:
+                raise OSError("disk full")
+            yield block
+
+    monkeypatch.setattr(source, "iter_blocks", crash_after_first_block)
+    with pytest.raises(OSError, match="disk full"):
+        FrameStore.open(source, progress=False)
+    frames = tmp_path / "cache" / "frames"
+    assert [p.name for p in frames.iterdir() if not p.name.endswith(".lock")] == []
+    monkeypatch.undo()
+    store = FrameStore.open(LeRobotSource(root, LAYOUT), progress=False)
+    assert store.row_starts[-1] == sum(len(e["actions"]) for e in make_episodes(3, cameras={}))
+
+
+def test_a_store_built_from_other_data_is_refused(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3, cameras={}), "v2.1")
+    store = LeRobotSource(root, LAYOUT).frame_store
+    index = (store.root / "index.json").read_text()
+    (store.root / "index.json").write_text(index.replace('"version": "v2.1"',
+                                                         '"version": "v2.0"'))
+    with pytest.raises(ValueError, match="delete the folder"):
+        FrameStore.open(LeRobotSource(root, LAYOUT))
+
+
+def test_episode_frames_hold_runs_not_frames():
+    frames = EpisodeFrames(starts=np.array([10, 100]), lengths=np.array([3, 2]))
+    assert len(frames) == 5 and [frames[i] for i in range(5)] == [10, 11, 12, 100, 101]
+    np.testing.assert_array_equal(np.asarray(frames), [10, 11, 12, 100, 101])
+    assert len(pickle.dumps(EpisodeFrames(np.array([0]), np.array([10**8])))) < 1000
+    with pytest.raises(IndexError):
+        frames[5]
+
+
+def test_store_columns_are_float32_and_timestamps_float64(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2, cameras={}), "v3.0",
+                         float_dtype=np.float64)
+    store = LeRobotSource(root, LAYOUT).frame_store
+    assert set(store.columns) == set(frame_store_lib.COLUMNS)
+    assert np.load(store.root / "actions.npy", mmap_mode="r").dtype == np.float32
+    assert np.load(store.root / "timestamp.npy", mmap_mode="r").dtype == np.float64
