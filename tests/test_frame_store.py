@@ -172,3 +172,78 @@ def test_store_columns_are_float32_and_timestamps_float64(tmp_path):
     assert set(store.columns) == set(frame_store_lib.COLUMNS)
     assert np.load(store.root / "actions.npy", mmap_mode="r").dtype == np.float32
     assert np.load(store.root / "timestamp.npy", mmap_mode="r").dtype == np.float64
+
+
+# ---------------------------------------------------------------------- the pipeline over the store
+
+def _iterator(root, *, batch_size, num_workers=0, images=False, process_index=0,
+              process_count=1, **data):
+    import jax
+    import ml_collections
+    from absl import flags
+
+    from pi0_armfix.data import pipeline, sources
+    from pi0_armfix.data import stats as stats_lib
+
+    flags.FLAGS.mark_as_parsed()  # grain's worker processes read absl flags
+    config = ml_collections.ConfigDict({
+        "seed": 3, "eval": {"episodes": 0},
+        "data": {"root": str(root), "norm": "zscore", "curriculum": (),
+                 "num_workers": num_workers, "prefetch": 2, **data}})
+    source = sources.open_source(config.data, LAYOUT)
+    identity = stats_lib.NormStats(mean=np.zeros(23), std=np.ones(23), q01=-np.ones(23),
+                                   q99=np.ones(23))
+    stats = {"actions": identity, "state": stats_lib.NormStats(
+        mean=np.zeros(source.state_width), std=np.ones(source.state_width),
+        q01=-np.ones(source.state_width), q99=np.ones(source.state_width))}
+    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    tokenize = (lambda prompt: (np.arange(8, dtype=np.int32), np.ones(8, bool))) if images \
+        else None
+    batches, curriculum = pipeline.train_batches(
+        source.load_table(images=images, image_size=(16, 16)), LAYOUT, config.data, seed=3,
+        norm_stats=stats, action_horizon=4, global_batch_size=batch_size,
+        process_index=process_index, process_count=process_count, tokenize=tokenize,
+        actions_only=not images)
+    return pipeline.TrainIterator(batches, curriculum, sharding=sharding,
+                                  global_batch_size=batch_size, seed=3,
+                                  num_workers=num_workers), source
+
+
+def test_process_shards_of_an_epoch_are_disjoint_and_complete(tmp_path):
+    episodes = make_episodes(7, cameras={})
+    offset = 0
+    for episode in episodes:  # action dim 0 = the frame's global index
+        episode["actions"][:, 0] = offset + np.arange(len(episode["actions"]))
+        offset += len(episode["actions"])
+    root = write_dataset(tmp_path / "ds", episodes, "v3.0", episodes_per_file=3)
+    shards = [_iterator(root, batch_size=8, process_index=p, process_count=2)[0]
+              for p in (0, 1)]
+    steps = offset // 8
+    seen = [np.concatenate([np.asarray(s.next_local()["actions"])[:, 0, 0] for _ in range(steps)])
+            for s in shards]
+    assert not set(np.rint(seen[0])) & set(np.rint(seen[1]))
+    together = np.sort(np.rint(np.concatenate(seen))).astype(int)
+    assert len(together) == steps * 8 and len(set(together)) == len(together)
+    assert set(together) <= set(range(offset))  # the first epoch: no frame twice
+
+
+def test_a_resumed_iterator_with_video_workers_yields_the_identical_sequence(tmp_path):
+    b1k_fixture.write_b1k_dataset(tmp_path / "b1k")
+    options = dict(batch_size=4, num_workers=2, images=True, state_preset="b1k_r1pro")
+    straight, _ = _iterator(tmp_path / "b1k", **options)
+    try:
+        expected = [straight.next_local() for _ in range(5)][3:]
+    finally:
+        straight.close()
+    resumed, _ = _iterator(tmp_path / "b1k", **options)
+    resumed.set_state({"step": 3, "global_batch_size": 4, "seed": 3})
+    try:
+        for want in expected:
+            got = resumed.next_local()
+            for camera, images in want["image"].items():
+                assert images.shape == (4, 16, 16, 3)
+                np.testing.assert_array_equal(got["image"][camera], images)
+            np.testing.assert_array_equal(got["actions"], want["actions"])
+    finally:
+        resumed.close()

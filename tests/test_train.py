@@ -137,6 +137,27 @@ def test_pretrained_params_are_the_state_at_step_zero(tmp_path, demo_root):
     assert int(run.state.step) == 0
 
 
+def test_a_run_opens_its_dataset_once_and_builds_its_frame_store_once(tmp_path, demo_root,
+                                                                     monkeypatch):
+    from pi0_armfix.data import frame_store
+    from pi0_armfix.data.lerobot import LeRobotSource
+
+    monkeypatch.setenv("PI0_ARMFIX_CACHE", str(tmp_path / "cache"))
+    opened, built = [], []
+    open_source, build = LeRobotSource.__init__, frame_store._build
+    monkeypatch.setattr(LeRobotSource, "__init__",
+                        lambda self, *a, **k: opened.append(a) or open_source(self, *a, **k))
+    monkeypatch.setattr(frame_store, "_build", lambda *a: built.append(a) or build(*a))
+    config = base.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(demo_root, eval__every=1))
+
+    run = train.prepare(config, str(tmp_path / "run"))
+    next(run.train_iter)
+    run.train_iter.close()
+    run.checkpoints.close()
+    assert len(opened) == 1 and len(built) == 1
+
+
 # ---------------------------------------------------------------------- loss weights of a step
 
 def _loss_cfg(**changes):

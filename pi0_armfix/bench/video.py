@@ -12,6 +12,8 @@ original   random frames read as training reads them (3 cameras, resized in the 
            extrapolates to B1K's mean episode (119 M frames / 10 000 episodes = 11 900 frames).
 reencode   `python -m pi0_armfix.tools.reencode_videos --size --gop` on it: frames/s on this
            machine, and the hours B1K's 3 x 119 M camera frames would take per core.
+           Random reads of the copy with fresh decoders: the cost per sample at B1K's scale, where
+           a shuffled stream almost never meets an open file twice.
 training   the training iterator (images, prompts, chunks) on the re-encoded copy with
            `--num_workers` Grain workers: samples/s. Target >= 20 samples/s on 2 cores
            (one H100 at openpi's speed consumes ~19).
@@ -191,6 +193,11 @@ def main(argv: list[str]) -> None:
               f"{done['seconds']:.1f} s = {done['frames_per_s']:.0f} frames/s on {cores} cores "
               f"({per_core:.0f} per core; B1K's 3 x 119 M camera frames: ~{b1k_hours:,.0f} "
               f"core-hours, {b1k_hours / 64:.0f} h on 64 cores)")
+        cold = random_reads(output, args.size, args.samples)
+        print(f"re-encoded, random reads with fresh decoders (every sample opens its 3 files, as "
+              f"in a shuffled stream over 10 000 episodes): {cold['ms_per_sample']:.1f} ms per "
+              f"sample = {1000 * cores / cold['ms_per_sample']:.0f} samples/s on {cores} cores "
+              f"(independent of the position: {cold['ms_per_position']:.3f} ms per frame)")
         for workers in sorted({0, args.num_workers}):
             result = training_throughput(output, args.size, args.batch_size, args.steps,
                                          workers)
