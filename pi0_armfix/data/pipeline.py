@@ -13,10 +13,10 @@
 Samples are action chunks, one per frame of the training episodes (`dataset.training_episodes`),
 read by row from the source's on-disk `FrameStore` (`frame_store.py`). The chain (`train_batches`):
 
-    MapDataset.range(inf)     local sample counter k of this process
-      -> map(SampleSelector)  k -> the frame of global sample g (sampling.py: curriculum source,
-                              shuffled stream; pure in (seed, g))
-      -> batch(b)             b = B / process_count frame indices
+    MapDataset.range(inf)     step
+      -> map(SampleSelector.frames_of_step)   the b = B / process_count frames of this process's
+                              slice of the step's global batch (sampling.py: per global sample
+                              g, its curriculum source and shuffled stream; pure in (seed, g))
       -> map(BatchTransform)  chunks, delta, normalize, pad, images, tokens (batching.py)
       -> to_iter_dataset(ReadOptions(prefetch_buffer_size=data.prefetch))
       -> mp_prefetch(num_workers=data.num_workers)   (when > 0)
@@ -77,9 +77,8 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
                                norm_mode=data_cfg.get("norm", "zscore"),
                                action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
                                actions_only=actions_only, image_size=image_size)
-    batches = (grain.MapDataset.range(sys.maxsize)
-               .map(selector)
-               .batch(selector.local_batch_size, drop_remainder=True)
+    batches = (grain.MapDataset.range(sys.maxsize // global_batch_size)
+               .map(selector.frames_of_step)
                .map(transform))
     return batches, curriculum
 

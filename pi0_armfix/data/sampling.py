@@ -93,6 +93,12 @@ class SampleSelector:
         g = self.global_index(k)
         return int(self.streams[self.curriculum.choose(g, self.global_batch_size)][g])
 
+    def frames_of_step(self, step: int) -> np.ndarray:
+        """`[b]` int64 frames of this process's slice of global batch `step` (one Grain element
+        per step rather than per sample: the same frames, without per-sample pipeline cost)."""
+        first = int(step) * self.local_batch_size
+        return np.array([self(k) for k in range(first, first + self.local_batch_size)], np.int64)
+
 
 def source_frames(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike,
                   names: Sequence[str], action_stats: stats_lib.NormStats
