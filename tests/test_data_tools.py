@@ -14,7 +14,7 @@ from data_fixtures import write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import batching, pipeline, sampling, sources, transforms
+from pi0_armfix.data import sampling, sources, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.model import config as model_config_lib

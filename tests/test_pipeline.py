@@ -16,7 +16,7 @@ from configs import base as base_config
 from data_fixtures import make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import batching, pipeline, sampling, sources, transforms
+from pi0_armfix.data import batching, pipeline, sources, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
 from pi0_armfix.data.episodes import EpisodeTable

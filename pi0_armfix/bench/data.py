@@ -39,6 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.bench import common
+from pi0_armfix.cache import cache_root
 from pi0_armfix.data.lerobot_writer import LeRobotWriter
 
 _LAYOUT = "b1k_r1pro"
@@ -83,8 +85,7 @@ def _episode(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
 def bench_root(frames: int, episode_frames: int, episodes_per_file: int,
                cache_dir: str = "") -> Path:
     """The benchmark dataset, generated on first use (atomically: written aside, then renamed)."""
-    cache = Path(cache_dir or os.environ.get("PI0_ARMFIX_CACHE") or
-                 Path.home() / ".cache" / "pi0_armfix")
+    cache = cache_root(cache_dir or None)
     root = cache / f"bench-lerobot-v3-{frames}-{episode_frames}-{episodes_per_file}"
     if (root / "meta" / "info.json").is_file():
         return root
@@ -153,40 +154,25 @@ def bench_stats(root: Path) -> dict[str, float]:
 
 def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup: int,
                    num_workers: int) -> dict[str, float]:
-    import jax
-    import ml_collections
-    from absl import flags
-
     from pi0_armfix.data import dataset as dataset_lib
     from pi0_armfix.data import pipeline
     from pi0_armfix.data import stats as stats_lib
 
-    flags.FLAGS.mark_as_parsed()  # grain's worker processes read absl flags
-
-    config = ml_collections.ConfigDict({
-        "seed": 0, "eval": {"episodes": 0},
-        "data": {"root": str(root), "format": "lerobot", "norm": "zscore", "curriculum": (),
-                 "num_workers": num_workers, "prefetch": 2}})
+    config = common.data_config(str(root), num_workers)
     layout = ActionLayout.preset(_LAYOUT)
     stats_path = root / "bench_norm_stats.json"
     if not stats_path.is_file():
         stats_lib.save_norm_stats(stats_path, dataset_lib.dataset_norm_stats(
             config, layout, action_horizon=horizon))
     stats = stats_lib.load_norm_stats(stats_path)
-    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
-    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    sharding = common.batch_sharding()
     start = time.perf_counter()
     iterator = pipeline.make_train_iterator(config, layout, norm_stats=stats,
                                             action_horizon=horizon, global_batch_size=batch_size,
                                             sharding=sharding, actions_only=True)
     setup = time.perf_counter() - start
     try:
-        for _ in range(warmup):
-            jax.block_until_ready(next(iterator))
-        start = time.perf_counter()
-        for _ in range(steps):
-            jax.block_until_ready(next(iterator))
-        seconds = time.perf_counter() - start
+        seconds = common.timed_steps(iterator, steps, warmup)
     finally:
         iterator.close()
     return {"samples_per_s": steps * batch_size / seconds, "steps": steps,
@@ -285,22 +271,15 @@ def _memory_child(arg: str) -> None:
                           "main": _memory()}))
         return
     import jax
-    import ml_collections
-    from absl import flags
 
     from pi0_armfix.data import pipeline
     from pi0_armfix.data import stats as stats_lib
 
-    flags.FLAGS.mark_as_parsed()
     workers, batch_size, horizon, steps = (int(p) for p in parts[2:])
-    config = ml_collections.ConfigDict({
-        "seed": 0, "eval": {"episodes": 0},
-        "data": {"root": source.root, "norm": "zscore", "curriculum": (),
-                 "num_workers": workers, "prefetch": 2}})
+    config = common.data_config(source.root, workers)
     unit = stats_lib.NormStats(mean=np.zeros(23), std=np.ones(23), q01=-np.ones(23),
                                q99=np.ones(23))
-    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
-    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    sharding = common.batch_sharding()
     before = _memory()
     iterator = pipeline.make_train_iterator(
         config, ActionLayout.preset(_LAYOUT), norm_stats={"actions": unit, "state": unit},

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.bench import common
 from pi0_armfix.cache import build_lock, cache_root, digest
 from pi0_armfix.data.lerobot_writer import LeRobotWriter
 
@@ -133,34 +134,22 @@ def _tokenize(prompt: str) -> tuple[np.ndarray, np.ndarray]:
 
 def training_throughput(root: Path, size: int, batch_size: int, steps: int,
                         num_workers: int) -> dict[str, float]:
-    import jax
-    import ml_collections
-    from absl import flags
-
     from pi0_armfix.data import dataset as dataset_lib
     from pi0_armfix.data import pipeline, sources
 
-    flags.FLAGS.mark_as_parsed()  # grain's worker processes read absl flags
-    config = ml_collections.ConfigDict({
-        "seed": 0, "eval": {"episodes": 0},
-        "data": {"root": str(root), "format": "lerobot", "norm": "zscore", "curriculum": (),
-                 "num_workers": num_workers, "prefetch": 2}})
+    config = common.data_config(str(root), num_workers)
     layout = ActionLayout.preset(_LAYOUT)
     source = sources.open_source(config.data, layout)
     stats = dataset_lib.dataset_norm_stats(config, layout, action_horizon=50, source=source,
                                            progress=False)
-    mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
-    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
     iterator = pipeline.make_train_iterator(
         config, layout, norm_stats=stats, action_horizon=50, global_batch_size=batch_size,
-        sharding=sharding, tokenize=_tokenize, source=source, image_size=(size, size))
+        sharding=common.batch_sharding(), tokenize=_tokenize, source=source,
+        image_size=(size, size))
     try:
         batch = next(iterator)  # workers start, decoders open
         shapes = {c: tuple(batch["image"][c].shape[1:]) for c in batch["image"]}
-        start = time.perf_counter()
-        for _ in range(steps):
-            jax.block_until_ready(next(iterator))
-        seconds = time.perf_counter() - start
+        seconds = common.timed_steps(iterator, steps)
     finally:
         iterator.close()
     return {"samples_per_s": steps * batch_size / seconds, "shapes": shapes}

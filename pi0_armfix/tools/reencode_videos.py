@@ -37,7 +37,7 @@ from absl import app, flags
 from tqdm import tqdm
 
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data.video import VideoDecoder, VideoWriter, fit_inside
+from pi0_armfix.data.video import VideoDecoder, VideoWriter
 
 
 # PyAV encoder -> the codec name LeRobot's info.json records.
