@@ -153,6 +153,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         raise ValueError("data.root is unset: the b1k scale needs --config.data.root=<LeRobot "
                          "B1K root> ('' = the built-in demo dataset)")
     tx, schedule = optimizer_lib.make_optimizer(config.optim, config.train.total_steps)
+    _, warmup_note = optimizer_lib.effective_warmup(config.optim, config.train.total_steps)
+    if warmup_note:
+        _say(f"note: {warmup_note}")
     mesh = sharding_lib.make_mesh(config.sharding.fsdp)
     sharding_lib.check_batch_size(config.train.batch_size, mesh, "train.batch_size")
     batch_sharding = sharding_lib.batch_sharding(mesh)

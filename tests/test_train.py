@@ -87,7 +87,9 @@ def test_unknown_config_key_is_an_error(tmp_path, cache_dir, demo_root):
     ({"sharding.fsdp": 3}, "sharding.fsdp = 3"),
     ({"train.batch_size": 0}, "train.batch_size = 0"),
     ({"train.log_every": 0}, "train.log_every = 0"),
-    ({"optim.warmup_steps": 2}, "optim.warmup_steps = 2"),
+    ({"optim.warmup_steps": -2}, "optim.warmup_steps = -2"),
+    ({"optim.end_lr_factor": -5.0}, "optim.end_lr_factor = -5.0 must be in"),
+    ({"optim.b1": 1.5}, r"optim.b1 = 1.5 must be in \[0, 1\)"),
     ({"eval.every": 1, "eval.plot_groups": ("left_hand",)},
      r"eval.plot_groups names \['left_hand'\]"),
     ({"eval.episodes": 8}, "eval.episodes = 8"),
@@ -102,6 +104,15 @@ def test_config_and_data_errors_fail_before_the_first_step(overrides, message, t
     with pytest.raises(ValueError, match=message):
         train.train_and_evaluate(config, str(tmp_path / "run"))
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_smoke_run_shorter_than_the_warmup_trains_and_says_so_once(tmp_path, cache_dir,
+                                                                     demo_root):
+    result = tf.run_train("configs/uniform.py", tmp_path / "run",
+                          tf.tiny_overrides(demo_root, optim__warmup_steps=1000), cache_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    output = result.stdout + result.stderr
+    assert output.count("optim.warmup_steps = 1000 is not shorter than train.total_steps = 2") == 1
 
 
 def test_default_workdir_is_named_after_the_config_and_its_scale():

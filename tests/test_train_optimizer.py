@@ -23,9 +23,31 @@ def test_learning_rate_warms_up_linearly_then_decays_by_cosine_to_the_end_value(
     np.testing.assert_allclose(schedule(110), 0.1, rtol=1e-6)
 
 
-def test_warmup_as_long_as_the_run_is_a_config_error():
-    with pytest.raises(ValueError, match="optim.warmup_steps = 100"):
-        optimizer.learning_rate_schedule(_optim(warmup_steps=100), total_steps=100)
+def test_a_run_shorter_than_its_warmup_warms_up_over_a_tenth_of_it_and_says_so():
+    warmup, note = optimizer.effective_warmup(_optim(warmup_steps=1000), total_steps=20)
+    assert warmup == 2 and "optim.warmup_steps = 1000" in note and "2 steps" in note
+    schedule = optimizer.learning_rate_schedule(_optim(lr=1.0, warmup_steps=1000), 20)
+    assert float(schedule(2)) == pytest.approx(1.0)
+    assert optimizer.effective_warmup(_optim(warmup_steps=5), total_steps=20) == (5, None)
+
+
+def test_negative_warmup_is_a_config_error():
+    with pytest.raises(ValueError, match="optim.warmup_steps = -1"):
+        optimizer.learning_rate_schedule(_optim(warmup_steps=-1), total_steps=100)
+
+
+@pytest.mark.parametrize("key, value", [("end_lr_factor", -5.0), ("end_lr_factor", 1.5),
+                                        ("b1", 1.5), ("b2", 1.0), ("eps", 0.0), ("lr", 0.0),
+                                        ("lr", float("inf")), ("weight_decay", -0.1),
+                                        ("clip_norm", 0.0)])
+def test_optimizer_values_out_of_range_are_named_with_their_range(key, value):
+    with pytest.raises(ValueError, match=rf"optim\.{key} = {value} must be"):
+        optimizer.make_optimizer(_optim(**{key: value}), 100)
+
+
+def test_every_bad_optimizer_value_is_named_at_once():
+    with pytest.raises(ValueError, match=r"optim\.b1 = 1\.5 .*; optim\.b2 = 2\.0"):
+        optimizer.check_optim_config(_optim(b1=1.5, b2=2.0))
 
 
 def test_weight_decay_applies_to_model_params_but_not_to_loss_params():

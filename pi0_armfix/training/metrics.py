@@ -18,11 +18,23 @@ METRICS_FILE = "metrics.jsonl"
 
 
 def read_metrics(path: epath.PathLike) -> list[dict]:
-    """All records of a `metrics.jsonl`, in file order."""
+    """All records of a `metrics.jsonl`, in file order. A torn last line (a run killed while
+    writing it) is dropped; an unreadable line before it is an error naming the file and line."""
     path = epath.Path(path)
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    lines = [(number, line) for number, line in enumerate(path.read_text().splitlines(), 1)
+             if line.strip()]
+    records = []
+    for position, (number, line) in enumerate(lines):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if position == len(lines) - 1:
+                break  # the write a kill cut short: the record is written again on resume
+            raise ValueError(f"{path} line {number} is not a JSON record ({err}); remove or "
+                             "repair that line to resume") from err
+    return records
 
 
 class MetricsWriter:

@@ -7,6 +7,7 @@ applies to the model params only: decaying a log-variance would pull the loss we
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -14,15 +15,39 @@ import jax
 import optax
 
 
-def learning_rate_schedule(optim: Mapping[str, Any], total_steps: int) -> optax.Schedule:
-    """Linear warmup 0 -> `optim.lr` over `optim.warmup_steps`, then cosine decay to
-    `optim.lr * optim.end_lr_factor` at `total_steps`."""
+def effective_warmup(optim: Mapping[str, Any], total_steps: int) -> tuple[int, str | None]:
+    """`optim.warmup_steps`, or a tenth of a run too short for it (a smoke run such as
+    `train.total_steps=20` under a 1000-step warmup), with the line that says so (None if kept)."""
     warmup = int(optim["warmup_steps"])
-    if warmup < 0 or warmup >= total_steps:
-        raise ValueError(f"optim.warmup_steps = {warmup} must be in [0, train.total_steps = "
-                         f"{total_steps})")
-    if optim["lr"] <= 0:
-        raise ValueError(f"optim.lr = {optim['lr']} must be positive")
+    if warmup < 0:
+        raise ValueError(f"optim.warmup_steps = {warmup} must be >= 0")
+    if warmup < total_steps:
+        return warmup, None
+    clamped = total_steps // 10
+    return clamped, (f"optim.warmup_steps = {warmup} is not shorter than train.total_steps = "
+                     f"{total_steps}: warming up over {clamped} steps instead")
+
+
+def check_optim_config(optim: Mapping[str, Any]) -> None:
+    """Every `optim` value in its range, each failure naming the key and the range."""
+    ranges = (("lr", optim["lr"] > 0 and math.isfinite(optim["lr"]), "a positive number"),
+              ("end_lr_factor", 0.0 <= optim["end_lr_factor"] <= 1.0, "in [0, 1]"),
+              ("b1", 0.0 <= optim["b1"] < 1.0, "in [0, 1)"),
+              ("b2", 0.0 <= optim["b2"] < 1.0, "in [0, 1)"),
+              ("eps", optim["eps"] > 0, "positive"),
+              ("weight_decay", optim["weight_decay"] >= 0, ">= 0"),
+              ("clip_norm", optim["clip_norm"] > 0, "positive"),
+              ("ema_decay", 0.0 <= optim["ema_decay"] < 1.0, "in [0, 1) (0 = no EMA)"))
+    bad = [f"optim.{key} = {optim[key]} must be {rule}" for key, ok, rule in ranges if not ok]
+    if bad:
+        raise ValueError("; ".join(bad))
+
+
+def learning_rate_schedule(optim: Mapping[str, Any], total_steps: int) -> optax.Schedule:
+    """Linear warmup 0 -> `optim.lr` over `effective_warmup` steps, then cosine decay to
+    `optim.lr * optim.end_lr_factor` at `total_steps`."""
+    check_optim_config(optim)
+    warmup, _ = effective_warmup(optim, total_steps)
     return optax.warmup_cosine_decay_schedule(
         init_value=0.0, peak_value=optim["lr"], warmup_steps=warmup, decay_steps=total_steps,
         end_value=optim["lr"] * optim["end_lr_factor"])
@@ -36,10 +61,6 @@ def _decay_mask(trainable: Mapping[str, Any]) -> dict[str, Any]:
 def make_optimizer(optim: Mapping[str, Any], total_steps: int
                    ) -> tuple[optax.GradientTransformation, optax.Schedule]:
     """The gradient transformation and its learning-rate schedule (for logging)."""
-    if optim["clip_norm"] <= 0:
-        raise ValueError(f"optim.clip_norm = {optim['clip_norm']} must be positive")
-    if not 0.0 <= optim["ema_decay"] < 1.0:
-        raise ValueError(f"optim.ema_decay = {optim['ema_decay']} must be in [0, 1) (0 = no EMA)")
     schedule = learning_rate_schedule(optim, total_steps)
     tx = optax.chain(
         optax.clip_by_global_norm(optim["clip_norm"]),
