@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import re
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -356,16 +357,33 @@ def parse_flags(argv: Sequence[str]) -> list[str]:
     """absl's flag parsing, with a bad flag and an override of a key the (locked) config lacks
     reported as one line naming the flag instead of a traceback."""
     try:
-        return FLAGS(argv)
+        rest = FLAGS(argv)
     except flags.Error as e:
-        raise SystemExit(f"pi0_armfix.train: {e}") from None
+        message = str(e)
+        if "Error whilst parsing config file" in message:  # get_config raised: its last line
+            lines = [line for line in message.splitlines() if line.strip()]
+            given = [a for a in argv[1:] if a.startswith("--config=")][-1:] or ["--config"]
+            message = f"{given[0]}: {lines[-1].partition(': ')[2] or lines[-1]}"
+        raise SystemExit(f"pi0_armfix.train: {message}") from None
     except (AttributeError, KeyError) as e:
-        message = str(e.args[0] if e.args else e).strip("\"").replace("\n", "; ")
+        # ml_collections nests the KeyError's repr: unescape its quotes and line break.
+        message = str(e.args[0] if e.args else e).strip("\"")
+        if "\\'" in message:
+            message = message[1:-1].replace("\\'", "'").replace("\\n", "\n")
+        message = message.replace("\n", "; ")
         missing = re.findall(r"'(\w+)'", message)[:1]
         overrides = [a.split("=")[0] for a in argv[1:] if a.startswith("--config.")]
         culprit = [a for a in overrides if set(missing) & set(a.split("."))] or overrides
         raise SystemExit(f"pi0_armfix.train: {', '.join(culprit)}: the config has no key "
                          f"{message}") from None
+    if FLAGS["config"].present:
+        path = config_flags.get_config_filename(FLAGS["config"]).partition(":")[0]
+        if not os.path.isfile(path):
+            known = ", ".join(sorted(str(p) for p in epath.Path("configs").glob("*.py")
+                                     if p.name != "__init__.py")) or "none in ./configs"
+            raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file (run from "
+                             f"the repository root; configs here: {known})")
+    return rest
 
 
 def main(argv: Sequence[str]) -> None:

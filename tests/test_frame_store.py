@@ -247,3 +247,31 @@ def test_a_resumed_iterator_with_video_workers_yields_the_identical_sequence(tmp
             np.testing.assert_array_equal(got["actions"], want["actions"])
     finally:
         resumed.close()
+
+
+# ---------------------------------------------------------------------- bad values named
+
+def _nan_dataset(tmp_path):
+    episodes = make_episodes(4, cameras={})
+    episodes[2]["actions"][3, 5] = np.nan
+    return write_dataset(tmp_path / "ds", episodes, "v2.1")
+
+
+def test_nan_in_the_actions_is_named_by_episode_and_file_in_the_stats_pass(tmp_path):
+    import ml_collections
+
+    from pi0_armfix.data import dataset as dataset_lib
+
+    root = _nan_dataset(tmp_path)
+    config = ml_collections.ConfigDict({"eval": {"episodes": 0}, "data": {"root": str(root)}})
+    with pytest.raises(ValueError, match=r"actions of episode 2 \(file .*episode_000002\.parquet"
+                                         r"\) holds nan in dim 5"):
+        dataset_lib.dataset_norm_stats(config, LAYOUT, action_horizon=4, progress=False)
+
+
+def test_nan_in_the_actions_is_named_when_the_frame_store_is_built(tmp_path):
+    source = LeRobotSource(_nan_dataset(tmp_path), LAYOUT)
+    with pytest.raises(ValueError, match=r"actions of episode 2 .* holds nan in dim 5"):
+        source.load_table(images=False)
+    assert not [p for p in (tmp_path / "cache" / "frames").iterdir()
+                if not p.name.startswith(".")]

@@ -78,6 +78,49 @@ def test_unknown_config_key_is_an_error(tmp_path, cache_dir, demo_root):
     assert not (tmp_path / "run").exists()
 
 
+def test_nan_data_with_supplied_norm_stats_is_named_before_the_first_step(tmp_path,
+                                                                          monkeypatch):
+    from data_fixtures import make_episodes, write_dataset
+    from pi0_armfix.data import stats as stats_lib
+
+    monkeypatch.setenv("PI0_ARMFIX_CACHE", str(tmp_path / "cache"))
+    episodes = make_episodes(6, cameras={})
+    episodes[1]["actions"][2, 9] = np.inf
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1")
+    unit = stats_lib.NormStats(mean=np.zeros(23), std=np.ones(23), q01=-np.ones(23),
+                               q99=np.ones(23))
+    stats_lib.save_norm_stats(tmp_path / "norm_stats.json", {"actions": unit, "state": unit})
+    config = base.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(
+        root, data__norm_stats=str(tmp_path / "norm_stats.json")))
+    with pytest.raises(ValueError, match=r"actions of episode 1 \(file .*episode_000001"
+                                         r"\.parquet\) holds inf in dim 9"):
+        train.train_and_evaluate(config, str(tmp_path / "run"))
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_mistyped_key_is_one_readable_line_with_the_suggestion(tmp_path, cache_dir):
+    result = tf.run_train("configs/arm_focused.py", tmp_path / "run",
+                          {"train.totl_steps": 3}, cache_dir)
+    line = result.stderr.strip().splitlines()[-1]
+    assert line == ("pi0_armfix.train: --config.train.totl_steps: the config has no key "
+                    "'totl_steps'; Did you mean \"total_steps\" instead of \"totl_steps\"?")
+
+
+@pytest.mark.parametrize("config, message", [
+    ("configs/nope.py", "nope.py: no such config file (run from the repository root; configs "
+                        "here: configs/arm_curriculum.py"),
+    ("configs/arm_focused.py:foo", "arm_focused.py:foo: config argument 'foo' is not a scale"),
+])
+def test_a_bad_config_file_or_scale_is_one_line(config, message, tmp_path, cache_dir):
+    result = tf.run_train(config, tmp_path / "run", {}, cache_dir)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pi0_armfix.train: --config=")
+    assert message in lines[0]
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("overrides, message", [
     ({"loss.group_weights.left_arm": -1.0}, r"loss.group_weights\['left_arm'\] = -1.0 is negative"),
     ({"loss.strategy": "per_grup"}, "unknown loss strategy 'per_grup'"),

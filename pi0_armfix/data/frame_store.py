@@ -34,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pi0_armfix.cache import build_lock, cache_root, digest
+from pi0_armfix.data import stats as stats_lib
 
 COLUMNS = ("actions", "state", "timestamp")
 _DTYPES = {"actions": np.float32, "state": np.float32, "timestamp": np.float64}
@@ -223,7 +224,8 @@ def _build(source, identity: dict[str, Any], root: Path, progress: bool) -> None
         row = 0
         bar = tqdm(total=total, unit="frame", unit_scale=True, disable=not progress, delay=1.0,
                    desc=f"frame cache {root.name}")
-        for block in source.iter_blocks(tuple(keys)):
+        locate = getattr(source, "episode_file", None)
+        for block in stats_lib.checked_blocks(source.iter_blocks(tuple(keys)), locate):
             n = len(block["episode_index"])
             for key in keys:
                 values = np.ascontiguousarray(block[key], _DTYPES[key])

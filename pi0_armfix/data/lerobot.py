@@ -358,6 +358,10 @@ class LeRobotSource:
             positions.append(self._position[int(episode)])
         return positions
 
+    def episode_file(self, episode: int) -> str:
+        """"file PATH" of the data file holding an episode (for messages)."""
+        return f"file {self._episodes[self.positions([episode])[0]].data_file}"
+
     # ------------------------------------------------------------------ probe
 
     def probe(self, num_episodes: int = 4) -> None:

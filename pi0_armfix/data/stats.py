@@ -267,6 +267,30 @@ class StreamingStats:
 Block = Mapping[str, np.ndarray]
 
 
+def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str] | None = None
+                   ) -> Iterator[Block]:
+    """The blocks, checked as they stream: a NaN or infinite value is a ValueError naming the
+    feature, the episode, the dim, and (`locate(episode id)`) the file, before any
+    statistic or weight is computed from it."""
+    for block in blocks:
+        for key, values in block.items():
+            values = np.asarray(values)
+            if key == "episode_index" or not np.issubdtype(values.dtype, np.floating):
+                continue
+            bad = ~np.isfinite(values)
+            if bad.any():
+                row, *dim = (int(i) for i in np.argwhere(bad)[0])
+                episode = int(block["episode_index"][row])
+                where = f" ({locate(episode)})" if locate else ""
+                raise ValueError(
+                    f"{key} of episode {episode}{where} holds {values[(row, *dim)]}"
+                    + (f" in dim {dim[0]}" if dim else "")
+                    + f" ({int(bad[block['episode_index'] == episode].sum())} non-finite "
+                    "value(s) in this part of it): repair the file or leave the episode out of "
+                    "the dataset root")
+        yield block
+
+
 def table_blocks(table: EpisodeTable, keys: Sequence[str] = ("actions", "state"),
                  block_frames: int = 65536) -> Iterator[dict[str, np.ndarray]]:
     """Blocks of a table (in memory or on disk) in the format of `Source.iter_blocks`: `{key: [n, ...],
