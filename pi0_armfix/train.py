@@ -33,6 +33,7 @@ where the bracketed flags may be left to `jax.distributed`'s cluster detection (
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import os
@@ -63,6 +64,7 @@ from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
+from pi0_armfix.training import workdir_lock
 
 
 class ConfigurationError(ValueError):
@@ -133,6 +135,7 @@ class Run:
     checkpoints: checkpoint.Checkpoints
     evaluator: evaluate.Evaluator | None
     norm_stats_json: dict[str, Any]
+    lock: Any = None  # the workdir's lock file (process 0), released by closing it
 
 
 def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
@@ -171,51 +174,59 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
 
     workdir.mkdir(parents=True, exist_ok=True)
-    norm_stats = dataset_lib.load_or_compute_norm_stats(
-        config, layout, action_horizon=model_config.action_horizon,
-        cache_path=workdir / "norm_stats.json", progress=is_main, source=source,
-        resuming=checkpoint.has_checkpoints(workdir / "checkpoints"))
-    train_iter = pipeline.make_train_iterator(
-        config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
-        global_batch_size=config.train.batch_size, sharding=batch_sharding, tokenize=tokenize,
-        source=source, image_size=model_config.image_resolution)
+    lock = workdir_lock.lock_workdir(workdir) if is_main else None
+    with contextlib.ExitStack() as on_error:  # a failed start releases the workdir
+        if lock is not None:
+            on_error.callback(lock.close)
+        norm_stats = dataset_lib.load_or_compute_norm_stats(
+            config, layout, action_horizon=model_config.action_horizon,
+            cache_path=workdir / "norm_stats.json", progress=is_main, source=source,
+            resuming=checkpoint.has_checkpoints(workdir / "checkpoints"))
+        train_iter = pipeline.make_train_iterator(
+            config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
+            global_batch_size=config.train.batch_size, sharding=batch_sharding,
+            tokenize=tokenize, source=source, image_size=model_config.image_resolution)
 
-    abstract_state = jax.eval_shape(
-        lambda: state_lib.create_train_state(
-            policy.init_params(model_config, jax.random.key(0)), tx=tx, loss_cfg=config.loss,
-            layout=layout, ema_decay=config.optim.ema_decay))
-    state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
-    evaluator = None
-    if config.eval.every > 0:
-        evaluator = evaluate.Evaluator(config, layout, model_config, norm_stats, tokenize,
-                                       mesh=mesh, params_sharding=state_shardings.params,
-                                       source=source)
-    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", every=config.train.checkpoint_every,
-                                   keep=config.train.keep_checkpoints)
-    with jax.set_mesh(mesh):
-        start = ckpts.latest_step() or 0
-        if start:
-            state, data_state = ckpts.restore(start, jax.tree.map(
-                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
-                abstract_state, state_shardings))
-            train_iter.set_state(data_state)
-            _say(f"resumed from {ckpts.directory / str(start)}")
-        else:
-            state = _init_state(config, model_config, layout, tx, state_shardings,
-                                state_shardings.params)
-    train_step = jax.jit(
-        functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
-                          model_config=model_config, loss_cfg=config.loss, layout=layout,
-                          tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay),
-        in_shardings=(state_shardings, batch_sharding),
-        out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
-        donate_argnums=0)
-    if is_main:
-        (workdir / "config.json").write_text(config.to_json_best_effort(indent=2))
-    return Run(config=config, workdir=workdir, layout=layout, mesh=mesh, start=start,
-               state=state, train_step=train_step, train_iter=train_iter, checkpoints=ckpts,
-               evaluator=evaluator,
-               norm_stats_json={"norm_stats": {k: v.to_json() for k, v in norm_stats.items()}})
+        abstract_state = jax.eval_shape(
+            lambda: state_lib.create_train_state(
+                policy.init_params(model_config, jax.random.key(0)), tx=tx,
+                loss_cfg=config.loss, layout=layout, ema_decay=config.optim.ema_decay))
+        state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
+        evaluator = None
+        if config.eval.every > 0:
+            evaluator = evaluate.Evaluator(config, layout, model_config, norm_stats, tokenize,
+                                           mesh=mesh, params_sharding=state_shardings.params,
+                                           source=source)
+        ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
+                                       every=config.train.checkpoint_every,
+                                       keep=config.train.keep_checkpoints)
+        with jax.set_mesh(mesh):
+            start = ckpts.latest_step() or 0
+            if start:
+                state, data_state = ckpts.restore(start, jax.tree.map(
+                    lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                    abstract_state, state_shardings))
+                train_iter.set_state(data_state)
+                _say(f"resumed from {ckpts.directory / str(start)}")
+            else:
+                state = _init_state(config, model_config, layout, tx, state_shardings,
+                                    state_shardings.params)
+        train_step = jax.jit(
+            functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
+                              model_config=model_config, loss_cfg=config.loss, layout=layout,
+                              tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay),
+            in_shardings=(state_shardings, batch_sharding),
+            out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
+            donate_argnums=0)
+        if is_main:
+            (workdir / "config.json").write_text(config.to_json_best_effort(indent=2))
+        on_error.pop_all()
+        return Run(config=config, workdir=workdir, layout=layout, mesh=mesh, start=start,
+                   state=state, train_step=train_step, train_iter=train_iter, checkpoints=ckpts,
+                   evaluator=evaluator,
+                   norm_stats_json={"norm_stats": {k: v.to_json()
+                                                   for k, v in norm_stats.items()}},
+                   lock=lock)
 
 
 def train_loop(run: Run) -> dict[str, float]:
@@ -279,6 +290,8 @@ def train_loop(run: Run) -> dict[str, float]:
         run.checkpoints.close()
         writer.close()
         train_iter.close()
+        if run.lock is not None:
+            run.lock.close()
     if not is_main:
         return {}
     records = metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)

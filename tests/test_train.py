@@ -1,6 +1,7 @@
 """The training entrypoint and step (DESIGN §6): outputs of a run, failures, loss weights."""
 
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -97,6 +98,37 @@ def test_nan_data_with_supplied_norm_stats_is_named_before_the_first_step(tmp_pa
                                          r"\.parquet\) holds inf in dim 9"):
         train.train_and_evaluate(config, str(tmp_path / "run"))
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_second_process_on_a_locked_workdir_stops_at_once(tmp_path, cache_dir, demo_root):
+    from pi0_armfix.training import workdir_lock
+
+    (tmp_path / "run").mkdir()
+    held = workdir_lock.lock_workdir(tmp_path / "run")
+    try:
+        result = tf.run_train("configs/uniform.py", tmp_path / "run", tf.tiny_overrides(demo_root),
+                              cache_dir)
+    finally:
+        held.close()
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    line = result.stderr.strip().splitlines()[-1]
+    assert f"workdir {tmp_path / 'run'} is in use by a run (pid {os.getpid()} on host" in line
+    assert "train in another --workdir" in line
+    assert not (tmp_path / "run" / "checkpoints").exists()
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+
+
+def test_the_lock_of_a_dead_run_does_not_block_and_a_finished_run_releases_it(tmp_path,
+                                                                                 demo_root):
+    from pi0_armfix.training import workdir_lock
+
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / workdir_lock.LOCK_FILE).write_text(
+        '{"host": "gone", "pid": 999999, "started": "yesterday"}')  # its holder died
+    config = base.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(demo_root))
+    train.train_and_evaluate(config, str(tmp_path / "run"))
+    workdir_lock.lock_workdir(tmp_path / "run").close()  # released at the end
 
 
 def test_a_mistyped_key_is_one_readable_line_with_the_suggestion(tmp_path, cache_dir):
