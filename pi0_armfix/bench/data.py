@@ -211,6 +211,9 @@ class SyntheticSource:
     def identity(self) -> dict:
         return {"root": self.root, "synthetic": 1}
 
+    def episode_file(self, episode: int) -> str:
+        return f"synthetic episode {episode}"
+
     def iter_blocks(self, keys=("actions", "state"), episodes=None):
         assert episodes is None  # the store reads every episode
         starts = np.concatenate([[0], np.cumsum(self.episode_lengths)])

@@ -20,7 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -116,13 +116,8 @@ def training_blocks(config: ConfigLike, layout: ActionLayout,
     source = _source(config, layout, source)
     if episodes is None:
         episodes = training_episodes(config, source)
-    return (stats_lib.checked_blocks(source.iter_blocks(keys, episodes), locate_episode(source)),
+    return (stats_lib.checked_blocks(source.iter_blocks(keys, episodes), source.episode_file),
             num_frames(source, episodes))
-
-
-def locate_episode(source) -> Callable[[int], str] | None:
-    """`episode id -> "file ..."` for messages, when the source can say where an episode is."""
-    return getattr(source, "episode_file", None)
 
 
 # ---------------------------------------------------------------------- checks before any pass

@@ -1,4 +1,4 @@
-"""The in-memory frame table every data source produces and every consumer reads.
+"""The frame table every data source produces and every consumer reads.
 
 All frames of the selected episodes are concatenated; `episode_starts` marks the boundaries,
 so chunking, statistics and episode filters never need to know which format the data came from.
@@ -28,8 +28,9 @@ class EpisodeTable:
     """Frames of a set of episodes, concatenated in episode order.
 
     Attributes:
-      actions: [N, A] float32, the real (unpadded) actions.
-      state: [N, S] float32, the real (unpadded) proprioceptive state.
+      actions: [N, A] float32, the real (unpadded) actions: an array, or a `FrameColumn` read
+        by row from the source's on-disk frame store (what sources return).
+      state: [N, S] float32, the real (unpadded) proprioceptive state (likewise).
       episode_starts: [E + 1] int64 frame offsets; episode e is frames [starts[e], starts[e+1]).
       episode_index: [E] int64, each episode's index in the dataset it came from.
       tasks: [E] task prompt of each episode.

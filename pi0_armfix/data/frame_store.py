@@ -126,14 +126,13 @@ class FrameColumn:
         if not flat.size:
             return np.empty((*file_rows.shape, *self._row_shape), self.dtype)
         unique, inverse = np.unique(flat, return_inverse=True)
-        cuts = np.flatnonzero(np.diff(unique) > self._MERGE_GAP) + 1
-        firsts = unique[np.concatenate([[0], cuts])]
-        lasts = unique[np.concatenate([cuts - 1, [len(unique) - 1]])]
+        bounds = np.concatenate([[0], np.flatnonzero(np.diff(unique) > self._MERGE_GAP) + 1,
+                                 [len(unique)]])  # unique[bounds[i]:bounds[i + 1]]: one read
+        firsts, lasts = unique[bounds[:-1]], unique[bounds[1:] - 1]
         parts = [self._read(int(a), int(b - a + 1)) for a, b in zip(firsts, lasts)]
         values = parts[0] if len(parts) == 1 else np.concatenate(parts)
         # Position of each unique row inside the concatenated reads.
-        run = np.repeat(np.arange(len(firsts)), np.diff(np.concatenate(
-            [np.searchsorted(unique, firsts), [len(unique)]])))
+        run = np.repeat(np.arange(len(firsts)), np.diff(bounds))
         read_offsets = np.concatenate([[0], np.cumsum(lasts - firsts + 1)])[:-1]
         where = read_offsets[run] + unique - firsts[run]
         return values[where[inverse]].reshape(*file_rows.shape, *self._row_shape)
@@ -181,7 +180,7 @@ class FrameStore:
         """The store of `source` (built on first use; see the module docstring).
 
         `source` provides `identity()`, `episode_index`, `episode_lengths`, `block_keys` (the
-        `iter_blocks` keys it has, of `COLUMNS`) and `iter_blocks`."""
+        `iter_blocks` keys it has, of `COLUMNS`), `iter_blocks` and `episode_file`."""
         identity = {"format": _FORMAT, **source.identity()}
         root = cache_root(cache_dir) / "frames" / digest(identity)
         if not (root / "index.json").is_file():
@@ -224,8 +223,8 @@ def _build(source, identity: dict[str, Any], root: Path, progress: bool) -> None
         row = 0
         bar = tqdm(total=total, unit="frame", unit_scale=True, disable=not progress, delay=1.0,
                    desc=f"frame cache {root.name}")
-        locate = getattr(source, "episode_file", None)
-        for block in stats_lib.checked_blocks(source.iter_blocks(tuple(keys)), locate):
+        for block in stats_lib.checked_blocks(source.iter_blocks(tuple(keys)),
+                                              source.episode_file):
             n = len(block["episode_index"])
             for key in keys:
                 values = np.ascontiguousarray(block[key], _DTYPES[key])

@@ -46,6 +46,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import dataclasses
+import functools
 import itertools
 import json
 import threading
@@ -332,7 +333,6 @@ class LeRobotSource:
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
-        self._store: FrameStore | None = None
 
     block_keys = BLOCK_KEYS
 
@@ -530,12 +530,10 @@ class LeRobotSource:
                 "state": [self._columns["state"] if self._has_state else None,
                           repr(self.state_selection)]}
 
-    @property
+    @functools.cached_property
     def frame_store(self) -> FrameStore:
         """The on-disk frame columns of this source (built on first use)."""
-        if self._store is None:
-            self._store = FrameStore.open(self)
-        return self._store
+        return FrameStore.open(self)
 
     def load_table(self, episodes: Sequence[int] | None = None, *, images: bool = True,
                    image_size: tuple[int, int] | None = None) -> EpisodeTable:

@@ -140,6 +140,10 @@ class RldsSource:
         return {"root": str(self.root.resolve()), "format": "rlds", "split": self.split,
                 "files": digest(files), "keys": dict(self._keys)}
 
+    def episode_file(self, episode: int) -> str:
+        """"RLDS ROOT split S episode E" (for messages)."""
+        return f"RLDS {self.root} split {self.split!r} episode {int(episode)}"
+
     @functools.cached_property
     def frame_store(self) -> FrameStore:
         """The on-disk frame columns of this source (built on first use)."""

@@ -36,14 +36,22 @@ class Source(Protocol):
     tasks: Sequence[str]  # [E] prompts
     fps: float
     cameras: Mapping[str, str]  # batch camera -> stored camera name
+    block_keys: tuple[str, ...]  # the `iter_blocks` keys it has ("timestamp" for video)
 
     def iter_blocks(self, keys: Sequence[str] = ("actions", "state"),
                     episodes: Sequence[int] | None = None) -> Iterator[dict[str, np.ndarray]]:
         """Bounded-memory stream of `{key: [n, ...], "episode_index": [n] int64}` in episode order."""
 
-    def load_table(self, episodes: Sequence[int] | None = None, *,
-                   images: bool = True) -> EpisodeTable:
-        """The chosen episodes (None = all) as an EpisodeTable with lazy images."""
+    def identity(self) -> dict[str, Any]:
+        """What its frames depend on (JSON-able): the key of its `FrameStore`."""
+
+    def episode_file(self, episode: int) -> str:
+        """Where an episode is stored, for messages ("file PATH")."""
+
+    def load_table(self, episodes: Sequence[int] | None = None, *, images: bool = True,
+                   image_size: tuple[int, int] | None = None) -> EpisodeTable:
+        """The chosen episodes (None = all) as an EpisodeTable: columns read by row from its
+        `frame_store`, lazy images (video decoded to fit inside `image_size`)."""
 
 
 def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:

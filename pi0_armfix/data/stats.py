@@ -267,8 +267,7 @@ class StreamingStats:
 Block = Mapping[str, np.ndarray]
 
 
-def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str] | None = None
-                   ) -> Iterator[Block]:
+def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str]) -> Iterator[Block]:
     """The blocks, checked as they stream: a NaN or infinite value is a ValueError naming the
     feature, the episode, the dim, and (`locate(episode id)`) the file, before any
     statistic or weight is computed from it."""
@@ -281,9 +280,8 @@ def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str] | None 
             if bad.any():
                 row, *dim = (int(i) for i in np.argwhere(bad)[0])
                 episode = int(block["episode_index"][row])
-                where = f" ({locate(episode)})" if locate else ""
                 raise ValueError(
-                    f"{key} of episode {episode}{where} holds {values[(row, *dim)]}"
+                    f"{key} of episode {episode} ({locate(episode)}) holds {values[(row, *dim)]}"
                     + (f" in dim {dim[0]}" if dim else "")
                     + f" ({int(bad[block['episode_index'] == episode].sum())} non-finite "
                     "value(s) in this part of it): repair the file or leave the episode out of "
