@@ -109,7 +109,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train.batch_size = 32  # global, over all processes
     config.train.log_every = 25
     config.train.checkpoint_every = 500
-    config.train.keep_checkpoints = 3
+    config.train.keep_checkpoints = 3  # good checkpoints kept (the last good one never goes)
+    # A workdir resumed with another config (seed, model, loss, layout, data, batch size): 'auto'
+    # refuses naming the keys; 'force' resumes anyway; 'new' archives the old run, starts over.
+    config.train.resume = "auto"
+    config.train.save_on_preemption = True  # SIGTERM/SIGINT: save the current step, then exit
 
     config.optim = ml_collections.ConfigDict()
     config.optim.lr = 1e-3  # peak of the warmup-cosine schedule

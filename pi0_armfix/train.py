@@ -7,8 +7,16 @@ is resumed from the latest one: params, optimizer, EMA, loss-balancer state and 
 a resumed run ends bitwise where an uninterrupted one would (on the same devices).
 
 Everything a user can get wrong (config, layout, data, checkpoint) fails before the first step.
-A non-finite loss stops the run with the step that produced it; checkpoints are only written
-after every loss since the previous one was checked finite, so the last one stays good.
+A workdir holds one run: a second start on it while the first runs stops at once (`run.lock`), and
+a start with another config is refused naming the keys (`training/fingerprint.py`,
+`train.resume=auto|force|new`).
+
+A non-finite loss stops the run with the step that produced it. A checkpoint is written only from
+a finite state after finite losses, and counts as good only once the step computed from it is
+finite too; one that is not is set aside (`checkpoints.nonfinite/`), and retention never deletes
+the last good one (`training/checkpoint.py`). A damaged latest checkpoint is reported and the
+previous one used. SIGTERM (preemption) and Ctrl-C stop after the current step, save it
+(`train.save_on_preemption`) and exit with one line (`training/preemption.py`).
 
 The run folder:
   checkpoints/<step>/   orbax: state, data iterator, norm stats, config
@@ -16,7 +24,8 @@ The run folder:
   metrics.jsonl         training records every `train.log_every` steps, evaluation records every
                         `eval.every`; tensorboard/ mirrors them
   plots/                group_losses.png, trajectories_<step>.png
-  config.json           the config of the latest start
+  config.json           the config of the latest start (what a resume is checked against)
+  run.lock              held while a run is on the folder
 
 Logged training metrics (means over the steps since the previous record): `loss`,
 `loss/<group>` (unweighted), `weight/<group>` (effective), `grad_norm`; and `lr`, `phase`
@@ -38,12 +47,15 @@ import dataclasses
 import functools
 import os
 import re
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import ml_collections
+from jax.experimental import multihost_utils
 import numpy as np
 from absl import app, flags, logging
 from etils import epath
@@ -58,7 +70,7 @@ from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy, pretrained
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import checkpoint, plots
+from pi0_armfix.training import checkpoint, fingerprint, plots, preemption
 from pi0_armfix.training import metrics as metrics_lib
 from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import sharding as sharding_lib
@@ -67,12 +79,23 @@ from pi0_armfix.training import step as step_lib
 from pi0_armfix.training import workdir_lock
 
 
+NORM_STATS_FILE = "norm_stats.json"
+
+
 class ConfigurationError(ValueError):
     """A config, layout, data or checkpoint error, found before the first step."""
 
 
 class NonFiniteLossError(RuntimeError):
     """The loss or gradient of a step is NaN or infinite."""
+
+
+class Stopped(RuntimeError):
+    """The run stopped on SIGTERM or SIGINT after saving (or not) its last step."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum
 
 
 class DataError(RuntimeError):
@@ -84,18 +107,38 @@ def check_train_config(train: Mapping[str, Any]) -> None:
     for field in ("total_steps", "log_every", "checkpoint_every", "keep_checkpoints"):
         if int(train[field]) <= 0:
             raise ValueError(f"train.{field} = {train[field]} must be positive")
+    if train["resume"] not in fingerprint.RESUME_MODES:
+        raise ValueError(f"train.resume = {train['resume']!r}: use one of "
+                         f"{fingerprint.RESUME_MODES}")
 
 
-def _check_finite(window: Sequence[tuple[int, Mapping[str, jax.Array]]]) -> None:
-    """Raises NonFiniteLossError naming the first step of `window` whose loss or gradient norm is
-    not finite (a non-finite gradient would have poisoned the params it updated)."""
+def _first_non_finite(window: Sequence[tuple[int, Mapping[str, jax.Array]]]
+                      ) -> tuple[int, float, float] | None:
+    """`(step, loss, grad_norm)` of the first step of `window` whose loss or gradient norm is not
+    finite (a non-finite gradient would have poisoned the params it updated), or None."""
     values = jax.device_get([(m["loss"], m["grad_norm"]) for _, m in window])
     for (step, _), (loss, grad_norm) in zip(window, values):
         if not (np.isfinite(loss) and np.isfinite(grad_norm)):
-            raise NonFiniteLossError(
-                f"step {step} has loss {float(loss)} and gradient norm {float(grad_norm)}: "
-                f"stopping. The last checkpoint (before step {step}) is intact; lower optim.lr or "
-                "raise optim.warmup_steps, then resume from it")
+            return step, float(loss), float(grad_norm)
+    return None
+
+
+def _non_finite_error(step: int, loss: float, grad_norm: float, what: str,
+                      checkpoints: checkpoint.Checkpoints) -> NonFiniteLossError:
+    latest = checkpoints.latest_step()
+    resume = (f"a rerun resumes from checkpoint {latest}" if latest
+              else "no checkpoint is left: a rerun starts from step 0")
+    return NonFiniteLossError(
+        f"step {step} has loss {loss} and gradient norm {grad_norm}: stopping. {what}{resume}; "
+        "lower optim.lr or raise optim.warmup_steps first")
+
+
+@jax.jit
+def _all_finite(tree: Any) -> jax.Array:
+    """Whether every float leaf of `tree` is finite: bool `[]`."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)
+              if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.bool_(True)
 
 
 def _summarize(window: Sequence[tuple[int, Mapping[str, jax.Array]]]) -> dict[str, float]:
@@ -153,6 +196,11 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                          "need 32)")
     step_lib.check_loss_config(config.loss, layout)
     check_train_config(config.train)
+    if workdir.exists() and not workdir.is_dir():
+        raise ValueError(f"--workdir {workdir} is a file, not a folder: name a new or existing "
+                         "run folder")
+    if config.model.pretrained:
+        pretrained.check_pretrained(config.model.pretrained, model_config)
     if config.data.root is None:
         raise ValueError("data.root is unset: the b1k scale needs --config.data.root=<LeRobot "
                          "B1K root> ('' = the built-in demo dataset)")
@@ -178,10 +226,20 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     with contextlib.ExitStack() as on_error:  # a failed start releases the workdir
         if lock is not None:
             on_error.callback(lock.close)
+        holds_run = (checkpoint.has_checkpoints(workdir / "checkpoints")
+                     or (workdir / NORM_STATS_FILE).exists())
+        for note in fingerprint.check_resume(workdir, config.to_dict(), holds_run=holds_run,
+                                             may_write=is_main):
+            _say(f"note: {note}")
+        if jax.process_count() > 1:  # the others read the folder process 0 may have archived
+            multihost_utils.sync_global_devices("workdir checked")
+        if is_main:
+            (workdir / fingerprint.CONFIG_FILE).write_text(config.to_json_best_effort(indent=2))
+        resuming = checkpoint.has_checkpoints(workdir / "checkpoints")
         norm_stats = dataset_lib.load_or_compute_norm_stats(
             config, layout, action_horizon=model_config.action_horizon,
-            cache_path=workdir / "norm_stats.json", progress=is_main, source=source,
-            resuming=checkpoint.has_checkpoints(workdir / "checkpoints"))
+            cache_path=workdir / NORM_STATS_FILE, progress=is_main, source=source,
+            resuming=resuming, keep_cached=resuming and config.train.resume == "force")
         train_iter = pipeline.make_train_iterator(
             config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
             global_batch_size=config.train.batch_size, sharding=batch_sharding,
@@ -201,11 +259,12 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                                        every=config.train.checkpoint_every,
                                        keep=config.train.keep_checkpoints)
         with jax.set_mesh(mesh):
-            start = ckpts.latest_step() or 0
-            if start:
-                state, data_state = ckpts.restore(start, jax.tree.map(
-                    lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
-                    abstract_state, state_shardings))
+            restored = ckpts.restore_latest(jax.tree.map(
+                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                abstract_state, state_shardings), say=_say)
+            start = 0
+            if restored is not None:
+                start, state, data_state = restored
                 train_iter.set_state(data_state)
                 _say(f"resumed from {ckpts.directory / str(start)}")
             else:
@@ -218,8 +277,6 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
             in_shardings=(state_shardings, batch_sharding),
             out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
             donate_argnums=0)
-        if is_main:
-            (workdir / "config.json").write_text(config.to_json_best_effort(indent=2))
         on_error.pop_all()
         return Run(config=config, workdir=workdir, layout=layout, mesh=mesh, start=start,
                    state=state, train_step=train_step, train_iter=train_iter, checkpoints=ckpts,
@@ -229,25 +286,55 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                    lock=lock)
 
 
-def train_loop(run: Run) -> dict[str, float]:
+def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str, float]:
     """Steps `run` to `train.total_steps`, logging, checkpointing and evaluating on the way;
-    returns the last training record (on process 0; {} on the others)."""
+    returns the last training record (on process 0; {} on the others).
+
+    Raises:
+      NonFiniteLossError: a step's loss or gradient is not finite.
+      DataError: a dataset file could not be read.
+      Stopped: `stop` was requested (SIGTERM, SIGINT): the run stopped after a step.
+    """
     config, workdir, state, train_iter = run.config, run.workdir, run.state, run.train_iter
+    stop = stop or preemption.StopRequest()
     is_main = jax.process_index() == 0
     total_steps = config.train.total_steps
+    ckpts = run.checkpoints
     writer = metrics_lib.MetricsWriter(workdir, resume_step=run.start)
     window: list[tuple[int, Mapping[str, jax.Array]]] = []
     checked = 0  # window entries known to be finite
+    # The checkpoint whose next step is not checked yet (the one resumed from is checked too).
+    unconfirmed = run.start or None
+    saved = run.start  # the step of the latest checkpoint
     phase = train_iter.phase
     # The next global batches are built (host -> device included) in a background thread.
     batches = stats_lib.prefetched(_with_position(train_iter), depth=2)
     wait, window_start = 0.0, time.perf_counter()
+    abandoned = False
+    done, data_state = run.start, None
+
+    def save(step: int, force: bool = False) -> None:
+        nonlocal checked, unconfirmed, saved
+        if not (force or step % config.train.checkpoint_every == 0):
+            return
+        bad = _first_non_finite(window[checked:])
+        if bad:
+            raise _non_finite_error(*bad, "", ckpts)
+        checked = len(window)
+        if not bool(_all_finite(state)):
+            raise _non_finite_error(step, float("nan"), float("nan"),
+                                    "Its update left non-finite parameters, not saved; ", ckpts)
+        ckpts.save(step, state, data_state, run.norm_stats_json, config, force=True)
+        unconfirmed, saved = step, step
+
     try:
         with jax.set_mesh(run.mesh), tqdm(total=total_steps, initial=run.start, desc="train",
                                           unit="step", disable=not is_main,
                                           dynamic_ncols=True) as bar:
             step_metrics = None
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
+                if stop.due(done):
+                    break
                 fetch_start = time.perf_counter()
                 try:
                     batch, data_state, batch_phase = next(batches)
@@ -262,12 +349,24 @@ def train_loop(run: Run) -> dict[str, float]:
                     _say(f"curriculum phase {phase} from step {step - 1}: "
                          f"{train_iter.curriculum.phases[phase].weights}")
                 state, step_metrics = run.train_step(state, batch)
+                done = step
                 window.append((step, step_metrics))
                 bar.update()
 
+                if unconfirmed is not None:  # the step computed from the checkpoint
+                    bad = _first_non_finite(window[-1:])
+                    if bad:
+                        moved = ckpts.set_aside(unconfirmed, "nonfinite")
+                        raise _non_finite_error(
+                            *bad, f"Checkpoint {unconfirmed}, the state it started from, was "
+                            f"moved to {moved}; ", ckpts)
+                    ckpts.confirm(unconfirmed)
+                    unconfirmed = None
                 last = step == total_steps
                 if step % config.train.log_every == 0 or last:
-                    _check_finite(window[checked:])
+                    bad = _first_non_finite(window[checked:])
+                    if bad:
+                        raise _non_finite_error(*bad, "", ckpts)
                     elapsed = time.perf_counter() - window_start
                     record = {**_summarize(window), "phase": phase,
                               "steps_per_sec": len(window) / elapsed,
@@ -276,18 +375,28 @@ def train_loop(run: Run) -> dict[str, float]:
                     bar.set_postfix(loss=f"{record['loss']:.4f}", phase=phase)
                     window, checked = [], 0
                     wait, window_start = 0.0, time.perf_counter()
-                if step % config.train.checkpoint_every == 0 or last:
-                    _check_finite(window[checked:])
-                    checked = len(window)
-                    run.checkpoints.save(step, state, data_state, run.norm_stats_json, config,
-                                         force=last)
+                save(step, force=last)
+                if last:  # no step follows the final state: its own finiteness is the check
+                    ckpts.confirm(step)
                 if run.evaluator is not None and (step % config.eval.every == 0 or last):
                     _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
+        if done < total_steps:  # stopped by a signal
+            if config.train.save_on_preemption and done > saved:
+                save(done, force=True)
+            ckpts.wait()  # the save in flight, if any, is finished
+            kept = (f"saved checkpoint {ckpts.directory / str(done)}" if saved == done
+                    else f"the last checkpoint is step {saved}" if saved
+                    else "no checkpoint was saved")
+            raise Stopped(f"stopped by {stop.name} after step {done}: {kept}; rerun the same "
+                          "command to resume", stop.signum or 15)
+    except preemption.Abandoned:
+        abandoned = True
+        raise
     finally:
         batches.close()
-        run.checkpoints.wait()
-        run.checkpoints.close()
+        if not abandoned:  # an abandoned save is left to orbax's atomic rename
+            ckpts.close()
         writer.close()
         train_iter.close()
         if run.lock is not None:
@@ -315,12 +424,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
       ConfigurationError: a config, layout, data or checkpoint error, before any step.
       NonFiniteLossError: a step's loss or gradient is not finite.
       DataError: a dataset file could not be read during training.
+      Stopped: SIGTERM or SIGINT stopped the run after a step (and its save).
+      preemption.Abandoned: a second signal stopped it at once.
     """
-    try:
-        run = prepare(config, workdir)
-    except ValueError as e:
-        raise ConfigurationError(str(e)) from e
-    return train_loop(run)
+    with preemption.stop_on_signals(_say) as stop:
+        try:
+            run = prepare(config, workdir)
+        except ValueError as e:
+            raise ConfigurationError(str(e)) from e
+        return train_loop(run, stop)
 
 
 def _say(message: str) -> None:
@@ -413,6 +525,14 @@ def main(argv: Sequence[str]) -> None:
         record = train_and_evaluate(config, workdir)
     except (ConfigurationError, NonFiniteLossError, DataError) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
+    except Stopped as e:
+        print(f"pi0_armfix.train: {e}", file=sys.stderr)
+        raise SystemExit(128 + e.signum) from None
+    except preemption.Abandoned as e:
+        print(f"pi0_armfix.train: stopped at once by a second {e}: the checkpoint being "
+              "written (if any) is abandoned; the last complete one is kept", file=sys.stderr)
+        sys.stderr.flush()
+        os._exit(128 + e.signum)  # noqa: SLF001 - no waiting on the save threads
     if jax.process_index() == 0:
         layout = ActionLayout.from_config(config.layout)
         print(f"\nfinished {config.train.total_steps} steps in {workdir}; last logged losses "

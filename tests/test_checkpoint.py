@@ -43,22 +43,72 @@ def test_restore_returns_the_saved_state_and_data_iterator_state(tmp_path):
     assert data_state == DATA_STATE
 
 
-def test_only_the_latest_keep_checkpoints_are_kept(tmp_path):
+def test_retention_keeps_the_latest_keep_confirmed_checkpoints(tmp_path):
     ckpts = checkpoint.Checkpoints(tmp_path, every=1, keep=2)
     for step in (1, 2, 3):
         ckpts.save(step, _state(step), DATA_STATE, NORM_STATS, _config())
+        ckpts.confirm(step)
+    ckpts.close()
+    assert checkpoint.Checkpoints(tmp_path, read_only=True).all_steps() == [2, 3]
+
+
+def test_retention_never_deletes_the_last_confirmed_checkpoint(tmp_path):
+    # keep=1: step 2 is saved but its next step never ran, so step 1 stays until 2 is confirmed.
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1, keep=1)
+    ckpts.save(1, _state(1.0), DATA_STATE, NORM_STATS, _config())
+    ckpts.confirm(1)
+    ckpts.save(2, _state(2.0), DATA_STATE, NORM_STATS, _config())
+    ckpts.close()
+    assert checkpoint.Checkpoints(tmp_path, read_only=True).all_steps() == [1, 2]
+
+
+def test_a_set_aside_checkpoint_leaves_the_steps_and_is_kept_under_its_reason(tmp_path):
+    ckpts = checkpoint.Checkpoints(tmp_path / "checkpoints", every=1, keep=1)
+    for step in (1, 2):
+        ckpts.save(step, _state(step), DATA_STATE, NORM_STATS, _config())
+    moved = ckpts.set_aside(2, "nonfinite")
+    assert moved == tmp_path / "checkpoints.nonfinite" / "2" and (moved / "state").is_dir()
+    assert ckpts.all_steps() == [1] and ckpts.latest_step() == 1
+    ckpts.close()
+
+
+def _damage(step_dir, how):
+    """Deletes or truncates the array data file of a saved step's state."""
+    data_file = next(p for p in (step_dir / "state" / "d").iterdir())
+    if how == "delete":
+        data_file.unlink()
+    else:
+        with open(data_file, "r+b") as f:
+            f.truncate(data_file.stat().st_size // 2)
+
+
+@pytest.mark.parametrize("how", ["delete", "truncate"])
+def test_a_damaged_latest_checkpoint_is_named_set_aside_and_the_previous_one_restored(tmp_path,
+                                                                                     how):
+    ckpts = checkpoint.Checkpoints(tmp_path / "checkpoints", every=1)
+    for step in (1, 2):
+        ckpts.save(step, _state(step), {"step": step}, NORM_STATS, _config())
     ckpts.wait()
-    assert ckpts.all_steps() == [2, 3]
-    assert ckpts.latest_step() == 3
+    _damage(tmp_path / "checkpoints" / "2", how)
+    said = []
+    step, state, data_state = ckpts.restore_latest(
+        _abstract(_state(0.0), sharding.make_mesh(1)), say=said.append)
+    assert (step, data_state) == (1, {"step": 1})
+    jax.tree.map(np.testing.assert_array_equal, state, _state(1.0))
+    assert len(said) == 1 and f"checkpoint {tmp_path / 'checkpoints' / '2'} is damaged" in said[0]
+    assert "resuming from step 1" in said[0]
+    assert (tmp_path / "checkpoints.damaged" / "2").is_dir() and ckpts.all_steps() == [1]
 
 
-def test_checkpoint_of_another_state_tree_is_a_clear_error(tmp_path):
+def test_when_every_checkpoint_is_damaged_restore_latest_says_so_and_moves_nothing(tmp_path):
     ckpts = checkpoint.Checkpoints(tmp_path, every=1)
     ckpts.save(1, _state(1.0), DATA_STATE, NORM_STATS, _config())
     ckpts.wait()
-    other = {"step": jnp.int32(0), "params": {"v": jnp.zeros((3,))}}
-    with pytest.raises(ValueError, match="does not match this run"):
-        ckpts.restore(1, _abstract(other, sharding.make_mesh(1)))
+    _damage(tmp_path / "1", "delete")
+    with pytest.raises(ValueError, match=r"no checkpoint in .* can be read: checkpoint .*1 is "
+                                         r"damaged .*train.resume=new"):
+        ckpts.restore_latest(_abstract(_state(0.0), sharding.make_mesh(1)))
+    assert ckpts.all_steps() == [1]
 
 
 def test_restore_for_eval_reads_state_norm_stats_and_config_without_a_target(tmp_path):

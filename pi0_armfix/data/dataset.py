@@ -334,6 +334,7 @@ def _key_path(cache_path: Path) -> Path:
 def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
                                cache_path: str | Path | None = None, progress: bool = True,
                                source=None, resuming: bool = False,
+                               keep_cached: bool = False,
                                episodes: np.ndarray | None = None
                                ) -> dict[str, stats_lib.NormStats]:
     """The run's normalization statistics `{"actions", "state"}`.
@@ -343,7 +344,9 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
     key (`norm_stats_key`) equals this config's; else `dataset_norm_stats`, balanced
     (`motion.balanced_norm_stats`, capped at `data.balanced_max_scale`) when `data.balanced_norm`,
     written to `cache_path` with its key. A cache whose key differs is recomputed, or refused
-    when `resuming` (a run whose checkpoints were trained with the cached stats). `episodes`:
+    when `resuming` (a run whose checkpoints were trained with the cached stats), or kept with
+    `keep_cached` (a run resumed with `train.resume=force`: its params were trained with them),
+    its key rewritten to this config's. `episodes`:
     those the statistics are computed over (default: the training episodes; the tools' --episodes
     only, without a cache). The state entry
     keeps the file's width (openpi pads it); `BatchTransform` cuts it to the dataset's state width.
@@ -363,6 +366,11 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
             return stats_lib.load_norm_stats(cache_path, widths)
         differing = sorted(k for k in set(key) | set(cached or {})
                            if (cached or {}).get(k) != key.get(k))
+        if keep_cached:
+            logging.warning("%s: keeping the norm stats the run was trained with (differing: %s)",
+                            cache_path, differing)
+            stats_lib.write_json_atomic(_key_path(cache_path), key)
+            return stats_lib.load_norm_stats(cache_path, widths)
         if resuming:
             if cached is None:  # a run from before the key existed: keep what it trained with
                 logging.warning("%s has no key file; reusing it for the resumed run", cache_path)

@@ -29,7 +29,10 @@ iterator state is just the step.
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -85,6 +88,20 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
 
 # ---------------------------------------------------------------------- the iterator
 
+def die_with_parent(worker_index: int, worker_count: int) -> None:
+    """Grain worker init: the worker exits within a second of its parent's death. A killed run
+    (SIGKILL, OOM killer) runs no cleanup, and a worker holds a copy of the pipeline's memory."""
+    del worker_index, worker_count
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)  # noqa: SLF001 - nothing of a worker's is worth a cleanup
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
 class TrainIterator:
     """Global batches, step after step, with a checkpointable position.
 
@@ -121,7 +138,8 @@ class TrainIterator:
         dataset = self._batches[self.step:].to_iter_dataset(options)
         if self._num_workers:
             dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(
-                num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)))
+                num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)),
+                worker_init_fn=die_with_parent)
         self._iterator = iter(dataset)
 
     def __iter__(self) -> "TrainIterator":

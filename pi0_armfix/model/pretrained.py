@@ -58,6 +58,46 @@ def check_tree(found: Mapping[tuple[str, ...], tuple[int, ...]],
         raise ValueError(f"checkpoint {source} does not fit the model: " + "; ".join(problems))
 
 
+def _checkpoint_paths(directory: pathlib.Path, checkpointer: ocp.PyTreeCheckpointer,
+                      config: Pi0Config) -> dict[tuple[str, ...], tuple[str, ...]]:
+    """Checkpoint path -> model path of every array of the openpi params checkpoint `directory`,
+    after checking its tree against `config`'s (only the orbax metadata is read)."""
+    source = repr(str(directory))
+    fix = ("point model.pretrained at an openpi params folder (e.g. <openpi checkpoint>/params, "
+           "which holds _METADATA)")
+    if not directory.is_dir():
+        raise ValueError(f"model.pretrained: {source} is not a directory; {fix}")
+    try:
+        metadata = checkpointer.metadata(directory)
+        tree = None if metadata is None or metadata.item_metadata is None \
+            else metadata.item_metadata.tree
+    except Exception as e:  # noqa: BLE001 - orbax raises many kinds on a folder of other files
+        raise ValueError(f"model.pretrained: {source} is not a readable orbax checkpoint "
+                         f"({type(e).__name__}: {str(e).splitlines()[0][:200]}); {fix}") from e
+    if not tree:
+        contents = sorted(p.name for p in directory.iterdir())[:5]
+        raise ValueError(f"model.pretrained: {source} is not an orbax checkpoint (it holds "
+                         f"{contents or 'nothing'}); {fix}")
+    if set(tree) != {"params"}:
+        raise ValueError(f"pretrained checkpoint {source} has top-level keys {sorted(tree)}; "
+                         "an openpi params checkpoint has exactly ['params']")
+    flat_meta = _flatten(tree)
+    # NNX training checkpoints end every path in "value"; strip it only when all paths do.
+    strip_value = all(p[-1] == "value" for p in flat_meta)
+    # Checkpoint path -> model path: drop the "params" root (and the "value" level).
+    to_model = {p: p[1:-1] if strip_value else p[1:] for p in flat_meta}
+    expected = {p: leaf.shape for p, leaf in _flatten(param_shapes(config)).items()}
+    check_tree({to_model[p]: leaf.shape for p, leaf in flat_meta.items()}, expected, source)
+    return to_model
+
+
+def check_pretrained(path: str | os.PathLike, config: Pi0Config) -> None:
+    """Raises ValueError (naming the folder and the fix) unless `path` is an openpi params
+    checkpoint that fits `config`; reads only its metadata."""
+    with ocp.PyTreeCheckpointer() as checkpointer:
+        _checkpoint_paths(pathlib.Path(path).expanduser().resolve(), checkpointer, config)
+
+
 def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
                     shardings: Mapping[str, Any] | None = None) -> Params:
     """Restores an openpi params checkpoint whose tree equals `config`'s parameter tree.
@@ -71,25 +111,8 @@ def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
       the nested params dict, float32 leaves.
     """
     directory = pathlib.Path(path).expanduser().resolve()
-    source = repr(str(directory))
-    if not directory.is_dir():
-        raise ValueError(f"pretrained checkpoint {source} is not a directory")
     with ocp.PyTreeCheckpointer() as checkpointer:
-        try:
-            metadata = checkpointer.metadata(directory).item_metadata.tree
-        except (FileNotFoundError, ValueError) as e:
-            raise ValueError(f"pretrained checkpoint {source} is not an orbax checkpoint: {e}") from e
-        if set(metadata) != {"params"}:
-            raise ValueError(f"pretrained checkpoint {source} has top-level keys {sorted(metadata)}; "
-                             "an openpi params checkpoint has exactly ['params']")
-        flat_meta = _flatten(metadata)
-        # NNX training checkpoints end every path in "value"; strip it only when all paths do.
-        strip_value = all(p[-1] == "value" for p in flat_meta)
-        # Checkpoint path -> model path: drop the "params" root (and the "value" level).
-        to_model = {p: p[1:-1] if strip_value else p[1:] for p in flat_meta}
-        expected = {p: leaf.shape for p, leaf in _flatten(param_shapes(config)).items()}
-        check_tree({to_model[p]: leaf.shape for p, leaf in flat_meta.items()}, expected, source)
-
+        to_model = _checkpoint_paths(directory, checkpointer, config)
         flat_shardings = _flatten(shardings) if shardings is not None else {}
 
         def restore_args(p):
@@ -98,6 +121,6 @@ def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
             return ocp.ArrayRestoreArgs(restore_type=jax.Array, dtype=np.float32,
                                         sharding=flat_shardings[to_model[p]])
 
-        args = _unflatten({p: restore_args(p) for p in flat_meta})
+        args = _unflatten({p: restore_args(p) for p in to_model})
         restored = checkpointer.restore(directory, ocp.args.PyTreeRestore(restore_args=args))
     return _unflatten({to_model[p]: leaf for p, leaf in _flatten(restored).items()})

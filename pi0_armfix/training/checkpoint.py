@@ -5,15 +5,24 @@
                                            pipeline's sample order is a pure function of the step
                               /norm_stats  the run's normalization stats (openpi format)
                               /config      the run's config
+  <workdir>/checkpoints.<reason>/<step>/   a checkpoint set aside, never deleted: `nonfinite` (the
+                                           step after it was NaN/inf), `damaged` (unreadable)
 
 Orbax writes a step into a temporary folder and renames it into place only when every item of every
 process is written (its atomic finalize), so a run killed mid-save leaves the previous step as the
 latest one; the temporary folder is ignored on restore and removed by the next save.
+
+A checkpoint is *confirmed* once the step computed from it had a finite loss and gradient (its
+params can be finite and still overflow the next forward pass). Retention counts only confirmed
+checkpoints: the newest `keep` confirmed ones and every newer one stay, so the last checkpoint a
+run can go on from is never deleted. An unconfirmed latest checkpoint (a run killed right after
+saving it) is confirmed or set aside by the first step of the resumed run.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -21,6 +30,7 @@ import jax
 import ml_collections
 import orbax.checkpoint as ocp
 from etils import epath
+from jax.experimental import multihost_utils
 
 from pi0_armfix.training import sharding as sharding_lib
 
@@ -32,13 +42,48 @@ def has_checkpoints(directory: epath.PathLike) -> bool:
     return directory.is_dir() and any(p.name.isdigit() for p in directory.iterdir())
 
 
+def _leaf_shapes(tree: Any) -> dict[str, tuple[int, ...]]:
+    """`{"params/a/b": shape}` of the array leaves of a state tree or of its orbax metadata (a
+    dataclass's fields and a dict's keys name a level alike)."""
+    def name(key) -> str:
+        for attr in ("name", "key", "idx"):
+            if hasattr(key, attr):
+                return str(getattr(key, attr))
+        return str(key)
+
+    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return {"/".join(name(k) for k in path): tuple(leaf.shape) for path, leaf in leaves
+            if hasattr(leaf, "shape")}
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0][:200] if text else ''}"
+
+
+def _drop_closed_loop_noise() -> None:
+    """Silences the "Event loop is closed" that tensorstore's late callbacks raise into a finished
+    orbax restore after a read failed: the failure itself is reported, this is its echo."""
+    previous = sys.unraisablehook
+    if getattr(previous, "drops_closed_loop_noise", False):
+        return
+
+    def hook(unraisable):
+        if not (isinstance(unraisable.exc_value, RuntimeError)
+                and "Event loop is closed" in str(unraisable.exc_value)):
+            previous(unraisable)
+
+    hook.drops_closed_loop_noise = True
+    sys.unraisablehook = hook
+
+
 class Checkpoints:
     """The checkpoints of one run folder.
 
     Args:
       directory: `<workdir>/checkpoints`.
       every: a save is kept every `every` steps (the final step is always saved with force=True).
-      keep: how many of the latest checkpoints are kept (older ones are deleted).
+      keep: how many confirmed checkpoints are kept (older ones are deleted); None keeps all.
     """
 
     def __init__(self, directory: epath.PathLike, *, every: int = 1, keep: int | None = None,
@@ -48,10 +93,12 @@ class Checkpoints:
         if keep is not None and keep <= 0:
             raise ValueError(f"train.keep_checkpoints = {keep} must be positive")
         self.directory = epath.Path(directory).absolute()  # orbax wants absolute paths
+        self._keep = None if read_only else keep
+        self._confirmed: int | None = None  # the newest step known to be good
         self._manager = ocp.CheckpointManager(
             self.directory,
             options=ocp.CheckpointManagerOptions(
-                save_interval_steps=every, max_to_keep=keep, create=not read_only,
+                save_interval_steps=every, max_to_keep=None, create=not read_only,
                 read_only=read_only, cleanup_tmp_directories=not read_only),
             item_handlers={
                 "state": ocp.StandardCheckpointHandler(),
@@ -64,12 +111,17 @@ class Checkpoints:
         return self._manager.latest_step()
 
     def all_steps(self) -> list[int]:
-        return list(self._manager.all_steps())
+        return sorted(self._manager.all_steps())
 
     def save(self, step: int, state: Any, data_state: Mapping[str, Any],
              norm_stats: Mapping[str, Any], config: ml_collections.ConfigDict, *,
              force: bool = False) -> bool:
-        """Starts an asynchronous save of `step`; True if one was started (see `every`)."""
+        """Starts an asynchronous save of `step` (after the previous save is finished and the
+        checkpoints retention drops are deleted); True if one was started (see `every`)."""
+        if not (force or self._manager.should_save(step)):
+            return False
+        self._manager.wait_until_finished()
+        self._prune()
         return self._manager.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state),
             data=ocp.args.JsonSave(dict(data_state)),
@@ -77,18 +129,98 @@ class Checkpoints:
             config=ocp.args.JsonSave(json.loads(config.to_json_best_effort())),
         ), force=force)
 
+    def confirm(self, step: int) -> None:
+        """Marks `step` good: the step computed from it was finite. Older checkpoints beyond
+        `keep` are deleted at the next save or close."""
+        self._confirmed = max(step, self._confirmed or 0)
+
+    def set_aside(self, step: int, reason: str) -> epath.Path:
+        """Moves checkpoint `step` (after its save is finished) to `checkpoints.<reason>/<step>`,
+        where neither a restore nor retention sees it; returns the new path."""
+        self._manager.wait_until_finished()
+        destination = self.directory.parent / f"{self.directory.name}.{reason}" / str(step)
+        if jax.process_index() == 0:
+            destination.parent.mkdir(parents=True, exist_ok=True)
+            if destination.exists():  # set aside before, by an earlier attempt of the same run
+                destination = destination.parent / f"{step}.{len(list(destination.parent.iterdir()))}"
+            (self.directory / str(step)).rename(destination)
+        if jax.process_count() > 1:
+            multihost_utils.sync_global_devices(f"checkpoint set aside {step}")
+        self._manager.reload()
+        return destination
+
+    def _prune(self) -> None:
+        if self._keep is None or self._confirmed is None:
+            return
+        confirmed = [s for s in self.all_steps() if s <= self._confirmed]
+        for step in confirmed[:-self._keep]:
+            self._manager.delete(step)
+
+    def check_matches(self, step: int, abstract_state: Any) -> None:
+        """Raises ValueError naming the differing arrays when checkpoint `step` holds another
+        state tree than `abstract_state` (another model, loss strategy, EMA setting); an
+        unreadable description is left for the restore to report as damage."""
+        try:
+            metadata = self._manager.item_metadata(step)["state"]
+        except Exception:  # noqa: BLE001 - damaged: the restore says so
+            return
+        if metadata is None:
+            return
+        saved, expected = _leaf_shapes(metadata), _leaf_shapes(abstract_state)
+        if saved == expected:
+            return
+        differing = [f"{k}: saved {saved.get(k, 'absent')}, this run {expected.get(k, 'absent')}"
+                     for k in sorted(set(saved) | set(expected)) if saved.get(k) != expected.get(k)]
+        raise ValueError(
+            f"checkpoint {self.directory / str(step)} holds another train state than this run "
+            f"builds ({len(differing)} arrays differ: {'; '.join(differing[:4])}"
+            f"{'; ...' if len(differing) > 4 else ''}): the model, loss strategy or optim."
+            "ema_decay differs from the run's; resume with its config or use another --workdir")
+
     def restore(self, step: int, abstract_state: Any) -> tuple[Any, dict[str, Any]]:
         """The state of `step`, in the shardings of `abstract_state` (a tree of
-        ShapeDtypeStructs), and the data iterator's state. Returns `(state, data_state)`."""
+        ShapeDtypeStructs), and the data iterator's state. Returns `(state, data_state)`.
+
+        Raises:
+          ValueError: the checkpoint holds another state tree (`check_matches`).
+          DamagedCheckpointError: a file of the checkpoint is missing or unreadable.
+        """
+        self.check_matches(step, abstract_state)
         try:
             restored = self._manager.restore(step, args=ocp.args.Composite(
                 state=ocp.args.StandardRestore(abstract_state),
                 data=ocp.args.JsonRestore(),
             ))
-        except (ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"checkpoint {self.directory / str(step)} does not match this run "
-                             f"(different model, loss strategy or process count?): {e}") from e
+        except Exception as e:  # noqa: BLE001 - tensorstore, json and os errors alike
+            _drop_closed_loop_noise()
+            raise DamagedCheckpointError(self.directory / str(step), e) from e
         return restored["state"], restored["data"]
+
+    def restore_latest(self, abstract_state: Any, say=print
+                       ) -> tuple[int, Any, dict[str, Any]] | None:
+        """The newest checkpoint that restores: `(step, state, data_state)`, or None when there
+        is none. Damaged newer checkpoints are reported with `say` and set aside to
+        `checkpoints.damaged/` once an older one has restored.
+
+        Raises:
+          ValueError: every checkpoint is damaged (nothing is moved), or holds another state.
+        """
+        damaged: list[DamagedCheckpointError] = []
+        for step in reversed(self.all_steps()):
+            try:
+                state, data_state = self.restore(step, abstract_state)
+            except DamagedCheckpointError as e:
+                damaged.append(e)
+                continue
+            for error in damaged:
+                moved = self.set_aside(int(error.path.name), "damaged")
+                say(f"warning: {error}: moved it to {moved}; resuming from step {step} instead")
+            return step, state, data_state
+        if damaged:
+            raise ValueError(f"no checkpoint in {self.directory} can be read: "
+                             + "; ".join(str(e) for e in damaged)
+                             + ". Restore the files, or start over with --config.train.resume=new")
+        return None
 
     def restore_for_eval(self, step: int, mesh: jax.sharding.Mesh
                          ) -> tuple[dict[str, Any], dict[str, Any], ml_collections.ConfigDict]:
@@ -112,4 +244,15 @@ class Checkpoints:
         self._manager.wait_until_finished()
 
     def close(self) -> None:
+        """Waits for the pending save, deletes what retention drops, closes the manager."""
+        self._manager.wait_until_finished()
+        self._prune()
         self._manager.close()
+
+
+class DamagedCheckpointError(ValueError):
+    """A checkpoint whose files are missing or unreadable (a disk error, a deleted file)."""
+
+    def __init__(self, path: epath.Path, error: BaseException):
+        super().__init__(f"checkpoint {path} is damaged ({_first_line(error)})")
+        self.path = path

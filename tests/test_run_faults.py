@@ -1,0 +1,243 @@
+"""Runs that survive users and clusters: non-finite steps, resumes with another config, damaged
+checkpoints, preemption signals, orphaned workers."""
+
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import time
+
+import pytest
+
+import train_fixtures as tf
+from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+from configs import base
+from pi0_armfix import train
+from pi0_armfix.training import checkpoint, fingerprint, preemption
+
+
+def _config(config_module=base, **overrides):
+    config = config_module.get_config()
+    config.update_from_flattened_dict(overrides)
+    return config
+
+
+# ---------------------------------------------------------------- a step that goes non-finite
+
+def test_a_run_that_goes_non_finite_at_step_n_plus_1_keeps_checkpoint_n_minus_1_resumable(
+        tmp_path, cache_dir, demo_root):
+    # lr 1e5 after a warmup: the params grow for a few steps, then step N+1 is not finite. State N
+    # was finite itself (its params merely huge) and is set aside; keep_checkpoints=1 keeps N-1.
+    workdir = tmp_path / "run"
+    overrides = tf.tiny_overrides(demo_root, train__total_steps=12, train__checkpoint_every=1,
+                                  train__keep_checkpoints=1, optim__lr=1e5,
+                                  optim__warmup_steps=20)
+    blown = tf.run_train("configs/uniform.py", workdir, overrides, cache_dir)
+    assert blown.returncode == 1 and "Traceback" not in blown.stderr
+    line = blown.stderr.strip().splitlines()[-1]
+    bad_step = int(re.search(r"step (\d+) has loss", line).group(1))
+    n = bad_step - 1
+    assert n >= 2, line  # the test needs a finite step before the one set aside
+    assert f"Checkpoint {n}, the state it started from, was moved to {workdir}/checkpoints." \
+           f"nonfinite/{n}; a rerun resumes from checkpoint {n - 1}" in line
+    assert checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).all_steps() == [n - 1]
+    assert (workdir / "checkpoints.nonfinite" / str(n) / "state").is_dir()
+
+    resumed = tf.run_train("configs/uniform.py", workdir, {**overrides, "optim.lr": 1e-3},
+                           cache_dir)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "resumed from" in resumed.stdout and "optim.lr: 100000.0 -> 0.001" in resumed.stdout
+    losses = [r["loss"] for r in tf.records(workdir) if "loss" in r]
+    assert len(losses) == 12 and all(loss is not None for loss in losses)
+
+
+# ---------------------------------------------------------------- resume with another config
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory, demo_root):
+    """A finished 2-step run of configs/uniform.py on the tiny demo, and its overrides."""
+    workdir = tmp_path_factory.mktemp("finished") / "run"
+    overrides = tf.tiny_overrides(demo_root, loss__strategy="uniform")
+    train.train_and_evaluate(_config(**overrides), str(workdir))
+    return workdir, overrides
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"loss.strategy": "per_group"}, "loss.strategy: 'uniform' -> 'per_group'"),
+    ({"layout.groups": {"base": (0, 3), "torso": (3, 7), "arms": (7, 23)}, "layout.real_dim": 23},
+     "layout.groups.arms: (absent) -> [7, 23]"),
+    ({"data.root": "COPY"}, "data.root: "),
+])
+def test_a_resume_with_another_layout_strategy_or_data_root_is_refused_naming_the_keys(
+        finished_run, tmp_path, change, key):
+    workdir, overrides = finished_run
+    if change.get("data.root") == "COPY":
+        change = {"data.root": str(shutil.copytree(overrides["data.root"], tmp_path / "other"))}
+    before = sorted(p.name for p in workdir.iterdir())
+    with pytest.raises(train.ConfigurationError) as refused:
+        train.train_and_evaluate(_config(**{**overrides, **change}), str(workdir))
+    message = str(refused.value)
+    assert f"workdir {workdir} holds a run with another config" in message
+    assert key in message
+    assert "--config.train.resume=new" in message and "--config.train.resume=force" in message
+    assert sorted(p.name for p in workdir.iterdir()) == before
+
+
+def test_resume_force_goes_on_with_the_new_values_and_keeps_the_norm_stats(finished_run,
+                                                                         tmp_path, capsys):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    other_root = shutil.copytree(finished_run[1]["data.root"], tmp_path / "other")
+    stats = (workdir / "norm_stats.json").read_text()
+    overrides = {**finished_run[1], "data.root": str(other_root), "train.total_steps": 4,
+                 "train.resume": "force"}
+    train.train_and_evaluate(_config(**overrides), str(workdir))
+    assert "train.resume=force: going on with changed data.root" in capsys.readouterr().out
+    assert checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).latest_step() == 4
+    assert (workdir / "norm_stats.json").read_text() == stats
+    assert json.loads((workdir / "config.json").read_text())["data"]["root"] == str(other_root)
+
+
+def test_resume_new_archives_the_old_run_and_starts_at_step_zero(finished_run, tmp_path, capsys):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    overrides = {**finished_run[1], "loss.strategy": "per_group", "train.resume": "new"}
+    train.train_and_evaluate(_config(**overrides), str(workdir))
+    assert "the previous run moved to" in capsys.readouterr().out
+    archived = list((workdir / "archive").iterdir())
+    assert len(archived) == 1 and (archived[0] / "checkpoints" / "2").is_dir()
+    assert json.loads((archived[0] / "config.json").read_text())["loss"]["strategy"] == "uniform"
+    assert [r["step"] for r in tf.records(workdir) if "loss" in r] == [1, 2]
+
+
+def test_optimizer_and_schedule_changes_resume_with_a_note(finished_run, tmp_path, capsys):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    overrides = {**finished_run[1], "train.total_steps": 3, "optim.lr": 5e-4}
+    train.train_and_evaluate(_config(**overrides), str(workdir))
+    out = capsys.readouterr().out
+    assert "resuming with changed settings: optim.lr: 0.001 -> 0.0005; train.total_steps: 2 -> 3" \
+        in out
+
+
+def test_fingerprint_keys_are_what_gives_the_saved_state_its_meaning():
+    for key in ("seed", "model.preset", "loss.group_weights.left_arm", "layout.preset",
+                "data.root", "data.curriculum", "train.batch_size"):
+        assert fingerprint.is_fingerprint_key(key), key
+    for key in ("optim.lr", "train.total_steps", "eval.every", "data.num_workers",
+                "model.pretrained", "sharding.fsdp"):
+        assert not fingerprint.is_fingerprint_key(key), key
+
+
+def test_a_relative_and_an_absolute_data_root_of_one_folder_are_the_same_run(tmp_path,
+                                                                            monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    changed, _ = fingerprint.differences({"data": {"root": "demo"}},
+                                         {"data": {"root": str(tmp_path / "demo")}})
+    assert changed == []
+
+
+# ---------------------------------------------------------------- preemption and Ctrl-C
+
+def _start(workdir, overrides, cache_dir, log):
+    return subprocess.Popen(tf.train_command("configs/uniform.py", workdir, overrides),
+                            env=tf.env(cache_dir), cwd=tf.REPO_ROOT, stdout=log,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(predicate, process, what, timeout=600):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert process.poll() is None, f"the run ended before {what}: {process.stderr.read()}"
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.005)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_during_a_save_finishes_it_saves_the_current_step_and_exits_with_one_line(
+        tmp_path, cache_dir, demo_root, signum):
+    workdir = tmp_path / "run"
+    overrides = tf.tiny_overrides(demo_root, train__total_steps=400, train__checkpoint_every=2,
+                                  train__log_every=2)
+    with open(tmp_path / "stdout.log", "w") as log:
+        run = _start(workdir, overrides, cache_dir, log)
+        saving = lambda: any(".orbax-checkpoint-tmp" in p.name  # noqa: E731
+                             for p in (workdir / "checkpoints").glob("*"))
+        _wait_for(saving, run, "save in flight")
+        run.send_signal(signum)
+        _, stderr = run.communicate(timeout=300)
+    assert run.returncode == 128 + signum
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr
+    line = stderr.strip().splitlines()[-1]
+    name = signal.Signals(signum).name
+    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
+    stopped_at = ckpts.latest_step()
+    assert line == (f"pi0_armfix.train: stopped by {name} after step {stopped_at}: saved "
+                    f"checkpoint {workdir / 'checkpoints' / str(stopped_at)}; rerun the same "
+                    "command to resume")
+    assert not any(".orbax-checkpoint-tmp" in p.name for p in (workdir / "checkpoints").iterdir())
+
+    resumed = tf.run_train("configs/uniform.py", workdir,
+                           {**overrides, "train.total_steps": stopped_at + 2}, cache_dir)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed from {workdir / 'checkpoints' / str(stopped_at)}" in resumed.stdout
+
+
+def test_a_second_signal_abandons_at_once():
+    said, before = [], signal.getsignal(signal.SIGTERM)
+    with preemption.stop_on_signals(said.append) as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.due(0) and stop.name == "SIGTERM"
+        with pytest.raises(preemption.Abandoned):
+            os.kill(os.getpid(), signal.SIGINT)
+    assert said == ["received SIGTERM: stopping after the current step (send it again to stop "
+                    "at once)"]
+    assert signal.getsignal(signal.SIGTERM) is before  # the handlers are restored
+
+
+def test_save_on_preemption_off_keeps_the_last_regular_checkpoint(tmp_path, cache_dir,
+                                                                  demo_root):
+    workdir = tmp_path / "run"
+    overrides = tf.tiny_overrides(demo_root, train__total_steps=400, train__checkpoint_every=1000,
+                                  train__save_on_preemption=False)
+    with open(tmp_path / "stdout.log", "w") as log:
+        run = _start(workdir, overrides, cache_dir, log)
+        _wait_for(lambda: (workdir / "metrics.jsonl").exists()
+                  and (workdir / "metrics.jsonl").read_text().count("\n") >= 2, run, "2 steps")
+        run.send_signal(signal.SIGTERM)
+        _, stderr = run.communicate(timeout=300)
+    assert run.returncode == 128 + signal.SIGTERM
+    assert "no checkpoint was saved; rerun the same command to resume" in stderr
+    assert not checkpoint.has_checkpoints(workdir / "checkpoints")
+
+
+# ---------------------------------------------------------------- orphaned data workers
+
+def _children(pid):
+    result = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True)
+    return [int(p) for p in result.stdout.split()]
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as f:  # a zombie is dead, only not yet reaped
+        return f.read().split(")")[-1].split()[0] != "Z"
+
+
+def test_data_workers_die_with_a_killed_run(tmp_path, cache_dir, demo_root):
+    workdir = tmp_path / "run"
+    overrides = tf.tiny_overrides(demo_root, train__total_steps=400, data__num_workers=2)
+    with open(tmp_path / "stdout.log", "w") as log:
+        run = _start(workdir, overrides, cache_dir, log)
+        _wait_for(lambda: (workdir / "metrics.jsonl").exists()
+                  and (workdir / "metrics.jsonl").read_text().count("\n") >= 1, run, "a step")
+        workers = _children(run.pid)
+        assert len(workers) >= 2, workers
+        run.send_signal(signal.SIGKILL)
+        run.wait()
+    deadline = time.monotonic() + 30
+    while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(p) for p in workers), "data workers outlived their run"
