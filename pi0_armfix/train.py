@@ -44,7 +44,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import functools
+import logging as std_logging
 import os
 import re
 import sys
@@ -310,7 +312,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     # The next global batches are built (host -> device included) in a background thread.
     batches = stats_lib.prefetched(_with_position(train_iter), depth=2)
     wait, window_start = 0.0, time.perf_counter()
-    abandoned = False
+    abandoned = failed = False
     done, data_state = run.start, None
 
     def save(step: int, force: bool = False) -> None:
@@ -349,6 +351,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     _say(f"curriculum phase {phase} from step {step - 1}: "
                          f"{train_iter.curriculum.phases[phase].weights}")
                 state, step_metrics = run.train_step(state, batch)
+                ckpts.check_for_errors()
                 done = step
                 window.append((step, step_metrics))
                 bar.update()
@@ -393,10 +396,17 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     except preemption.Abandoned:
         abandoned = True
         raise
+    except BaseException:
+        failed = True
+        raise
     finally:
         batches.close()
         if not abandoned:  # an abandoned save is left to orbax's atomic rename
-            ckpts.close()
+            try:
+                ckpts.close()
+            except checkpoint.SaveError:
+                if not failed:  # else the error on its way out says more
+                    raise
         writer.close()
         train_iter.close()
         if run.lock is not None:
@@ -424,6 +434,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
       ConfigurationError: a config, layout, data or checkpoint error, before any step.
       NonFiniteLossError: a step's loss or gradient is not finite.
       DataError: a dataset file could not be read during training.
+      checkpoint.SaveError: a checkpoint could not be written (disk full).
       Stopped: SIGTERM or SIGINT stopped the run after a step (and its save).
       preemption.Abandoned: a second signal stopped it at once.
     """
@@ -516,6 +527,12 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     if not FLAGS["verbosity"].present:  # orbax logs every file it writes at INFO
         logging.set_verbosity(logging.WARNING)
+        # ... and the traceback of a failed save or restore, which the run reports in one line
+        std_logging.getLogger("absl").addFilter(
+            lambda r: not ("/orbax/" in r.pathname and r.levelno >= std_logging.ERROR))
+    # A run stopped by an error leaves batches of its data workers in shared memory; the
+    # resource tracker (a child started with these options) unlinks them, and need not say so.
+    sys.warnoptions.append("ignore:resource_tracker:UserWarning")
     if FLAGS.num_processes > 1:
         jax.distributed.initialize(FLAGS.coordinator_address, FLAGS.num_processes,
                                    FLAGS.process_id)
@@ -523,8 +540,14 @@ def main(argv: Sequence[str]) -> None:
     workdir = FLAGS.workdir or default_workdir(config_flags.get_config_filename(FLAGS["config"]))
     try:
         record = train_and_evaluate(config, workdir)
-    except (ConfigurationError, NonFiniteLossError, DataError) as e:
+    except (ConfigurationError, NonFiniteLossError, DataError, checkpoint.SaveError) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
+    except OSError as e:  # a file the run writes (metrics, plots): a full disk, most often
+        full = e.errno == errno.ENOSPC
+        raise SystemExit(
+            f"pi0_armfix.train: writing {e.filename or 'a file of ' + workdir}: "
+            f"{e.strerror or e}: {'free space on that disk' if full else 'fix the file system'}, "
+            "then rerun to resume from the last checkpoint") from None
     except Stopped as e:
         print(f"pi0_armfix.train: {e}", file=sys.stderr)
         raise SystemExit(128 + e.signum) from None

@@ -1,6 +1,7 @@
 """Orbax checkpoints of a run (DESIGN §6): round trip, atomicity, clear errors."""
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -150,3 +151,39 @@ def test_a_process_killed_while_finalizing_a_save_leaves_the_previous_checkpoint
     state, data_state = ckpts.restore(1, _abstract({"w": jnp.zeros((8,))}, sharding.make_mesh(1)))
     np.testing.assert_array_equal(state["w"], np.full((8,), 1.0))
     assert data_state == {"step": 1}
+
+
+def test_a_disk_without_room_for_the_state_is_a_save_error_before_anything_is_written(
+        tmp_path, monkeypatch):
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1)
+    ckpts.save(1, _state(1.0), DATA_STATE, NORM_STATS, _config())
+    ckpts.wait()
+    disk_usage = shutil.disk_usage
+    monkeypatch.setattr(checkpoint.shutil, "disk_usage",
+                        lambda path: disk_usage(path)._replace(free=1000))
+    with pytest.raises(checkpoint.SaveError,
+                       match=r"checkpoint 2 needs about 8.\d KiB but .* has 1000 B free: free "
+                             r"space on that disk, then rerun to resume from checkpoint 1"):
+        ckpts.save(2, _state(2.0), DATA_STATE, NORM_STATS, _config())
+    assert sorted(os.listdir(tmp_path)) == ["1"]
+
+
+def test_a_save_that_fails_in_the_background_is_reported_at_the_next_check_naming_the_step(
+        tmp_path, monkeypatch):
+    ckpts = checkpoint.Checkpoints(tmp_path, every=1)
+    ckpts.save(1, _state(1.0), DATA_STATE, NORM_STATS, _config())
+    ckpts.wait()
+    ckpts.save(2, _state(2.0), DATA_STATE, NORM_STATS, _config())
+    ckpts.wait()
+
+    def full_disk():  # what tensorstore raises from orbax's writer thread on a full disk
+        raise ValueError('RESOURCE_EXHAUSTED: Error writing "w/0": Failed to write 8685 bytes to '
+                         "file 4: No space left on device [os_error_code='28']")
+
+    ckpts._saving = 3  # noqa: SLF001 - as if a save of step 3 were in flight
+    monkeypatch.setattr(ckpts._manager, "check_for_errors", full_disk)  # noqa: SLF001
+    with pytest.raises(checkpoint.SaveError,
+                       match=r"checkpoint 3 could not be written in .*No space left on device.*"
+                             r"the disk is full: free space on it, then rerun to resume from the "
+                             r"last complete checkpoint \(2\)"):
+        ckpts.check_for_errors()

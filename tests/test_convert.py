@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -155,3 +156,33 @@ def test_a_step_that_was_not_saved_is_a_value_error_listing_the_saved_ones(tmp_p
     _write_run_checkpoint(str(tmp_path), params, step=5)
     with pytest.raises(ValueError, match=r"step 9 .* saved steps: \[5\]"):
         checkpoint.read_checkpoint(str(tmp_path), step=9)
+
+
+def test_the_cli_says_which_step_it_converts_and_what_incomplete_step_it_passed_over(tmp_path,
+                                                                                    params):
+    _write_run_checkpoint(str(tmp_path / "run"), params, step=4)
+    shutil.copytree(tmp_path / "run" / "checkpoints" / "4", tmp_path / "run" / "checkpoints" / "6")
+    shutil.rmtree(tmp_path / "run" / "checkpoints" / "6" / "state")  # a damaged newer step
+    result = _run_cli(f"--checkpoint={tmp_path / 'run'}", f"--output={tmp_path / 'torch'}")
+    assert result.returncode == 0, result.stderr
+    assert "incomplete newer step folder(s) ['6']" in result.stdout
+    assert "converting step 4, the latest complete one" in result.stdout
+    assert f"converting {tmp_path / 'run' / 'checkpoints' / '4'} (a run step)" in result.stdout
+
+
+def test_the_cli_reports_a_damaged_checkpoint_in_one_line_naming_it(tmp_path, params):
+    _write_run_checkpoint(str(tmp_path / "run"), params, step=4)
+    state = tmp_path / "run" / "checkpoints" / "4" / "state"
+    (state / "manifest.ocdbt").write_bytes(b"")  # truncated to nothing
+    result = _run_cli(f"--checkpoint={tmp_path / 'run'}", f"--output={tmp_path / 'torch'}")
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    line = result.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"pi0_armfix.torch_mirror.convert: {state} cannot be read")
+    assert "the checkpoint is damaged; convert an earlier step with --step" in line
+
+
+def test_the_cli_reports_a_missing_folder_in_one_line(tmp_path):
+    result = _run_cli(f"--checkpoint={tmp_path / 'nothing'}", f"--output={tmp_path / 'torch'}")
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1] == (
+        f"pi0_armfix.torch_mirror.convert: checkpoint folder {tmp_path / 'nothing'} does not exist")

@@ -241,3 +241,92 @@ def test_data_workers_die_with_a_killed_run(tmp_path, cache_dir, demo_root):
     while any(_alive(p) for p in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(_alive(p) for p in workers), "data workers outlived their run"
+
+
+# ---------------------------------------------------------------- damaged checkpoints
+
+def test_a_run_whose_latest_checkpoint_is_damaged_resumes_from_the_previous_after_saying_so(
+        tmp_path, cache_dir, demo_root):
+    workdir = tmp_path / "run"
+    overrides = tf.tiny_overrides(demo_root, train__total_steps=4, train__checkpoint_every=2)
+    first = tf.run_train("configs/uniform.py", workdir, overrides, cache_dir)
+    assert first.returncode == 0, first.stderr[-3000:]
+    data_file = next((workdir / "checkpoints" / "4" / "state" / "d").iterdir())
+    data_file.write_bytes(data_file.read_bytes()[:10])  # truncated
+
+    resumed = tf.run_train("configs/uniform.py", workdir, {**overrides, "train.total_steps": 6},
+                           cache_dir)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "Traceback" not in resumed.stderr and "Event loop is closed" not in resumed.stderr
+    output = resumed.stdout + resumed.stderr
+    assert f"warning: checkpoint {workdir / 'checkpoints' / '4'} is damaged (" in output
+    assert f"moved it to {workdir / 'checkpoints.damaged' / '4'}; resuming from step 2 " \
+           "instead" in output
+    assert f"resumed from {workdir / 'checkpoints' / '2'}" in output
+    assert checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).latest_step() == 6
+    assert [r["step"] for r in tf.records(workdir) if "loss" in r] == [1, 2, 3, 4, 5, 6]
+
+
+def test_a_torn_last_metrics_line_does_not_block_a_resume(tmp_path, cache_dir, demo_root):
+    workdir = tmp_path / "run"
+    overrides = tf.tiny_overrides(demo_root, train__total_steps=2)
+    assert tf.run_train("configs/uniform.py", workdir, overrides, cache_dir).returncode == 0
+    with open(workdir / "metrics.jsonl", "a") as f:
+        f.write('{"step": 3, "loss": 0.5, "gra')  # a kill mid-write
+    resumed = tf.run_train("configs/uniform.py", workdir, {**overrides, "train.total_steps": 3},
+                           cache_dir)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert [r["step"] for r in tf.records(workdir) if "loss" in r] == [1, 2, 3]
+
+
+# ---------------------------------------------------------------- tracebacks become one line
+
+def test_a_pretrained_folder_that_is_empty_or_not_orbax_is_named_before_the_data_pass(
+        tmp_path, demo_root):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "weights").mkdir()
+    (tmp_path / "weights" / "model.safetensors").write_bytes(b"\0" * 64)
+    for folder, held in (("empty", "nothing"), ("weights", "['model.safetensors']")):
+        config = _config(**tf.tiny_overrides(demo_root, model__pretrained=str(tmp_path / folder)))
+        with pytest.raises(train.ConfigurationError) as error:
+            train.train_and_evaluate(config, str(tmp_path / "run"))
+        assert str(error.value) == (
+            f"model.pretrained: '{tmp_path / folder}' is not an orbax checkpoint (it holds "
+            f"{held}); point model.pretrained at an openpi params folder (e.g. <openpi "
+            "checkpoint>/params, which holds _METADATA)")
+        assert not (tmp_path / "run").exists()
+
+
+def test_a_workdir_that_is_a_file_is_one_line(tmp_path, cache_dir, demo_root):
+    (tmp_path / "notes.txt").write_text("not a run")
+    result = tf.run_train("configs/uniform.py", tmp_path / "notes.txt", tf.tiny_overrides(demo_root),
+                          cache_dir)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1] == (
+        f"pi0_armfix.train: --workdir {tmp_path / 'notes.txt'} is a file, not a folder: name a "
+        "new or existing run folder")
+
+
+def test_a_corrupt_image_met_mid_run_by_a_data_worker_is_one_line_naming_file_and_row(
+        tmp_path, cache_dir):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = tf.write_tiny_demo(tmp_path / "demo")
+    path = root / "data" / "chunk-000" / "episode_000005.parquet"  # not among the probed ones
+    table = pq.read_table(path)
+    feature = "observation.images.rgb.head"
+    images = table.column(feature).to_pylist()
+    images[1:-1] = [{"bytes": b"\x89PNG garbage", "path": None}] * (len(images) - 2)
+    table = table.set_column(table.schema.get_field_index(feature), feature,
+                             pa.array(images, type=table.schema.field(feature).type))
+    pq.write_table(table, path)
+
+    result = tf.run_train("configs/uniform.py", tmp_path / "run",
+                          tf.tiny_overrides(root, train__total_steps=20, data__num_workers=2),
+                          cache_dir)
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    line = result.stderr.strip().splitlines()[-1]
+    assert re.match(rf"pi0_armfix.train: reading the batch of step \d+: cannot decode the image "
+                    rf"of {path} camera '{feature}' row \d+: ", line), line
+    assert "fix or remove the named file, then rerun to resume" in line

@@ -57,8 +57,10 @@ def _step_dirs(directory: epath.Path) -> dict[int, epath.Path]:
             if p.is_dir() and p.name.isdigit() and (p / "state").exists()}
 
 
-def locate(checkpoint: str, step: int | None = None) -> tuple[str, epath.Path]:
-    """Resolves `checkpoint` to ("run", step folder) or ("openpi", folder holding `params/`)."""
+def locate(checkpoint: str, step: int | None = None, say=lambda message: None
+           ) -> tuple[str, epath.Path]:
+    """Resolves `checkpoint` to ("run", step folder) or ("openpi", folder holding `params/`).
+    `say` is told when newer step folders than the latest complete one were passed over."""
     path = epath.Path(checkpoint)
     if not path.is_dir():
         raise CheckpointError(f"checkpoint folder {path} does not exist")
@@ -75,7 +77,15 @@ def locate(checkpoint: str, step: int | None = None) -> tuple[str, epath.Path]:
             f"{path} is not a checkpoint: expected a run step folder (with state/), a run's "
             f"checkpoints/ folder, a run workdir, or an openpi checkpoint (with params/)")
     if step is None:
-        return "run", steps[max(steps)]
+        latest = max(steps)
+        passed_over = sorted(p.name for p in manager_dir.iterdir() if p.is_dir()
+                             and p.name.split(".")[0].isdigit()
+                             and int(p.name.split(".")[0]) > latest)
+        if passed_over:
+            say(f"note: {manager_dir} holds incomplete newer step folder(s) {passed_over} (a "
+                f"save cut short, or a deleted state/): converting step {latest}, the latest "
+                "complete one")
+        return "run", steps[latest]
     if step not in steps:
         raise CheckpointError(f"step {step} not in {manager_dir}; saved steps: {sorted(steps)}")
     return "run", steps[step]
@@ -91,8 +101,14 @@ def _restore_arrays(item_dir: epath.Path, subtree: Sequence[str]) -> dict[str, n
     import jax
     import orbax.checkpoint as ocp
 
+    from pi0_armfix.training.checkpoint import drop_closed_loop_noise
+
+    drop_closed_loop_noise()  # a damaged file echoes from tensorstore's threads
     handler = ocp.PyTreeCheckpointHandler()
-    tree = handler.metadata(item_dir).tree
+    try:
+        tree = handler.metadata(item_dir).tree
+    except Exception as e:  # noqa: BLE001 - orbax raises many kinds for damaged files
+        raise _damaged(item_dir, e) from e
     for key in subtree:
         if not isinstance(tree, Mapping) or tree.get(key) is None:
             raise CheckpointError(f"{item_dir} holds no '{'/'.join(subtree)}' tree")
@@ -106,12 +122,21 @@ def _restore_arrays(item_dir: epath.Path, subtree: Sequence[str]) -> dict[str, n
             node = node.setdefault(key, {})
         node[name.split("/")[-1]] = meta
         restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), item)
-        restored = handler.restore(item_dir, args=ocp.args.PyTreeRestore(
-            item=item, restore_args=restore_args, partial_restore=True))
+        try:
+            restored = handler.restore(item_dir, args=ocp.args.PyTreeRestore(
+                item=item, restore_args=restore_args, partial_restore=True))
+        except Exception as e:  # noqa: BLE001 - tensorstore reports a damaged file many ways
+            raise _damaged(item_dir, e) from e
         for key in (*subtree, *name.split("/")):
             restored = restored[key]
         arrays[name] = np.asarray(restored, dtype=np.float32)
     return arrays
+
+
+def _damaged(item_dir: epath.Path, error: BaseException) -> CheckpointError:
+    detail = (str(error).strip().splitlines() or [""])[0][:200]
+    return CheckpointError(f"{item_dir} cannot be read ({type(error).__name__}: {detail}): the "
+                           "checkpoint is damaged; convert an earlier step with --step")
 
 
 def _read_json_item(item_dir: epath.Path) -> Any:
@@ -139,7 +164,8 @@ def _as_openpi_norm_stats(stats: Mapping[str, Any], source: str) -> dict[str, An
 
 
 def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = False,
-                    preset: str = "", action_horizon: int = 0, norm_stats: str = ""
+                    preset: str = "", action_horizon: int = 0, norm_stats: str = "",
+                    say=lambda message: None
                     ) -> tuple[dict[str, np.ndarray], Pi0Config, dict[str, Any] | None]:
     """Reads a run or openpi checkpoint (see the module docstring).
 
@@ -149,10 +175,12 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
       preset, action_horizon: the model config of an openpi checkpoint ("" / 0: pi0 and its
         horizon); for a run they must agree with its config when given.
       norm_stats: a norm_stats.json to use instead of the checkpoint's.
+      say: gets a line naming the folder read, and what was passed over to get to it.
     Returns:
       ({openpi name: float32 array}, model config, norm stats in openpi format or None).
     """
-    kind, folder = locate(checkpoint, step)
+    kind, folder = locate(checkpoint, step, say)
+    say(f"converting {folder} ({'a run step' if kind == 'run' else 'openpi params'})")
     if kind == "run":
         run_config = _read_json_item(folder / "config") if (folder / "config").exists() else None
         if not run_config or "model" not in run_config:

@@ -33,10 +33,13 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     if not flags.FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)  # orbax logs a line per array read; the bar says it
-    arrays, config, norm_stats = read_checkpoint(
-        _CHECKPOINT.value, step=_STEP.value, ema=_EMA.value, preset=_PRESET.value,
-        action_horizon=_ACTION_HORIZON.value, norm_stats=_NORM_STATS.value)
-    out = write_converted(_OUTPUT.value, arrays, config, norm_stats, source=_CHECKPOINT.value)
+    try:
+        arrays, config, norm_stats = read_checkpoint(
+            _CHECKPOINT.value, step=_STEP.value, ema=_EMA.value, preset=_PRESET.value,
+            action_horizon=_ACTION_HORIZON.value, norm_stats=_NORM_STATS.value, say=print)
+        out = write_converted(_OUTPUT.value, arrays, config, norm_stats, source=_CHECKPOINT.value)
+    except (ValueError, KeyError, OSError) as e:  # CheckpointError, a mismatch, a bad file
+        raise SystemExit(f"pi0_armfix.torch_mirror.convert: {e}") from None
     count = sum(int(np.prod(a.shape)) for a in arrays.values())
     print(f"wrote {out / MODEL_FILE} ({len(arrays)} arrays, {count:,} parameters), {CONFIG_FILE}"
           + (f", {NORM_STATS_FILE}" if norm_stats is not None else " (no norm stats in the checkpoint)"))

@@ -21,7 +21,10 @@ saving it) is confirmed or set aside by the first step of the resumed run.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
+import shutil
 import sys
 from collections.abc import Mapping
 from typing import Any
@@ -56,25 +59,41 @@ def _leaf_shapes(tree: Any) -> dict[str, tuple[int, ...]]:
             if hasattr(leaf, "shape")}
 
 
+def _size(num_bytes: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if num_bytes < 1024 or unit == "GiB":
+            return f"{num_bytes:.0f} {unit}" if unit == "B" else f"{num_bytes:.1f} {unit}"
+        num_bytes /= 1024
+    return ""
+
+
 def _first_line(error: BaseException) -> str:
     text = str(error).strip().splitlines()
     return f"{type(error).__name__}: {text[0][:200] if text else ''}"
 
 
-def _drop_closed_loop_noise() -> None:
-    """Silences the "Event loop is closed" that tensorstore's late callbacks raise into a finished
-    orbax restore after a read failed: the failure itself is reported, this is its echo."""
-    previous = sys.unraisablehook
-    if getattr(previous, "drops_closed_loop_noise", False):
+def drop_closed_loop_noise() -> None:
+    """Silences the "Event loop is closed" that tensorstore's late callbacks raise after an orbax
+    restore failed (through sys.excepthook or sys.unraisablehook, from its threads): the failure
+    itself is reported, this is its echo."""
+    if getattr(sys.excepthook, "drops_closed_loop_noise", False):
         return
 
-    def hook(unraisable):
-        if not (isinstance(unraisable.exc_value, RuntimeError)
-                and "Event loop is closed" in str(unraisable.exc_value)):
-            previous(unraisable)
+    def is_noise(error: BaseException | None) -> bool:
+        return isinstance(error, RuntimeError) and "Event loop is closed" in str(error)
 
-    hook.drops_closed_loop_noise = True
-    sys.unraisablehook = hook
+    excepthook, unraisablehook = sys.excepthook, sys.unraisablehook
+
+    def quiet_excepthook(kind, error, trace):
+        if not is_noise(error):
+            excepthook(kind, error, trace)
+
+    def quiet_unraisablehook(unraisable):
+        if not is_noise(unraisable.exc_value):
+            unraisablehook(unraisable)
+
+    quiet_excepthook.drops_closed_loop_noise = True
+    sys.excepthook, sys.unraisablehook = quiet_excepthook, quiet_unraisablehook
 
 
 class Checkpoints:
@@ -93,8 +112,10 @@ class Checkpoints:
         if keep is not None and keep <= 0:
             raise ValueError(f"train.keep_checkpoints = {keep} must be positive")
         self.directory = epath.Path(directory).absolute()  # orbax wants absolute paths
+        drop_closed_loop_noise()  # before any read: a damaged file echoes from the first one
         self._keep = None if read_only else keep
         self._confirmed: int | None = None  # the newest step known to be good
+        self._saving: int | None = None  # the step of the save in flight
         self._manager = ocp.CheckpointManager(
             self.directory,
             options=ocp.CheckpointManagerOptions(
@@ -117,17 +138,50 @@ class Checkpoints:
              norm_stats: Mapping[str, Any], config: ml_collections.ConfigDict, *,
              force: bool = False) -> bool:
         """Starts an asynchronous save of `step` (after the previous save is finished and the
-        checkpoints retention drops are deleted); True if one was started (see `every`)."""
+        checkpoints retention drops are deleted); True if one was started (see `every`).
+
+        Raises:
+          SaveError: the previous save failed, or the disk has less room than `state` needs.
+        """
         if not (force or self._manager.should_save(step)):
             return False
-        self._manager.wait_until_finished()
+        self.wait()
         self._prune()
-        return self._manager.save(step, args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state),
-            data=ocp.args.JsonSave(dict(data_state)),
-            norm_stats=ocp.args.JsonSave(dict(norm_stats)),
-            config=ocp.args.JsonSave(json.loads(config.to_json_best_effort())),
-        ), force=force)
+        needed = sum(x.nbytes for x in jax.tree.leaves(state) if hasattr(x, "nbytes"))
+        free = shutil.disk_usage(self.directory).free
+        if free < needed:
+            raise SaveError(f"checkpoint {step} needs about {_size(needed)} but "
+                            f"{self.directory} has {_size(free)} free: free space on "
+                            f"that disk, then rerun to resume from checkpoint "
+                            f"{self.latest_step() or '(none: step 0)'}")
+        self._saving = step
+        with self._errors_as_save_errors():
+            return self._manager.save(step, args=ocp.args.Composite(
+                state=ocp.args.StandardSave(state),
+                data=ocp.args.JsonSave(dict(data_state)),
+                norm_stats=ocp.args.JsonSave(dict(norm_stats)),
+                config=ocp.args.JsonSave(json.loads(config.to_json_best_effort())),
+            ), force=force)
+
+    def check_for_errors(self) -> None:
+        """Raises SaveError if the asynchronous save in flight has failed (a full disk shows at
+        the step it happens, not one save later)."""
+        with self._errors_as_save_errors():
+            self._manager.check_for_errors()
+
+    @contextlib.contextmanager
+    def _errors_as_save_errors(self):
+        try:
+            yield
+        except Exception as e:  # noqa: BLE001 - tensorstore, os and orbax errors alike
+            step, self._saving = self._saving, None
+            full = "No space left" in str(e) or getattr(e, "errno", None) == errno.ENOSPC
+            fix = ("the disk is full: free space on it" if full
+                   else "fix the file system")
+            raise SaveError(
+                f"checkpoint {step} could not be written in {self.directory} ({_first_line(e)}): "
+                f"{fix}, then rerun to resume from the last complete checkpoint "
+                f"({self.latest_step() or 'none: step 0'})") from e
 
     def confirm(self, step: int) -> None:
         """Marks `step` good: the step computed from it was finite. Older checkpoints beyond
@@ -137,7 +191,7 @@ class Checkpoints:
     def set_aside(self, step: int, reason: str) -> epath.Path:
         """Moves checkpoint `step` (after its save is finished) to `checkpoints.<reason>/<step>`,
         where neither a restore nor retention sees it; returns the new path."""
-        self._manager.wait_until_finished()
+        self.wait()
         destination = self.directory.parent / f"{self.directory.name}.{reason}" / str(step)
         if jax.process_index() == 0:
             destination.parent.mkdir(parents=True, exist_ok=True)
@@ -192,7 +246,6 @@ class Checkpoints:
                 data=ocp.args.JsonRestore(),
             ))
         except Exception as e:  # noqa: BLE001 - tensorstore, json and os errors alike
-            _drop_closed_loop_noise()
             raise DamagedCheckpointError(self.directory / str(step), e) from e
         return restored["state"], restored["data"]
 
@@ -240,14 +293,29 @@ class Checkpoints:
                 ml_collections.ConfigDict(restored["config"]))
 
     def wait(self) -> None:
-        """Blocks until the pending asynchronous save is finalized."""
-        self._manager.wait_until_finished()
+        """Blocks until the pending asynchronous save is finalized.
+
+        Raises:
+          SaveError: it failed.
+        """
+        with self._errors_as_save_errors():
+            self._manager.wait_until_finished()
+        self._saving = None
 
     def close(self) -> None:
-        """Waits for the pending save, deletes what retention drops, closes the manager."""
-        self._manager.wait_until_finished()
-        self._prune()
-        self._manager.close()
+        """Waits for the pending save, deletes what retention drops, closes the manager (also
+        when the save failed: the error is raised after)."""
+        try:
+            self.wait()
+            self._prune()
+        finally:
+            with contextlib.suppress(Exception):  # its failed save was reported by wait()
+                self._manager.close()
+
+
+class SaveError(RuntimeError):
+    """A checkpoint could not be written (disk full, file system error); the last complete one is
+    intact."""
 
 
 class DamagedCheckpointError(ValueError):
