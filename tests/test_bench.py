@@ -33,3 +33,10 @@ def test_video_benchmark_reads_the_original_reencodes_and_trains(tmp_path):
     assert "original, random reads:" in out and "re-encode to 32²" in out
     assert "training iterator on the re-encoded copy, 0 workers" in out
     assert "(32, 32, 3)" in out
+
+
+def test_fault_injection_benchmark_kills_restarts_and_finds_every_resume_bitwise(tmp_path):
+    out = _bench(tmp_path, "faults", "--kills=3", "--steps=8", "--seed=1")
+    assert out.count("  fault ") == 3
+    assert "every restart resumed bitwise" in out
+    assert "  faults                  3" in out

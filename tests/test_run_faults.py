@@ -330,3 +330,16 @@ def test_a_corrupt_image_met_mid_run_by_a_data_worker_is_one_line_naming_file_an
     assert re.match(rf"pi0_armfix.train: reading the batch of step \d+: cannot decode the image "
                     rf"of {path} camera '{feature}' row \d+: ", line), line
     assert "fix or remove the named file, then rerun to resume" in line
+
+
+def test_an_arm_heavy_list_with_ids_the_dataset_lacks_is_refused_naming_them(tmp_path,
+                                                                            demo_root):
+    listed = tmp_path / "arm_heavy.json"
+    listed.write_text(json.dumps({"episodes": [1, 3, 41, 97]}))
+    config = _config(**tf.tiny_overrides(
+        demo_root, data__arm_heavy_episodes=str(listed),
+        data__curriculum=((1, {"arm_heavy": 1.0}), (2, {"full": 1.0}))))
+    with pytest.raises(train.ConfigurationError,
+                       match=rf"data.arm_heavy_episodes \({listed}\) lists 2 episode\(s\) that .* "
+                             r"does not have \(ids \[41, 97\]\): it was made for other data"):
+        train.train_and_evaluate(config, str(tmp_path / "run"))

@@ -3,7 +3,7 @@
 import importlib
 import sys
 
-BENCHMARKS = ("data", "model", "train", "video")
+BENCHMARKS = ("data", "faults", "model", "train", "video")
 
 
 def main(argv: list[str]) -> None:

@@ -98,12 +98,7 @@ def check_resume(workdir: epath.Path, config: Mapping[str, Any], *, holds_run: b
     saved_path = workdir / CONFIG_FILE
     if not (holds_run and saved_path.exists()):
         return []
-    try:
-        saved = json.loads(saved_path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{saved_path} is not JSON ({e}): restore it from a checkpoint's config "
-                         "item, or start over with --config.train.resume=new") from e
-    if mode == "new":
+    if mode == "new":  # decided before any file is read: process 0 may be moving them
         destination = workdir / ARCHIVE_DIR / time.strftime("%Y%m%d-%H%M%S")
         if may_write:
             destination.mkdir(parents=True)
@@ -111,6 +106,11 @@ def check_resume(workdir: epath.Path, config: Mapping[str, Any], *, holds_run: b
                 if entry.name not in (ARCHIVE_DIR, "run.lock"):
                     entry.rename(destination / entry.name)
         return [f"train.resume=new: the previous run moved to {destination}; starting at step 0"]
+    try:
+        saved = json.loads(saved_path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{saved_path} is not JSON ({e}): restore it from a checkpoint's config "
+                         "item, or start over with --config.train.resume=new") from e
     changed, tuned = differences(saved, config)
     notes = [f"resuming with changed settings: {'; '.join(tuned)}"] if tuned else []
     if not changed:
