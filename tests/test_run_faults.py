@@ -341,5 +341,5 @@ def test_an_arm_heavy_list_with_ids_the_dataset_lacks_is_refused_naming_them(tmp
         data__curriculum=((1, {"arm_heavy": 1.0}), (2, {"full": 1.0}))))
     with pytest.raises(train.ConfigurationError,
                        match=rf"data.arm_heavy_episodes \({listed}\) lists 2 episode\(s\) that .* "
-                             r"does not have \(ids \[41, 97\]\): it was made for other data"):
+                             r"does not have \(ids 41, 97\): it was made for other data"):
         train.train_and_evaluate(config, str(tmp_path / "run"))
