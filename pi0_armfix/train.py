@@ -125,14 +125,18 @@ def _first_non_finite(window: Sequence[tuple[int, Mapping[str, jax.Array]]]
     return None
 
 
-def _non_finite_error(step: int, loss: float, grad_norm: float, what: str,
+def _non_finite_error(what: str, resume_note: str,
                       checkpoints: checkpoint.Checkpoints) -> NonFiniteLossError:
     latest = checkpoints.latest_step()
     resume = (f"a rerun resumes from checkpoint {latest}" if latest
               else "no checkpoint is left: a rerun starts from step 0")
-    return NonFiniteLossError(
-        f"step {step} has loss {loss} and gradient norm {grad_norm}: stopping. {what}{resume}; "
-        "lower optim.lr or raise optim.warmup_steps first")
+    return NonFiniteLossError(f"{what}: stopping. {resume_note}{resume}; lower optim.lr or raise "
+                              "optim.warmup_steps first")
+
+
+def _non_finite_step(bad: tuple[int, float, float]) -> str:
+    step, loss, grad_norm = bad
+    return f"step {step} has loss {loss} and gradient norm {grad_norm}"
 
 
 @jax.jit
@@ -321,11 +325,11 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
             return
         bad = _first_non_finite(window[checked:])
         if bad:
-            raise _non_finite_error(*bad, "", ckpts)
+            raise _non_finite_error(_non_finite_step(bad), "", ckpts)
         checked = len(window)
         if not bool(_all_finite(state)):
-            raise _non_finite_error(step, float("nan"), float("nan"),
-                                    "Its update left non-finite parameters, not saved; ", ckpts)
+            raise _non_finite_error(f"the update of step {step} left non-finite parameters (its "
+                                    "loss and gradient were finite)", "It was not saved; ", ckpts)
         ckpts.save(step, state, data_state, run.norm_stats_json, config, force=True)
         unconfirmed, saved = step, step
 
@@ -361,15 +365,15 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     if bad:
                         moved = ckpts.set_aside(unconfirmed, "nonfinite")
                         raise _non_finite_error(
-                            *bad, f"Checkpoint {unconfirmed}, the state it started from, was "
-                            f"moved to {moved}; ", ckpts)
+                            _non_finite_step(bad), f"Checkpoint {unconfirmed}, the state it "
+                            f"started from, was moved to {moved}; ", ckpts)
                     ckpts.confirm(unconfirmed)
                     unconfirmed = None
                 last = step == total_steps
                 if step % config.train.log_every == 0 or last:
                     bad = _first_non_finite(window[checked:])
                     if bad:
-                        raise _non_finite_error(*bad, "", ckpts)
+                        raise _non_finite_error(_non_finite_step(bad), "", ckpts)
                     elapsed = time.perf_counter() - window_start
                     record = {**_summarize(window), "phase": phase,
                               "steps_per_sec": len(window) / elapsed,
@@ -543,11 +547,10 @@ def main(argv: Sequence[str]) -> None:
     except (ConfigurationError, NonFiniteLossError, DataError, checkpoint.SaveError) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
     except OSError as e:  # a file the run writes (metrics, plots): a full disk, most often
-        full = e.errno == errno.ENOSPC
-        raise SystemExit(
-            f"pi0_armfix.train: writing {e.filename or 'a file of ' + workdir}: "
-            f"{e.strerror or e}: {'free space on that disk' if full else 'fix the file system'}, "
-            "then rerun to resume from the last checkpoint") from None
+        fix = ("free space on that disk" if e.errno == errno.ENOSPC
+               else "check the path and its permissions")
+        raise SystemExit(f"pi0_armfix.train: {e.filename or workdir}: {e.strerror or e}: {fix}, "
+                         "then rerun to resume from the last checkpoint") from None
     except Stopped as e:
         print(f"pi0_armfix.train: {e}", file=sys.stderr)
         raise SystemExit(128 + e.signum) from None
