@@ -314,9 +314,15 @@ def main(argv: Sequence[str]) -> None:
     print(f"figures in {epath.Path(FLAGS.workdir) / 'eval' / f'step_{step}'}")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-evaluate` console script (also `python -m pi0_armfix.evaluate`)."""
     flags.DEFINE_string("workdir", None, "run folder (holds checkpoints/)", required=True)
     flags.DEFINE_integer("step", None, "checkpoint step (default: the latest)")
     flags.DEFINE_enum("params", "ema", ["ema", "params"],
                       "the EMA params (when the run kept them) or the raw params")
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

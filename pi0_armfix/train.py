@@ -496,6 +496,7 @@ FLAGS = flags.FLAGS
 def parse_flags(argv: Sequence[str]) -> list[str]:
     """absl's flag parsing, with a bad flag and an override of a key the (locked) config lacks
     reported as one line naming the flag instead of a traceback."""
+    argv = [_installed_config(a) for a in argv]
     try:
         rest = FLAGS(argv)
     except flags.Error as e:
@@ -519,11 +520,29 @@ def parse_flags(argv: Sequence[str]) -> list[str]:
     if FLAGS["config"].present:
         path = config_flags.get_config_filename(FLAGS["config"]).partition(":")[0]
         if not os.path.isfile(path):
-            known = ", ".join(sorted(str(p) for p in epath.Path("configs").glob("*.py")
-                                     if p.name != "__init__.py")) or "none in ./configs"
-            raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file (run from "
-                             f"the repository root; configs here: {known})")
+            import configs
+
+            known = ", ".join(sorted(p.stem for p in epath.Path(configs.__file__).parent.glob(
+                "*.py") if p.stem not in ("__init__", "base")))
+            raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file; give a "
+                             f"path or the name of an installed config: {known}")
     return rest
+
+
+def _installed_config(arg: str) -> str:
+    """`--config=configs/<name>.py[:arg]` (or `--config=<name>`) that names no file here: the
+    installed package's config of that name, so the command works from any folder."""
+    if not arg.startswith("--config="):
+        return arg
+    path, colon, scale = arg.removeprefix("--config=").partition(":")
+    if os.path.isfile(path):
+        return arg
+    import configs  # the experiment configs beside this package (installed with it)
+
+    name = epath.Path(path).name
+    installed = epath.Path(configs.__file__).parent / (name if name.endswith(".py")
+                                                       else f"{name}.py")
+    return f"--config={installed}{colon}{scale}" if installed.is_file() else arg
 
 
 def main(argv: Sequence[str]) -> None:
@@ -580,6 +599,11 @@ def define_flags() -> None:
     flags.mark_flag_as_required("config")
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The `pi0-armfix-train` console script (also `python -m pi0_armfix.train`)."""
     define_flags()
     app.run(main, flags_parser=parse_flags)
+
+
+if __name__ == "__main__":
+    cli()

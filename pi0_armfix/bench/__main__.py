@@ -12,5 +12,10 @@ def main(argv: list[str]) -> None:
     importlib.import_module(f"pi0_armfix.bench.{argv[1]}").main([argv[0]] + argv[2:])
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """The `pi0-armfix-bench` console script."""
     main(sys.argv)
+
+
+if __name__ == "__main__":
+    cli()

@@ -199,9 +199,15 @@ def main(argv: list[str]) -> None:
     print(f"wrote {flags.FLAGS.output} and {Path(flags.FLAGS.output).with_suffix('.png')}")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-analyze-action-magnitudes` console script (also `python -m pi0_armfix.tools.analyze_action_magnitudes`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "JSON report to write (the PNG goes beside it)",
                         required=True)
     flags.mark_flag_as_required("config")
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

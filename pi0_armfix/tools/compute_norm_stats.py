@@ -55,10 +55,16 @@ def main(argv: list[str]) -> None:
     print(f"wrote {flags.FLAGS.output}")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-compute-norm-stats` console script (also `python -m pi0_armfix.tools.compute_norm_stats`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "norm_stats.json to write", required=True)
     flags.DEFINE_enum("episodes", "train", dataset_lib.EPISODE_CHOICES,
                       "train: all but the eval.episodes held out (as training); all: every one")
     flags.mark_flag_as_required("config")
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

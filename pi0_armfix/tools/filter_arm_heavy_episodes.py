@@ -76,7 +76,9 @@ def main(argv: list[str]) -> None:
           f"({thresholds.to_json()}); wrote {flags.FLAGS.output}")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-filter-arm-heavy-episodes` console script (also `python -m pi0_armfix.tools.filter_arm_heavy_episodes`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "JSON file to write", required=True)
     flags.DEFINE_float("arm_ratio_threshold", 1.5, "minimum arm-to-base relative motion ratio")
@@ -86,3 +88,7 @@ if __name__ == "__main__":
                       "train: all but the eval.episodes held out (as the curriculum); all: every one")
     flags.mark_flag_as_required("config")
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

@@ -30,5 +30,11 @@ def main(argv: list[str]) -> None:
     print(f"wrote {spec.num_episodes} episodes to {root} ({size / 2**20:.1f} MiB)")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-make-demo-dataset` console script (also `python -m pi0_armfix.tools.make_demo_dataset`)."""
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

@@ -26,5 +26,11 @@ def main(argv: list[str]) -> None:
     print(f"parameters: {count_params(tree):,}")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-param-tree` console script (also `python -m pi0_armfix.tools.param_tree`)."""
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

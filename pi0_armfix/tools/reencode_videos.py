@@ -184,7 +184,9 @@ def main(argv: list[str]) -> None:
           f"train on it with --config.data.root={f.output}")
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-reencode-videos` console script (also `python -m pi0_armfix.tools.reencode_videos`)."""
     flags.DEFINE_string("input", None, "the LeRobot dataset root to read", required=True)
     flags.DEFINE_string("output", None, "the new dataset root to write (must not exist)",
                         required=True)
@@ -197,3 +199,7 @@ if __name__ == "__main__":
                         "comma-separated list")
     flags.DEFINE_integer("workers", 0, "files encoded at once (0: every core)")
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()

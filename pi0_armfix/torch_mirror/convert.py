@@ -45,6 +45,12 @@ def main(argv: Sequence[str]) -> None:
           + (f", {NORM_STATS_FILE}" if norm_stats is not None else " (no norm stats in the checkpoint)"))
 
 
-if __name__ == "__main__":
+
+def cli() -> None:
+    """The `pi0-armfix-convert` console script (also `python -m pi0_armfix.torch_mirror.convert`)."""
     flags.mark_flags_as_required(["checkpoint", "output"])
     app.run(main)
+
+
+if __name__ == "__main__":
+    cli()
