@@ -25,6 +25,7 @@ that move the `eval.plot_groups` most, and the per-group loss curves of `metrics
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -35,6 +36,7 @@ from absl import app, flags
 from etils import epath
 from tqdm import tqdm
 
+from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import batching, sources, transforms
@@ -47,6 +49,7 @@ from pi0_armfix.training import metrics as metrics_lib
 from pi0_armfix.training import sharding as sharding_lib
 
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
+METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
 
 
 # ---------------------------------------------------------------------- metrics
@@ -270,7 +273,8 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                         ) -> tuple[int, dict[str, float], ActionLayout]:
     """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
     writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
-    the run kept them, else the params) or "params". Returns `(step, metrics, layout)`."""
+    the run kept them, else the params) or "params"; the metrics go to `metrics.json` there.
+    Returns `(step, metrics, layout)`."""
     workdir = epath.Path(workdir)
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
     step = ckpts.latest_step() if step is None else step
@@ -294,6 +298,9 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
         metrics, predicted, true = evaluator(params)
     out = workdir / "eval" / f"step_{step}"
     out.mkdir(parents=True, exist_ok=True)
+    (out / METRICS_FILE).write_text(json.dumps(
+        {"step": step, "params": "ema_params" if params is state.get("ema_params") else "params",
+         **{k: float(v) for k, v in metrics.items()}}, indent=2) + "\n")
     evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
                    "vs true (solid)")
     plots.plot_group_losses(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE), layout,
@@ -305,15 +312,15 @@ def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
+    console.quiet_library_logging()
     try:
         step, metrics, layout = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params)
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
     print(f"step {step}, held-out chunks sampled by the policy:")
     print(format_metrics(metrics, layout))
-    print(f"figures in {epath.Path(FLAGS.workdir) / 'eval' / f'step_{step}'}")
-
-
+    out = epath.Path(FLAGS.workdir) / "eval" / f"step_{step}"
+    print(f"metrics in {out / METRICS_FILE}; figures in {out}")
 
 def cli() -> None:
     """The `pi0-armfix-evaluate` console script (also `python -m pi0_armfix.evaluate`)."""

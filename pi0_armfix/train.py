@@ -46,7 +46,6 @@ import contextlib
 import dataclasses
 import errno
 import functools
-import logging as std_logging
 import os
 import re
 import sys
@@ -59,12 +58,12 @@ import jax.numpy as jnp
 import ml_collections
 from jax.experimental import multihost_utils
 import numpy as np
-from absl import app, flags, logging
+from absl import app, flags
 from etils import epath
 from ml_collections import config_flags
 from tqdm import tqdm
 
-from pi0_armfix import evaluate
+from pi0_armfix import console, evaluate
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, sources
@@ -548,11 +547,7 @@ def _installed_config(arg: str) -> str:
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    if not FLAGS["verbosity"].present:  # orbax logs every file it writes at INFO
-        logging.set_verbosity(logging.WARNING)
-        # ... and the traceback of a failed save or restore, which the run reports in one line
-        std_logging.getLogger("absl").addFilter(
-            lambda r: not ("/orbax/" in r.pathname and r.levelno >= std_logging.ERROR))
+    console.quiet_library_logging()
     # A run stopped by an error leaves batches of its data workers in shared memory; the
     # resource tracker (a child started with these options) unlinks them, and need not say so.
     sys.warnoptions.append("ignore:resource_tracker:UserWarning")

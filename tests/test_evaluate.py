@@ -1,5 +1,6 @@
 """Held-out stagnation metrics (DESIGN §7) and the offline evaluation of a checkpoint."""
 
+import json
 import subprocess
 import sys
 
@@ -117,6 +118,23 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
         assert column in result.stdout
     for figure in ("trajectories.png", "group_losses.png"):
         assert (workdir / "eval" / "step_2" / figure).stat().st_size > 10_000
+    saved = json.loads((workdir / "eval" / "step_2" / "metrics.json").read_text())
+    assert saved["step"] == 2 and saved["params"] == "ema_params"
+    assert f"{saved['motion_gain/left_arm']:.3f}" in result.stdout
+
+
+def test_offline_evaluation_is_quiet_by_default(tmp_path, cache_dir, demo_root):
+    workdir = tmp_path / "run"
+    assert tf.run_train("configs/uniform.py", workdir, tf.tiny_overrides(demo_root),
+                        cache_dir).returncode == 0
+    result = subprocess.run([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={workdir}"],
+                            env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,
+                            text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    logged = [line for line in result.stderr.splitlines()
+              if line.startswith(("I", "W", "INFO", "WARNING")) and ":" in line[:40]]
+    assert logged == [], logged
+    assert "Unable to initialize backend" not in result.stderr
 
 
 def test_offline_evaluation_without_checkpoints_is_a_clear_error(tmp_path):

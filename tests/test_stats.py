@@ -210,3 +210,14 @@ def test_bad_files_name_the_file_and_key(tmp_path, content, match):
 def test_missing_file_is_named(tmp_path):
     with pytest.raises(ValueError, match="nope.json does not exist"):
         stats_lib.load_norm_stats(tmp_path / "nope.json")
+
+
+def test_written_json_is_readable_by_others_as_the_umask_allows(tmp_path):
+    import os
+
+    previous = os.umask(0o022)
+    try:
+        stats_lib.write_json_atomic(tmp_path / "norm_stats.json", {"norm_stats": {}})
+    finally:
+        os.umask(previous)
+    assert (tmp_path / "norm_stats.json").stat().st_mode & 0o777 == 0o644

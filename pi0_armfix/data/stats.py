@@ -406,12 +406,16 @@ def save_norm_stats(path: str | Path, stats: Mapping[str, NormStats]) -> None:
 
 
 def write_json_atomic(path: str | Path, payload: Any) -> None:
-    """Writes `payload` as JSON through a private temporary file and a rename."""
+    """Writes `payload` as JSON through a temporary file and a rename, readable as any file the
+    user writes (the temporary file is created 0600; colleagues on a shared cluster read it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
                                      delete=False) as tmp:
         tmp.write(json.dumps(payload, indent=2))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp.name, 0o666 & ~umask)
     os.replace(tmp.name, path)
 
 

@@ -11,7 +11,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from absl import app, flags, logging
+from absl import app, flags
+
+from pi0_armfix import console
 
 from pi0_armfix.torch_mirror.checkpoint import (CONFIG_FILE, MODEL_FILE, NORM_STATS_FILE, read_checkpoint,
                                                 write_converted)
@@ -31,8 +33,7 @@ _NORM_STATS = flags.DEFINE_string("norm_stats", "", "norm_stats.json to ship ins
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    if not flags.FLAGS["verbosity"].present:
-        logging.set_verbosity(logging.WARNING)  # orbax logs a line per array read; the bar says it
+    console.quiet_library_logging()  # orbax logs a line per array read; the bar says it
     try:
         arrays, config, norm_stats = read_checkpoint(
             _CHECKPOINT.value, step=_STEP.value, ema=_EMA.value, preset=_PRESET.value,
