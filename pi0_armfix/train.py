@@ -42,6 +42,7 @@ where the bracketed flags may be left to `jax.distributed`'s cluster detection (
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import errno
@@ -81,6 +82,11 @@ from pi0_armfix.training import workdir_lock
 
 
 NORM_STATS_FILE = "norm_stats.json"
+# Dispatched steps the loop may run ahead of the device. JAX dispatches asynchronously: unbounded,
+# the loop queued a whole log window of steps in milliseconds (their batches held in memory), the
+# bar counted them as done, and the log step's sync then stood still while the device caught up
+# (the ~5-8 s "stall" every train.log_every steps). Two keep the device fed.
+STEPS_IN_FLIGHT = 2
 
 
 class ConfigurationError(ValueError):
@@ -225,6 +231,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     for warning in dataset_lib.check_data(config, layout, source):
         _say(f"warning: {warning}")
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
+    for line in banner(config, workdir, model_config, layout, mesh, source):
+        _say(line)
 
     workdir.mkdir(parents=True, exist_ok=True)
     lock = workdir_lock.lock_workdir(workdir) if is_main else None
@@ -291,6 +299,35 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                    lock=lock)
 
 
+def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
+           layout: ActionLayout, mesh: jax.sharding.Mesh, source) -> list[str]:
+    """What a run is, in a few lines, before it starts on its long work."""
+    num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
+        policy.param_shapes(model_config)))
+    held_out = source.num_episodes - len(dataset_lib.training_episodes(config, source))
+    frames = int(np.sum(source.episode_lengths))
+    root = getattr(source, "root", config.data.root)
+    loss = config.loss.strategy
+    if loss in ("per_group", "loss_balanced", "uncertainty"):
+        loss += " " + ", ".join(f"{g} {w:g}" for g, w in config.loss.group_weights.items())
+    axes = ", ".join(f"{name}={size}" for name, size in mesh.shape.items())
+    return [
+        f"run       {workdir}",
+        f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "
+        f"process(es); mesh {axes}",
+        f"model     {config.model.preset}: {num_params / 1e6:.1f} M params, {model_config.dtype} "
+        f"activations, {model_config.action_horizon}-step chunks of {layout.action_dim} dims",
+        f"data      {root}{' (the embedded demo)' if not config.data.root else ''}: "
+        f"{source.num_episodes} episodes ({held_out} held out), {frames:,} frames at "
+        f"{source.fps:g} fps, cameras {dict(source.cameras) or 'none'}",
+        f"loss      {loss}",
+        f"schedule  {config.train.total_steps} steps of batch {config.train.batch_size}, lr "
+        f"{config.optim.lr:g}; a record every {config.train.log_every} steps, a checkpoint every "
+        f"{config.train.checkpoint_every}, held-out evaluation "
+        + (f"every {config.eval.every}" if config.eval.every > 0 else "off"),
+    ]
+
+
 def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str, float]:
     """Steps `run` to `train.total_steps`, logging, checkpointing and evaluating on the way;
     returns the last training record (on process 0; {} on the others).
@@ -317,6 +354,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     wait, window_start = 0.0, time.perf_counter()
     abandoned = failed = False
     done, data_state = run.start, None
+    in_flight: collections.deque = collections.deque()  # losses of the dispatched steps
 
     def save(step: int, force: bool = False) -> None:
         nonlocal checked, unconfirmed, saved
@@ -337,6 +375,9 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                                           unit="step", disable=not is_main,
                                           dynamic_ncols=True) as bar:
             step_metrics = None
+            _say("compiling the train step (the first step waits for it: seconds for the demo, "
+                 "about a minute for pi0; JAX_COMPILATION_CACHE_DIR keeps it across runs)")
+            compile_start = time.perf_counter()
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 if stop.due(done):
                     break
@@ -354,6 +395,13 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     _say(f"curriculum phase {phase} from step {step - 1}: "
                          f"{train_iter.curriculum.phases[phase].weights}")
                 state, step_metrics = run.train_step(state, batch)
+                if step == run.start + 1:
+                    step_metrics["loss"].block_until_ready()
+                    _say(f"first step compiled and ran in {time.perf_counter() - compile_start:.1f}"
+                         " s")
+                in_flight.append(step_metrics["loss"])
+                if len(in_flight) > STEPS_IN_FLIGHT:
+                    in_flight.popleft().block_until_ready()
                 ckpts.check_for_errors()
                 done = step
                 window.append((step, step_metrics))
@@ -378,7 +426,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                               "steps_per_sec": len(window) / elapsed,
                               "data_wait": wait / elapsed}
                     writer.write(step, record)
-                    bar.set_postfix(loss=f"{record['loss']:.4f}", phase=phase)
+                    bar.set_postfix_str(_postfix(record, run.layout, phase))
                     window, checked = [], 0
                     wait, window_start = 0.0, time.perf_counter()
                 save(step, force=last)
@@ -419,6 +467,12 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     records = metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)
     plots.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
     return [r for r in records if "loss" in r][-1]
+
+
+def _postfix(record: Mapping[str, float], layout: ActionLayout, phase: int) -> str:
+    """The bar's summary of a record: the weighted loss, then each group's unweighted loss."""
+    groups = " ".join(f"{g} {record[f'loss/{g}']:.3f}" for g in layout.group_names)
+    return f"loss {record['loss']:.4f} | {groups} | phase {phase}"
 
 
 def _with_position(train_iter: pipeline.TrainIterator) -> Iterator[tuple[Any, dict, int]]:
@@ -480,6 +534,10 @@ def format_record(record: Mapping[str, float], layout: ActionLayout) -> str:
     for g in layout.group_names:
         lines.append(f"{g:<16}{record[f'loss/{g}']:>10.4f}{record[f'weight/{g}']:>10.3f}")
     lines.append(f"{'total (weighted)':<16}{record['loss']:>10.4f}")
+    lines.append(f"(the total is the loss the optimizer sees: sum_d w_d e_d / {layout.action_dim} "
+                 f"over all {layout.action_dim} action dims, the weights of mean 1 over them; "
+                 "with uniform weights the padding dims, whose error is ~0, pull it below the "
+                 "group losses)")
     return "\n".join(lines)
 
 
@@ -555,7 +613,9 @@ def main(argv: Sequence[str]) -> None:
         jax.distributed.initialize(FLAGS.coordinator_address, FLAGS.num_processes,
                                    FLAGS.process_id)
     config = FLAGS.config
-    workdir = FLAGS.workdir or default_workdir(config_flags.get_config_filename(FLAGS["config"]))
+    config_file = config_flags.get_config_filename(FLAGS["config"])
+    workdir = FLAGS.workdir or default_workdir(config_file)
+    _say(f"config    {config_file}")
     try:
         record = train_and_evaluate(config, workdir)
     except (ConfigurationError, NonFiniteLossError, DataError, checkpoint.SaveError) as e:

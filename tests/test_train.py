@@ -36,6 +36,14 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
     for group in B1K.group_names:
         assert group in result.stdout.split("last logged losses")[1]
     assert "held-out evaluation" in result.stdout
+    banner = result.stdout.split("compiling the train step")[0]
+    for line in ("config    ", f"run       {workdir}", "devices   1 x cpu in 1 process(es); mesh",
+                 "model     tiny: ", f"data      {demo_root}: 8 episodes (2 held out), ",
+                 "loss      per_group base 1, left_arm 3,", "schedule  4 steps of batch 8"):
+        assert line in banner, line
+    assert "first step compiled and ran in" in result.stdout
+    last_bar = result.stderr.replace("\r", "\n").strip().splitlines()[-1]
+    assert "| base " in last_bar and " left_gripper " in last_bar  # every group on the bar
 
     lines = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     training, evaluation = [r for r in lines if "loss" in r], [r for r in lines if "err/base" in r]
