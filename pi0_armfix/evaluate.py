@@ -241,12 +241,14 @@ class Evaluator:
         """Trajectory figure of the chunks whose `eval.plot_groups` move most in the data."""
         plot_groups = self.groups["plot_groups"]
         dims = np.concatenate([self.layout.group_dims(g) for g in plot_groups])
+        # The base and torso beside the groups of interest: stagnation is the contrast.
+        shown = [g for g in self.layout.groups_with_role("base", "torso") if g not in plot_groups]
+        shown += list(plot_groups)
         valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
         motion = np.linalg.norm(displacement(true, valid, np.zeros(true.shape[-1], bool))[:, dims],
                                 axis=-1)
         rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
-        plots.plot_trajectories(predicted[rows], true[rows], self.layout,
-                                plot_groups, path, title)
+        plots.plot_trajectories(predicted[rows], true[rows], self.layout, shown, path, title)
 
 
 def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:

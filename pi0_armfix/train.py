@@ -521,6 +521,9 @@ def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: 
     params = state.ema_params if state.ema_params is not None else state.params
     metrics, predicted, true = evaluator(params)
     writer.write(step, metrics)
+    if jax.process_index() == 0:
+        plots.plot_stagnation(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE),
+                              layout, _plots_dir(workdir) / "stagnation.png")
     _say(f"step {step} held-out evaluation (sampled actions):\n"
          + evaluate.format_metrics(metrics, layout))
     if jax.process_index() == 0:

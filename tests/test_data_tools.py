@@ -313,3 +313,15 @@ def test_command_line(config, tmp_path, tool):
     assert result.returncode == 0, result.stderr[-3000:]
     assert output.is_file()
     assert "wrote" in result.stdout
+
+
+def test_suggested_weights_are_capped_for_a_group_that_barely_moves():
+    from pi0_armfix.tools import analyze_action_magnitudes as analyze
+
+    rms = np.array([1.0, 0.01, 0.5, 0.5, 0.5, 0.5])  # torso barely moves
+    weights = analyze.suggested_weights(LAYOUT, rms)
+    assert weights["torso"] == analyze.MAX_SUGGESTED_WEIGHT and weights["left_arm"] == 2.0
+    groups = {g: {"suggested_weight": w, "motion_normalized": {"rms": r}}
+              for (g, w), r in zip(weights.items(), rms)}
+    [warning] = analyze.capped_weight_warnings(groups)
+    assert warning.startswith("torso barely moves (motion RMS 0.01 normalized units)")

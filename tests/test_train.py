@@ -57,7 +57,7 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
     assert training[-1]["weight/left_arm"] == pytest.approx(3 * training[-1]["weight/base"])
 
     assert list((workdir / "tensorboard").glob("events.out.tfevents.*"))
-    for figure in ("group_losses.png", "trajectories_4.png"):
+    for figure in ("group_losses.png", "trajectories_4.png", "stagnation.png"):
         assert (workdir / "plots" / figure).stat().st_size > 10_000
     assert checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).all_steps() == [2, 4]
     assert json.loads((workdir / "config.json").read_text())["loss"]["strategy"] == "per_group"

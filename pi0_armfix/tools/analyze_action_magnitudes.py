@@ -15,7 +15,8 @@ does not name a file), per layout group:
   so this is our proxy for each group's share of the uniform loss; compare it with `dim_share`
   (its share of the dims, what it would get if errors were even);
 - suggested_weight: the inverse of the group's motion RMS, normalized to 1 for the base (or, with
-  no moving base group, the median group): the static weights that even out the groups' motion.
+  no moving base group, the median group): the static weights that even out the groups' motion,
+  capped at 10 with a warning (a group that barely moves would get a weight of tens).
 
 Layout warnings: a group that mixes gripper-like dims (>= 80% of the frames within 10% of the
 [q01, q99] range from either end, each end holding >= 2%) with joint-like dims — e.g. the widely
@@ -82,16 +83,29 @@ def layout_warnings(layout: ActionLayout, gripper_like: np.ndarray,
     return warnings
 
 
+# A group that barely moves gets a huge inverse-motion weight that mostly amplifies its noise.
+MAX_SUGGESTED_WEIGHT = 10.0
+
+
 def suggested_weights(layout: ActionLayout, motion_rms: np.ndarray) -> dict[str, float]:
-    """Inverse motion RMS, normalized to the base group (else the median moving group)."""
+    """Inverse motion RMS, normalized to the base group (else the median moving group), capped at
+    `MAX_SUGGESTED_WEIGHT` (`capped_weight_warnings` names the groups it cut)."""
     moving = motion_rms > 0
     if not moving.any():
         return {name: 1.0 for name in layout.group_names}
     names = layout.group_names
     bases = [names.index(g) for g in layout.groups_with_role("base") if moving[names.index(g)]]
     reference = motion_rms[bases].mean() if bases else np.median(motion_rms[moving])
-    return {name: float(reference / motion_rms[g]) if moving[g] else 1.0
-            for g, name in enumerate(layout.group_names)}
+    return {name: float(min(reference / motion_rms[g], MAX_SUGGESTED_WEIGHT)) if moving[g]
+            else 1.0 for g, name in enumerate(layout.group_names)}
+
+
+def capped_weight_warnings(groups: dict[str, dict[str, Any]]) -> list[str]:
+    """A caveat per group whose suggested weight hit the cap."""
+    return [f"{name} barely moves (motion RMS {g['motion_normalized']['rms']:.3g} normalized "
+            f"units): its inverse-motion weight is capped at {MAX_SUGGESTED_WEIGHT:g}; a group "
+            "with little motion has little to learn, so weight it by judgment, not by this ratio"
+            for name, g in groups.items() if g["suggested_weight"] >= MAX_SUGGESTED_WEIGHT]
 
 
 def _quantiles(histograms: motion_lib.LogHistograms) -> dict[str, np.ndarray]:
@@ -135,7 +149,9 @@ def plot_motion(layout: ActionLayout, summary: motion_lib.MotionSummary, path: P
     for g, (ax, name) in enumerate(zip(axes, layout.group_names)):
         ax.stairs(share[g], edges, fill=True, alpha=0.7)
         ax.set_xscale("log")
-        ax.set_ylabel(name, rotation=0, ha="right", va="center")
+        # The name inside the panel: as a y-label it collided with the tick labels.
+        ax.text(0.01, 0.8, name, transform=ax.transAxes, ha="left", fontweight="bold")
+        ax.set_ylabel("share")
         still = summary.motion.counts[g, 0] / max(summary.motion.count, 1)
         ax.text(0.99, 0.8, f"still: {still:.0%}", transform=ax.transAxes, ha="right")
     if occupied.size:
@@ -172,6 +188,7 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
         "groups": group_report(layout, summary, unit, active),
         "warnings": layout_warnings(layout, gripper_like_dims(actions), constant),
     }
+    report["warnings"] += capped_weight_warnings(report["groups"])
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text(json.dumps(report, indent=2))

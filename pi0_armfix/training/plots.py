@@ -1,4 +1,5 @@
-"""PNG figures of a run: per-group loss curves and predicted vs true action trajectories."""
+"""PNG figures of a run: per-group loss curves, motion gain over training (stagnation) and
+predicted vs true action trajectories."""
 
 from __future__ import annotations
 
@@ -24,9 +25,16 @@ def plot_group_losses(records: Sequence[Mapping], layout: ActionLayout,
     rows = [r for r in records if f"loss/{layout.group_names[0]}" in r]
     fig, (ax_loss, ax_weight) = plt.subplots(1, 2, figsize=(12, 4.5))
     steps = [r["step"] for r in rows]
-    for g in layout.group_names:
-        ax_loss.plot(steps, [r[f"loss/{g}"] for r in rows], label=g)
-        ax_weight.plot(steps, [r[f"weight/{g}"] for r in rows], label=g)
+    # Groups often share a weight (every arm group at 3x): a marker shape and a staggered
+    # `markevery` per group keep each coinciding line visible.
+    markers = "osD^vP*X"
+    every = max(1, len(steps) // 12)
+    for i, g in enumerate(layout.group_names):
+        style = dict(label=g, marker=markers[i % len(markers)], markersize=4,
+                     markevery=(i * every // max(1, layout.num_groups), every))
+        ax_loss.plot(steps, [r[f"loss/{g}"] for r in rows], **style)
+        ax_weight.plot(steps, [r[f"weight/{g}"] for r in rows], **style,
+                       ls=("-", "--", ":", "-.")[i % 4])
     ax_loss.set(xlabel="step", ylabel="unweighted flow-matching MSE", yscale="log",
                 title="per-group training loss")
     ax_weight.set(xlabel="step", ylabel="effective weight", title="per-group effective weight")
@@ -38,6 +46,38 @@ def plot_group_losses(records: Sequence[Mapping], layout: ActionLayout,
     plt.close(fig)
 
 
+def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
+                    path: epath.PathLike) -> bool:
+    """Held-out motion gain of every group over training: the "base moves, arms don't" picture.
+
+    Motion gain is the least-squares slope of the policy's sampled displacement on the data's
+    (1 = moves as far as the demonstrations, 0 = stands still). Base-like groups (roles base,
+    torso) are drawn dashed beside the arms and grippers. Returns False (and writes nothing)
+    without evaluation records.
+    """
+    rows = [r for r in records if f"motion_gain/{layout.group_names[0]}" in r]
+    if not rows:
+        return False
+    steps = [r["step"] for r in rows]
+    body = set(layout.groups_with_role("base", "torso"))
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for g in layout.group_names:
+        ax.plot(steps, [r[f"motion_gain/{g}"] for r in rows], marker="o", markersize=4,
+                ls="--" if g in body else "-", lw=1.2 if g in body else 2.0, label=g)
+    ax.axhline(1.0, color="gray", lw=0.8)
+    ax.axhline(0.0, color="black", lw=0.8)
+    ax.text(steps[0], 1.02, "moves like the data", color="gray", fontsize=8, va="bottom")
+    ax.text(steps[0], 0.02, "still (stagnation)", color="black", fontsize=8, va="bottom")
+    ax.set(xlabel="training step", ylabel="motion gain (held-out, sampled actions)",
+           title="per-group motion gain over training (dashed: base and torso)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    fig.savefig(epath.Path(path), dpi=100)
+    plt.close(fig)
+    return True
+
+
 def plot_trajectories(predicted: np.ndarray, true: np.ndarray, layout: ActionLayout,
                       groups: Sequence[str], path: epath.PathLike, title: str = "") -> None:
     """Predicted (dashed) vs true (solid) action chunks, one row per chunk, one column per group.
@@ -47,21 +87,26 @@ def plot_trajectories(predicted: np.ndarray, true: np.ndarray, layout: ActionLay
       groups: the layout groups to show.
     """
     n = len(predicted)
-    fig, axes = plt.subplots(n, len(groups), figsize=(3.2 * len(groups), 2.4 * n), squeeze=False)
+    fig, axes = plt.subplots(n, len(groups), figsize=(3.2 * len(groups), 2.4 * n + 0.8),
+                             squeeze=False)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for row in range(n):
         for col, g in enumerate(groups):
             ax = axes[row, col]
             for i, d in enumerate(layout.group_dims(g)):
                 color = colors[i % len(colors)]
-                ax.plot(true[row, :, d], color=color, lw=1.5)
+                ax.plot(true[row, :, d], color=color, lw=1.5, label=f"joint {i} (dim {d})")
                 ax.plot(predicted[row, :, d], color=color, lw=1.5, ls="--")
             if row == 0:
                 ax.set_title(g)
+                ax.legend(fontsize=6, loc="upper right", ncol=2)
             if row == n - 1:
                 ax.set_xlabel("step in chunk")
+            if col == 0:
+                ax.set_ylabel(f"chunk {row + 1}\nnormalized action")
             ax.grid(alpha=0.3)
-    fig.suptitle(title or "predicted (dashed) vs true (solid), normalized units")
+    fig.suptitle((title + "\n" if title else "") + "solid: demonstration, dashed: policy sample; "
+                 "normalized units (the run's norm stats)")
     fig.tight_layout()
     fig.savefig(epath.Path(path), dpi=90)
     plt.close(fig)
