@@ -617,6 +617,10 @@ def main(argv: Sequence[str]) -> None:
                                    FLAGS.process_id)
     config = FLAGS.config
     config_file = config_flags.get_config_filename(FLAGS["config"])
+    if FLAGS.print_config:
+        print(f"# {config_file} with the command line's overrides; set any key with "
+              f"--config.<key>=<value>\n{config}")
+        return
     workdir = FLAGS.workdir or default_workdir(config_file)
     _say(f"config    {config_file}")
     try:
@@ -645,8 +649,12 @@ def main(argv: Sequence[str]) -> None:
 def define_flags() -> None:
     """The entrypoint's flags (defined only when run as a program, so that importing this module
     defines no absl flags)."""
-    config_flags.DEFINE_config_file("config", None, "experiment config: configs/<name>.py[:b1k]",
-                                    lock_config=True)
+    config_flags.DEFINE_config_file(
+        "config", None, "experiment config: configs/<name>.py[:b1k] (or an installed config's "
+        "name). Any key is set with --config.<key>=<value>: all keys, with comments, are in "
+        "configs/base.py; --print_config prints the resolved tree", lock_config=True)
+    flags.DEFINE_bool("print_config", False, "print the config (file and overrides applied) and "
+                      "exit")
     flags.DEFINE_string("workdir", None, "run folder (default runs/<config name>); resumed when "
                         "it holds checkpoints")
     flags.DEFINE_integer("num_processes", 1, "number of processes; > 1 starts jax.distributed")

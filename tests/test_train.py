@@ -2,6 +2,7 @@
 
 import json
 import os
+import subprocess
 
 import jax
 import jax.numpy as jnp
@@ -286,3 +287,15 @@ def test_per_group_effective_weights_keep_their_ratios_and_mean_one_over_all_dim
     sizes = np.asarray([len(B1K.group_dims(g)) for g in B1K.group_names])
     assert weights[2] == pytest.approx(3 * weights[0])
     assert (weights * sizes).sum() / B1K.action_dim == pytest.approx(1.0)
+
+
+def test_print_config_shows_the_resolved_keys_and_help_points_to_them(tmp_path, cache_dir):
+    command = tf.train_command("configs/arm_focused.py", None, {"train.total_steps": 7})
+    printed = subprocess.run([*command, "--print_config"], env=tf.env(cache_dir),
+                             cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert printed.returncode == 0, printed.stderr[-2000:]
+    assert "total_steps: 7" in printed.stdout and "group_weights:" in printed.stdout
+    assert not (tmp_path / "runs").exists()
+    helped = subprocess.run([*command[:4], "--help"], env=tf.env(cache_dir), cwd=tmp_path,
+                            capture_output=True, text=True, timeout=300)
+    assert "configs/base.py" in helped.stdout and "--print_config" in helped.stdout
