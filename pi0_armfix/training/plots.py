@@ -64,6 +64,7 @@ def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
     for g in layout.group_names:
         ax.plot(steps, [r[f"motion_gain/{g}"] for r in rows], marker="o", markersize=4,
                 ls="--" if g in body else "-", lw=1.2 if g in body else 2.0, label=g)
+    ax.set_ylim(min(-0.1, ax.get_ylim()[0]), max(1.15, ax.get_ylim()[1]))
     ax.axhline(1.0, color="gray", lw=0.8)
     ax.axhline(0.0, color="black", lw=0.8)
     ax.text(steps[0], 1.02, "moves like the data", color="gray", fontsize=8, va="bottom")
