@@ -580,13 +580,18 @@ def parse_flags(argv: Sequence[str]) -> list[str]:
     if FLAGS["config"].present:
         path = config_flags.get_config_filename(FLAGS["config"]).partition(":")[0]
         if not os.path.isfile(path):
-            import configs
-
-            known = ", ".join(sorted(p.stem for p in epath.Path(configs.__file__).parent.glob(
-                "*.py") if p.stem not in ("__init__", "base")))
+            known = ", ".join(sorted(p.stem for p in _configs_dir().glob("*.py")
+                                     if p.stem not in ("__init__", "base")))
             raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file; give a "
                              f"path or the name of an installed config: {known}")
     return rest
+
+
+def _configs_dir() -> epath.Path:
+    """The experiment configs installed beside this package."""
+    import configs
+
+    return epath.Path(configs.__file__).parent
 
 
 def _installed_config(arg: str) -> str:
@@ -597,11 +602,8 @@ def _installed_config(arg: str) -> str:
     path, colon, scale = arg.removeprefix("--config=").partition(":")
     if os.path.isfile(path):
         return arg
-    import configs  # the experiment configs beside this package (installed with it)
-
     name = epath.Path(path).name
-    installed = epath.Path(configs.__file__).parent / (name if name.endswith(".py")
-                                                       else f"{name}.py")
+    installed = _configs_dir() / (name if name.endswith(".py") else f"{name}.py")
     return f"--config={installed}{colon}{scale}" if installed.is_file() else arg
 
 

@@ -134,9 +134,10 @@ def _restore_arrays(item_dir: epath.Path, subtree: Sequence[str]) -> dict[str, n
 
 
 def _damaged(item_dir: epath.Path, error: BaseException) -> CheckpointError:
-    detail = (str(error).strip().splitlines() or [""])[0][:200]
-    return CheckpointError(f"{item_dir} cannot be read ({type(error).__name__}: {detail}): the "
-                           "checkpoint is damaged; convert an earlier step with --step")
+    from pi0_armfix.training.checkpoint import first_line  # see _restore_arrays
+
+    return CheckpointError(f"{item_dir} cannot be read ({first_line(error)}): the checkpoint is "
+                           "damaged; convert an earlier step with --step")
 
 
 def _read_json_item(item_dir: epath.Path) -> Any:

@@ -60,14 +60,19 @@ def _leaf_shapes(tree: Any) -> dict[str, tuple[int, ...]]:
 
 
 def _size(num_bytes: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if num_bytes < 1024 or unit == "GiB":
-            return f"{num_bytes:.0f} {unit}" if unit == "B" else f"{num_bytes:.1f} {unit}"
-        num_bytes /= 1024
-    return ""
+    if num_bytes < 1024:
+        return f"{num_bytes} B"
+    size, unit = num_bytes / 1024, "KiB"
+    for bigger in ("MiB", "GiB"):
+        if size < 1024:
+            break
+        size, unit = size / 1024, bigger
+    return f"{size:.1f} {unit}"
 
 
-def _first_line(error: BaseException) -> str:
+def first_line(error: BaseException) -> str:
+    """`Type: the first line of its message` (at most 200 characters): storage errors run to
+    kilobytes of spec dumps."""
     text = str(error).strip().splitlines()
     return f"{type(error).__name__}: {text[0][:200] if text else ''}"
 
@@ -179,7 +184,7 @@ class Checkpoints:
             fix = ("the disk is full: free space on it" if full
                    else "fix the file system")
             raise SaveError(
-                f"checkpoint {step} could not be written in {self.directory} ({_first_line(e)}): "
+                f"checkpoint {step} could not be written in {self.directory} ({first_line(e)}): "
                 f"{fix}, then rerun to resume from the last complete checkpoint "
                 f"({self.latest_step() or 'none: step 0'})") from e
 
@@ -322,5 +327,5 @@ class DamagedCheckpointError(ValueError):
     """A checkpoint whose files are missing or unreadable (a disk error, a deleted file)."""
 
     def __init__(self, path: epath.Path, error: BaseException):
-        super().__init__(f"checkpoint {path} is damaged ({_first_line(error)})")
+        super().__init__(f"checkpoint {path} is damaged ({first_line(error)})")
         self.path = path
