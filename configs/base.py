@@ -135,7 +135,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.num_steps = 10  # Euler steps of sample_actions
     config.eval.batch_size = 32
     config.eval.max_chunks = 256  # chunks drawn from the held-out episodes per evaluation
-    config.eval.gripper_groups = ()  # for gripper_switch_recall; () = the layout's gripper role
+    config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role
+    config.eval.switch_tolerance = 2  # steps by which a predicted gripper switch may miss
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
     if scale == "b1k":

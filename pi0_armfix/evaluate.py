@@ -7,19 +7,27 @@ During training (every `eval.every` steps) and offline on a checkpoint:
 The held-out set is the dataset's last `eval.episodes` episodes (never trained on); up to
 `eval.max_chunks` chunks start at evenly spaced frames of them, the same chunks at every
 evaluation, and the policy samples each chunk from the same noise (`eval.num_steps` Euler steps),
-so two evaluations differ only by the params. Per group g (normalized units):
+so two evaluations differ only by the params. The sampled chunks are turned back into absolute
+actions in the data's units (normalization and delta actions undone) and every dim is divided by
+its std over the held-out chunks (`evaluation_units`): runs with different normalizations or
+action representations are measured in the same units. Per group g:
 
   err/<g>                MSE of the sampled chunk against the true chunk.
   motion_gain/<g>        least-squares slope of predicted on true displacement; 1 = moves as far
                          as the data, 0 = stagnation (the headline stagnation measure).
   motion_ratio/<g>       ratio of displacement magnitudes (inflated by sampling noise).
-  gripper_switch_recall  fraction of the data's gripper open/close switches the policy makes too.
+  gripper_switch/{precision,recall,f1}
+                         gripper open/close switch events of the policy against the data's: a
+                         predicted switch matches a true one of the same direction within
+                         `eval.switch_tolerance` steps, each used once. Recall alone rewards a
+                         gripper that flickers; precision does not.
 
 A displacement is the chunk's last valid action minus its first (the current one); for a velocity
-group of the layout (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean. A
-gripper switch is a crossing of the midpoint of the dim's 1%/99% quantiles between two consecutive
-steps, counted per (chunk, dim, direction). Figures: predicted vs true trajectories of the chunks
-that move the `eval.plot_groups` most, and the per-group loss curves of `metrics.jsonl`.
+group of the layout (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean command,
+measured from the zero command (a standing base is 0). A gripper switch is a crossing of the
+midpoint of the dim's held-out 1%/99% quantiles between two consecutive valid steps. Figures:
+predicted vs true trajectories (data units) of the chunks that move the `eval.plot_groups` most,
+and the per-group loss curves of `metrics.jsonl`.
 """
 
 from __future__ import annotations
@@ -62,10 +70,12 @@ def _last_valid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> np.ndarray:
     """How far a chunk moves, `[N, D]`: last valid action minus the first (the current one) on
-    position dims; the mean over the valid steps on velocity dims (a velocity is a motion already).
+    position dims; the mean over the valid steps on velocity dims, measured from the zero command
+    (a velocity is a motion already; a standing base is 0).
 
     Args:
-      chunk: `[N, H, D]`; valid: `[N, H]` bool; velocity: `[D]` bool.
+      chunk: `[N, H, D]` in units whose 0 is the zero command (data units, or data units over a
+        scale: see `evaluation_units`); valid: `[N, H]` bool; velocity: `[D]` bool.
     """
     position = _last_valid(chunk, valid) - chunk[:, 0]
     w = valid[..., None].astype(chunk.dtype)
@@ -73,32 +83,85 @@ def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> 
     return np.where(velocity, mean, position)
 
 
-def _switches(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray) -> np.ndarray:
-    """`[N, D, 2]` bool: whether the chunk crosses `threshold` upwards / downwards between two
-    consecutive valid steps (a gripper opening / closing)."""
+def switch_events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The gripper switches of chunks: crossings of `threshold` between two consecutive valid steps.
+
+    Args:
+      chunk: `[N, H, D]`; valid: `[N, H]` bool; threshold: `[D]` the open/close boundary.
+    Returns:
+      `(up, down)`, each `[N, D, H]` bool: True at step h when the dim crosses upwards (opens) /
+      downwards (closes) between steps h - 1 and h (h = 0 is always False).
+    """
     above = chunk > threshold
     both_valid = (valid[:, 1:] & valid[:, :-1])[..., None]
-    up = (~above[:, :-1] & above[:, 1:] & both_valid).any(axis=1)
-    down = (above[:, :-1] & ~above[:, 1:] & both_valid).any(axis=1)
-    return np.stack([up, down], axis=-1)
+    up = ~above[:, :-1] & above[:, 1:] & both_valid
+    down = above[:, :-1] & ~above[:, 1:] & both_valid
+    start = np.zeros_like(up[:, :1])
+    return tuple(np.concatenate([start, x], axis=1).transpose(0, 2, 1) for x in (up, down))
+
+
+def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> int:
+    """Number of true switch events matched one-to-one by a predicted event of the same kind
+    within `tolerance` steps (greedy in time order, each predicted event used once).
+
+    Args:
+      predicted, true: `[..., H]` bool events (one row per chunk, dim and direction).
+    """
+    pred_rows = predicted.reshape(-1, predicted.shape[-1])
+    matched = 0
+    for row, true_row in enumerate(true.reshape(-1, true.shape[-1])):
+        candidates = list(np.flatnonzero(pred_rows[row]))
+        for h in np.flatnonzero(true_row):
+            near = [p for p in candidates if abs(p - h) <= tolerance]
+            if near:
+                candidates.remove(min(near, key=lambda p: abs(p - h)))
+                matched += 1
+    return matched
+
+
+def switch_scores(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
+                  threshold: np.ndarray, tolerance: int) -> dict[str, float]:
+    """Precision, recall and F1 of the predicted gripper switches against the true ones.
+
+    A predicted switch counts when it goes the same way (open / close) as an unmatched true switch
+    of the same chunk and dim within `tolerance` steps. Precision is NaN without any predicted
+    switch, recall without any true switch, F1 (`2 TP / (2 TP + FP + FN)`) without either.
+
+    Args:
+      predicted, true: `[N, H, D]` gripper dims; valid: `[N, H]`; threshold: `[D]`.
+    """
+    pred_events = np.stack(switch_events(predicted, valid, threshold))
+    true_events = np.stack(switch_events(true, valid, threshold))
+    tp = matched_switches(pred_events, true_events, tolerance)
+    num_pred, num_true = int(pred_events.sum()), int(true_events.sum())
+
+    def ratio(num, den):
+        return float(num / den) if den else float("nan")
+
+    return {"gripper_switch/precision": ratio(tp, num_pred),
+            "gripper_switch/recall": ratio(tp, num_true),
+            "gripper_switch/f1": ratio(2 * tp, num_pred + num_true)}
 
 
 def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
                   layout: ActionLayout, gripper_groups: Sequence[str],
-                  gripper_threshold: np.ndarray) -> dict[str, float]:
+                  gripper_threshold: np.ndarray, switch_tolerance: int = 2) -> dict[str, float]:
     """Stagnation metrics of sampled chunks against the true ones (see the module docstring).
 
     Args:
-      predicted, true: `[N, H, D]` normalized action chunks.
+      predicted, true: `[N, H, D]` absolute action chunks in evaluation units (D >= real_dim).
       valid: `[N, H]` bool, False on the padded tail of a chunk at an episode end.
       gripper_groups: groups whose dims are open/close commands.
-      gripper_threshold: `[D]` the open/close boundary of each dim, normalized units.
+      gripper_threshold: `[D]` the open/close boundary of each dim, same units.
+      switch_tolerance: steps by which a predicted gripper switch may miss the true one.
     Returns:
-      `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group, `gripper_switch_recall`;
-      NaN where the data gives nothing to measure (no motion, no switch).
+      `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group,
+      `gripper_switch/{precision,recall,f1}`; NaN where the data gives nothing to measure.
     """
-    dp = displacement(predicted, valid, layout.velocity_mask())
-    dt = displacement(true, valid, layout.velocity_mask())
+    velocity = transforms.pad_last(layout.velocity_mask()[:layout.real_dim], true.shape[-1])
+    dp = displacement(predicted, valid, velocity)
+    dt = displacement(true, valid, velocity)
     sq_err = np.square(predicted - true)
     w = valid[..., None].astype(np.float64)
     metrics = {}
@@ -113,12 +176,30 @@ def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
             float(np.linalg.norm(dp[:, dims], axis=-1).sum() / true_norm)
             if true_norm > 0 else float("nan"))
     dims = np.concatenate([layout.group_dims(g) for g in gripper_groups] + [np.zeros(0, int)])
-    true_switch = _switches(true[..., dims], valid, gripper_threshold[dims])
-    pred_switch = _switches(predicted[..., dims], valid, gripper_threshold[dims])
-    num_true = int(true_switch.sum())
-    metrics["gripper_switch_recall"] = (float((true_switch & pred_switch).sum() / num_true)
-                                        if num_true else float("nan"))
+    metrics.update(switch_scores(predicted[..., dims], true[..., dims], valid,
+                                 gripper_threshold[dims], switch_tolerance))
     return metrics
+
+
+def evaluation_units(true: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The common units of every run's metrics, from the held-out true chunks in data units.
+
+    Runs differ in normalization (z-score, quantile, balanced, per timestep) and in action
+    representation (absolute or delta), so their normalized units cannot be compared. Metrics are
+    taken on absolute actions in data units divided by each dim's std over the held-out chunks'
+    valid steps (1 for a constant dim): not centred, so a zero velocity command stays 0.
+
+    Args:
+      true: `[N, H, D]` absolute data units; valid: `[N, H]`.
+    Returns:
+      `(scale [D], gripper threshold [D])`: divide by `scale`; the threshold (the midpoint of each
+      dim's 1 % and 99 % quantiles) is in the divided units.
+    """
+    steps = true[valid]
+    std = steps.std(axis=0)
+    scale = np.where(std < transforms.DEGENERATE, 1.0, std)
+    q01, q99 = np.quantile(steps, [0.01, 0.99], axis=0)
+    return scale, (q01 + q99) / 2 / scale
 
 
 def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
@@ -153,6 +234,9 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
                          f"eval.batch_size = {eval_cfg['batch_size']}")
     if eval_cfg["num_steps"] <= 0:
         raise ValueError(f"eval.num_steps = {eval_cfg['num_steps']} must be positive")
+    if eval_cfg["switch_tolerance"] < 0:
+        raise ValueError(f"eval.switch_tolerance = {eval_cfg['switch_tolerance']} must be >= 0 "
+                         "(steps by which a predicted gripper switch may miss the true one)")
 
 
 # ---------------------------------------------------------------------- the evaluator
@@ -193,12 +277,15 @@ class Evaluator:
                              f"{table.num_frames} frames, fewer than eval.batch_size = "
                              f"{batch_size}")
         frames = np.linspace(0, table.num_frames - 1, num_chunks).round().astype(np.int64)
+        self.transform = transform
+        self.frames = frames
         self.batches = [transform(frames[i:i + batch_size])
                         for i in range(0, num_chunks, batch_size)]
-        actions = transform.action_norm.width
-        stats = stats_lib.fit_width(norm_stats["actions"], actions, "norm stats 'actions'")
-        self.gripper_threshold = transforms.pad_last(
-            transform.action_norm((stats.q01 + stats.q99) / 2), layout.action_dim)
+        self.valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
+        true = transform.absolute_actions(np.concatenate([b["actions"] for b in self.batches]),
+                                          frames)
+        self.scale, self.gripper_threshold = evaluation_units(true, self.valid)
+        self.true = true / self.scale
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
         self.seed = int(config.seed)
         self._sample = jax.jit(
@@ -226,15 +313,15 @@ class Evaluator:
         return np.concatenate(predicted)
 
     def __call__(self, params: Any) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-        """Returns the metrics, and the predicted and true chunks `[N, H, D]`."""
-        predicted = self.sample(params)
-        true = np.concatenate([b["actions"] for b in self.batches])
-        valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
+        """Returns the metrics, and the predicted and true absolute chunks `[N, H, A]` in
+        evaluation units (`evaluation_units`)."""
+        predicted = self.transform.absolute_actions(self.sample(params), self.frames) / self.scale
         metrics = chunk_metrics(
-            predicted, true, valid, layout=self.layout,
+            predicted, self.true, self.valid, layout=self.layout,
             gripper_groups=self.groups["gripper_groups"],
-            gripper_threshold=self.gripper_threshold)
-        return metrics, predicted, true
+            gripper_threshold=self.gripper_threshold,
+            switch_tolerance=self.eval_cfg.switch_tolerance)
+        return metrics, predicted, self.true
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
@@ -244,11 +331,11 @@ class Evaluator:
         # The base and torso beside the groups of interest: stagnation is the contrast.
         shown = [g for g in self.layout.groups_with_role("base", "torso") if g not in plot_groups]
         shown += list(plot_groups)
-        valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
-        motion = np.linalg.norm(displacement(true, valid, np.zeros(true.shape[-1], bool))[:, dims],
-                                axis=-1)
+        motion = np.linalg.norm(
+            displacement(true, self.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
         rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
-        plots.plot_trajectories(predicted[rows], true[rows], self.layout, shown, path, title)
+        plots.plot_trajectories(predicted[rows] * self.scale, true[rows] * self.scale, self.layout,
+                                shown, path, title)
 
 
 def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
@@ -257,7 +344,8 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
     for g in layout.group_names:
         lines.append(f"{g:<16}{metrics[f'err/{g}']:>10.4f}{metrics[f'motion_gain/{g}']:>13.3f}"
                      f"{metrics[f'motion_ratio/{g}']:>14.3f}")
-    lines.append(f"gripper_switch_recall {metrics['gripper_switch_recall']:.3f}")
+    lines.append("gripper switches: " + ", ".join(
+        f"{name} {metrics[f'gripper_switch/{name}']:.3f}" for name in ("precision", "recall", "f1")))
     return "\n".join(lines)
 
 

@@ -84,33 +84,76 @@ def static_dim_weights(strategy: str, layout: ActionLayout, group_weights=None,
     return w / jnp.mean(w)
 
 
-def delta_scale(actions: jax.Array, layout: ActionLayout) -> jax.Array:
+def _valid_weights(valid: jax.Array | None, like: jax.Array) -> jax.Array:
+    """`valid` `[B, H]` as 1/0 weights shaped `[B, H, 1...]` against `like` (all 1 if None)."""
+    if valid is None:
+        return jnp.ones(like.shape[:2] + (1,) * (like.ndim - 2), like.dtype)
+    return jnp.asarray(valid, like.dtype).reshape(valid.shape + (1,) * (like.ndim - 2))
+
+
+def _valid_mean(x: jax.Array, valid: jax.Array | None, axis) -> jax.Array:
+    """Mean of `x` `[B, H, ...]` over the valid entries along `axis` (kept); 1 where none is valid,
+    so a weight divided by it stays finite (and is masked out of the loss anyway)."""
+    v = _valid_weights(valid, x)
+    count = jnp.sum(v, axis=axis, keepdims=True)
+    return jnp.where(count > 0, jnp.sum(x * v, axis=axis, keepdims=True) / jnp.maximum(count, 1.0),
+                     1.0)
+
+
+def delta_scale(actions: jax.Array, layout: ActionLayout, valid: jax.Array | None = None
+                ) -> jax.Array:
     """Per-sample, per-group motion scale `[B, H, G]` of delta weighting.
 
     c = clip(0.2 + min(||Δa_g||, 0.5), 0.1, 3.0) with Δ over h inside the group's dims (Δ = 0 at
-    h = 0), normalized to mean 1 over h for each (sample, group), so a sample's weights do not
-    depend on the rest of the batch (batch size, composition, sharding).
+    h = 0), normalized to mean 1 over the valid h (`valid` `[B, H]`, False on `action_is_pad`
+    steps; None = all) for each (sample, group), so a sample's weights depend neither on the rest
+    of the batch (batch size, composition, sharding) nor on how much of it is episode-end padding.
     """
     a = jax.lax.stop_gradient(_as_float32(actions))
     delta = a - jnp.concatenate([a[:, :1], a[:, :-1]], axis=1)
     group_sq = jnp.einsum("bhd,dg->bhg", jnp.square(delta), jnp.asarray(layout.membership()))
     c = jnp.clip(0.2 + jnp.minimum(jnp.sqrt(group_sq), 0.5), 0.1, 3.0)
-    return c / jnp.mean(c, axis=1, keepdims=True)
+    return c / _valid_mean(c, valid, axis=1)
 
 
-def _delta_dim_scale(actions: jax.Array, layout: ActionLayout) -> jax.Array:
+def _delta_dim_scale(actions: jax.Array, layout: ActionLayout, valid: jax.Array | None
+                     ) -> jax.Array:
     """Delta scale spread to dims `[B, H, D]`; dims outside every group keep scale 1."""
     membership = jnp.asarray(layout.membership())
     ungrouped = 1.0 - jnp.sum(membership, axis=-1)
-    return jnp.einsum("bhg,dg->bhd", delta_scale(actions, layout), membership) + ungrouped
+    return (jnp.einsum("bhg,dg->bhd", delta_scale(actions, layout, valid), membership)
+            + ungrouped)
 
 
-def original_temporal_weights(actions: jax.Array) -> jax.Array:
-    """Weights `[B, H]` of the `original` strategy, normalized to mean 1 over the whole batch."""
+def original_temporal_weights(actions: jax.Array, valid: jax.Array | None = None) -> jax.Array:
+    """Weights `[B, H]` of the `original` strategy, normalized to mean 1 over the batch's valid
+    (b, h) entries."""
     a = jax.lax.stop_gradient(_as_float32(actions))
     delta = a - jnp.concatenate([a[:, :1], a[:, :-1]], axis=1)
     w = jnp.clip(0.2 + jnp.minimum(jnp.linalg.norm(delta, axis=-1), 0.5), 0.1, 3.0)
-    return w / jnp.mean(w)
+    return w / _valid_mean(w, valid, axis=(0, 1))
+
+
+def switch_emphasis(actions: jax.Array, valid: jax.Array | None, layout: ActionLayout, *,
+                    threshold: Any, weight: float, window: int) -> jax.Array:
+    """Timestep weights `[B, H]` that emphasize gripper switches: `weight` on the steps within
+    `window` steps of a switch of the true chunk, 1 elsewhere (not renormalized: chunks with a
+    switch weigh more than chunks without, which is the point).
+
+    A switch at h: a dim of a group with role gripper crosses `threshold` (`[D]` or `[H, D]`, the
+    open/close boundary in normalized units) between steps h - 1 and h, both valid.
+    """
+    dims = np.concatenate([layout.group_dims(g) for g in layout.groups_with_role("gripper")]
+                          + [np.zeros(0, int)])
+    a = jax.lax.stop_gradient(_as_float32(actions))
+    above = (a > jnp.asarray(threshold, a.dtype))[..., dims]
+    both_valid = jnp.ones(a.shape[:1] + (a.shape[1] - 1,), bool) if valid is None else \
+        valid[:, 1:] & valid[:, :-1]
+    switch = jnp.any(above[:, 1:] != above[:, :-1], axis=-1) & both_valid
+    switch = jnp.concatenate([jnp.zeros_like(switch[:, :1]), switch], axis=1)  # [B, H]
+    padded = jnp.pad(switch, ((0, 0), (window, window)))
+    near = jnp.stack([padded[:, k:k + switch.shape[1]] for k in range(2 * window + 1)]).any(0)
+    return jnp.where(near, jnp.float32(weight), jnp.float32(1.0))
 
 
 def _group_means(x: jax.Array, layout: ActionLayout) -> jax.Array:
@@ -122,7 +165,9 @@ def _group_means(x: jax.Array, layout: ActionLayout) -> jax.Array:
 def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strategy: str,
                           layout: ActionLayout, group_weights: Mapping[str, Any] | None = None,
                           dimension_weights: Any = None, delta_weighting: bool = False,
-                          log_vars: jax.Array | None = None, min_log_var: float = -5.0) -> jax.Array:
+                          log_vars: jax.Array | None = None, min_log_var: float = -5.0,
+                          valid: jax.Array | None = None,
+                          timestep_weights: jax.Array | None = None) -> jax.Array:
     """Weighted loss per (sample, step).
 
     Args:
@@ -135,6 +180,9 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
       delta_weighting: scale each (b, h, g) by the group's per-sample normalized motion.
       log_vars: `[G]` learned log-variances for uncertainty (these DO carry gradient).
       min_log_var: lower clamp of the log-variances.
+      valid: `[B, H]` bool, False on `action_is_pad` steps: the normalizations over time (delta
+        weighting, `original`) ignore them. None = all valid.
+      timestep_weights: `[B, H]` extra weights on every dim of a step (`switch_emphasis`).
     Returns:
       `[B, H]` float32.
     """
@@ -145,13 +193,15 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
                          "(the layout's action_dim)")
     if tuple(np.shape(actions)) != e.shape:
         raise ValueError(f"actions shape {tuple(np.shape(actions))} != per_dim_loss shape {e.shape}")
+    if timestep_weights is not None:
+        e = jax.lax.stop_gradient(_as_float32(timestep_weights))[..., None] * e
 
     if strategy == "uniform":
         return jnp.mean(e, axis=-1)
     if strategy == "original":
-        return original_temporal_weights(actions) * jnp.mean(e, axis=-1)
+        return original_temporal_weights(actions, valid) * jnp.mean(e, axis=-1)
     if delta_weighting:
-        e_scaled = jax.lax.stop_gradient(_delta_dim_scale(actions, layout)) * e
+        e_scaled = jax.lax.stop_gradient(_delta_dim_scale(actions, layout, valid)) * e
     else:
         e_scaled = e
     if strategy == "uncertainty":
@@ -195,19 +245,26 @@ def per_group_losses(per_dim_loss: jax.Array, layout: ActionLayout,
 
 def training_loss(per_dim_loss: jax.Array, actions: jax.Array, action_is_pad: jax.Array, *,
                   layout: ActionLayout, strategy: str, group_weights=None, dimension_weights=None,
-                  delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0):
+                  delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0,
+                  switch_threshold=None, switch_weight: float = 1.0, switch_window: int = 0):
     """The scalar training loss over valid timesteps, and the per-group unweighted losses.
 
     Args:
       per_dim_loss: e `[B, H, D]`; actions `[B, H, D]`; action_is_pad `[B, H]` bool.
+      switch_threshold, switch_weight, switch_window: gripper-switch emphasis
+        (`switch_emphasis`), on when `switch_weight != 1`.
     Returns:
       `(loss scalar, {"group_loss": {group: scalar}})`.
     """
     valid = jnp.logical_not(action_is_pad)
+    timestep_weights = None
+    if switch_weight != 1.0:
+        timestep_weights = switch_emphasis(actions, valid, layout, threshold=switch_threshold,
+                                           weight=switch_weight, window=switch_window)
     weighted = compute_weighted_loss(
         per_dim_loss, actions, strategy=strategy, layout=layout, group_weights=group_weights,
         dimension_weights=dimension_weights, delta_weighting=delta_weighting, log_vars=log_vars,
-        min_log_var=min_log_var)
+        min_log_var=min_log_var, valid=valid, timestep_weights=timestep_weights)
     return masked_mean(weighted, valid), {
         "group_loss": per_group_losses(jax.lax.stop_gradient(per_dim_loss), layout, valid)}
 

@@ -37,7 +37,11 @@ def _moving_chunks(n=64, seed=0):
     return true
 
 
-def test_a_perfect_policy_has_gain_one_zero_error_and_full_gripper_recall():
+def _switches(metrics):
+    return [metrics[f"gripper_switch/{k}"] for k in ("precision", "recall", "f1")]
+
+
+def test_a_perfect_policy_has_gain_one_zero_error_and_switch_f1_one():
     true = _moving_chunks()
     metrics = _metrics(true.copy(), true)
     for g in LAYOUT.group_names:
@@ -45,7 +49,7 @@ def test_a_perfect_policy_has_gain_one_zero_error_and_full_gripper_recall():
     for g in ("base", "arm"):
         assert metrics[f"motion_gain/{g}"] == pytest.approx(1.0)
         assert metrics[f"motion_ratio/{g}"] == pytest.approx(1.0)
-    assert metrics["gripper_switch_recall"] == 1.0
+    assert _switches(metrics) == [1.0, 1.0, 1.0]
 
 
 def test_a_policy_that_holds_the_current_action_has_arm_gain_zero():
@@ -54,7 +58,60 @@ def test_a_policy_that_holds_the_current_action_has_arm_gain_zero():
     metrics = _metrics(still, true)
     assert metrics["motion_gain/arm"] == 0.0
     assert metrics["motion_ratio/arm"] == 0.0
-    assert metrics["gripper_switch_recall"] == 0.0
+
+
+def test_a_standing_base_has_gain_zero():
+    true = _moving_chunks()
+    standing = true.copy()
+    standing[..., 0:2] = 0.0  # the zero velocity command
+    assert _metrics(standing, true)["motion_gain/base"] == 0.0
+
+
+def test_a_never_switching_gripper_has_recall_and_f1_zero_and_no_precision():
+    true = _moving_chunks()
+    never = true.copy()
+    never[..., 5] = 1.0
+    precision, recall, f1 = _switches(_metrics(never, true))
+    assert np.isnan(precision) and recall == 0.0 and f1 == 0.0
+
+
+def test_an_inverted_gripper_scores_zero():
+    true = _moving_chunks()
+    inverted = true.copy()
+    inverted[..., 5] = -true[..., 5]  # every close becomes an open
+    assert _switches(_metrics(inverted, true)) == [0.0, 0.0, 0.0]
+
+
+def test_a_flickering_gripper_has_full_recall_but_low_precision():
+    true = _moving_chunks()
+    flicker = true.copy()
+    flicker[..., 5] = np.where(np.arange(H) % 2, -1.0, 1.0)  # switches at every step
+    precision, recall, f1 = _switches(_metrics(flicker, true))
+    assert recall == 1.0 and precision < 0.25 and f1 < 0.4
+
+
+def test_a_switch_within_the_tolerance_matches_and_one_outside_does_not():
+    true = np.zeros((1, 12, LAYOUT.action_dim))
+    true[0, :, 5] = 1.0
+    true[0, 4:, 5] = -1.0  # closes at step 4
+    late = true.copy()
+    late[0, :, 5] = 1.0
+    late[0, 6:, 5] = -1.0  # closes at step 6
+    valid = np.ones((1, 12), bool)
+    kwargs = dict(layout=LAYOUT, gripper_groups=("gripper",),
+                  gripper_threshold=np.zeros(LAYOUT.action_dim))
+    within = evaluate.chunk_metrics(late, true, valid, switch_tolerance=2, **kwargs)
+    outside = evaluate.chunk_metrics(late, true, valid, switch_tolerance=1, **kwargs)
+    assert within["gripper_switch/f1"] == 1.0 and outside["gripper_switch/f1"] == 0.0
+
+
+def test_evaluation_units_keep_the_zero_command_and_scale_by_the_std():
+    rng = np.random.default_rng(0)
+    true = rng.normal(3.0, 2.0, size=(200, H, 2))
+    true[..., 1] = 5.0  # a constant dim keeps scale 1
+    scale, threshold = evaluate.evaluation_units(true, np.ones((200, H), bool))
+    assert scale[0] == pytest.approx(true[..., 0].std()) and scale[1] == 1.0
+    assert threshold[1] == pytest.approx(5.0)
 
 
 def test_noise_moves_in_magnitude_but_has_gain_near_zero():
@@ -83,16 +140,10 @@ def test_padded_tail_of_a_chunk_is_ignored():
     assert metrics["motion_gain/arm"] == pytest.approx(1.0)
 
 
-def test_gripper_switch_must_go_the_same_way():
-    true = _moving_chunks()
-    opens = -true.copy()  # every switch reversed: closing becomes opening
-    assert _metrics(opens, true)["gripper_switch_recall"] == 0.0
-
-
 def test_metrics_are_nan_where_the_data_gives_nothing_to_measure():
     still = np.zeros((4, H, LAYOUT.action_dim))
     metrics = _metrics(still, still)
-    assert np.isnan(metrics["motion_gain/arm"]) and np.isnan(metrics["gripper_switch_recall"])
+    assert np.isnan(metrics["motion_gain/arm"]) and all(np.isnan(_switches(metrics)))
 
 
 def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
@@ -114,7 +165,7 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
                             text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "step 2" in result.stdout
-    for column in ("err", "motion_gain", "motion_ratio", "gripper_switch_recall", "left_arm"):
+    for column in ("err", "motion_gain", "motion_ratio", "precision", "left_arm"):
         assert column in result.stdout
     for figure in ("trajectories.png", "group_losses.png"):
         assert (workdir / "eval" / "step_2" / figure).stat().st_size > 10_000

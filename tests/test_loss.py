@@ -272,3 +272,49 @@ def test_per_dim_loss_of_the_wrong_width_names_the_expected_shape():
     e, a = _inputs()
     with pytest.raises(ValueError, match=r"expected \[B, H, 32\]"):
         L.compute_weighted_loss(e[..., :23], a[..., :23], strategy="uniform", layout=B1K)
+
+
+@pytest.mark.parametrize("case", ["original", "per_group_delta", "uncertainty_delta"])
+def test_time_normalized_weights_ignore_the_padded_tail_of_a_chunk(case):
+    e, a = _inputs()
+    pad = np.zeros((4, 10), bool)
+    pad[:, 6:] = True
+    tail = a.at[:, 6:].set(a[:, 5:6])  # the chunker repeats the episode's last frame
+    padded = L.training_loss(e, tail, pad, layout=B1K, **CASES[case])[0]
+    cut = L.training_loss(e[:, :6], a[:, :6], pad[:, :6], layout=B1K, **CASES[case])[0]
+    np.testing.assert_allclose(padded, cut, rtol=1e-6)
+
+
+def _gripper_chunk(switch_at=None, h=12):
+    """One B1K chunk whose left gripper (dim 14) goes from 1 to -1 at `switch_at`."""
+    a = np.zeros((1, h, 32), np.float32)
+    a[..., 14] = 1.0
+    if switch_at is not None:
+        a[0, switch_at:, 14] = -1.0
+    return jnp.asarray(a)
+
+
+def test_switch_emphasis_weighs_the_steps_around_a_gripper_switch():
+    w = L.switch_emphasis(_gripper_chunk(switch_at=5), None, B1K, threshold=np.zeros(32),
+                          weight=4.0, window=2)
+    np.testing.assert_array_equal(w[0], [1, 1, 1, 4, 4, 4, 4, 4, 1, 1, 1, 1])
+
+
+def test_switch_emphasis_is_one_without_a_switch_and_ignores_padded_steps():
+    kwargs = dict(threshold=np.zeros(32), weight=4.0, window=2)
+    np.testing.assert_array_equal(L.switch_emphasis(_gripper_chunk(), None, B1K, **kwargs), 1.0)
+    valid = np.ones((1, 12), bool)
+    valid[0, 8:] = False  # the switch at step 9 lies past the episode end
+    np.testing.assert_array_equal(
+        L.switch_emphasis(_gripper_chunk(switch_at=9), valid, B1K, **kwargs), 1.0)
+
+
+def test_switch_emphasis_scales_the_loss_of_the_emphasized_steps():
+    a = _gripper_chunk(switch_at=5)
+    e = jnp.ones((1, 12, 32))
+    pad = np.zeros((1, 12), bool)
+    plain = L.training_loss(e, a, pad, layout=B1K, strategy="uniform")[0]
+    emphasized = L.training_loss(e, a, pad, layout=B1K, strategy="uniform",
+                                 switch_threshold=np.zeros(32), switch_weight=4.0,
+                                 switch_window=2)[0]
+    np.testing.assert_allclose(emphasized, plain * (7 + 5 * 4) / 12, rtol=1e-6)

@@ -132,3 +132,17 @@ def test_torch_mirror_raises_the_same_errors():
         tl.compute_weighted_loss(e, e, strategy="mse", layout=layout)
     with pytest.raises(ValueError, match=r"missing group\(s\)"):
         tl.compute_weighted_loss(e, e, strategy="per_group", layout=layout, group_weights={"base": 1.0})
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), window=st.integers(0, 4))
+def test_jax_and_torch_switch_emphasis_agree(seed, window):
+    layout = ActionLayout.preset("b1k_r1pro")
+    rng = np.random.default_rng(seed)
+    actions = rng.normal(size=(3, 10, 32)).astype(np.float32)
+    valid = rng.uniform(size=(3, 10)) > 0.2
+    threshold = rng.normal(size=32).astype(np.float32)
+    kwargs = dict(threshold=threshold, weight=3.0, window=window)
+    got_jax = jl.switch_emphasis(jnp.asarray(actions), jnp.asarray(valid), layout, **kwargs)
+    got_torch = tl.switch_emphasis(torch.tensor(actions), torch.tensor(valid), layout, **kwargs)
+    np.testing.assert_array_equal(got_torch.numpy(), np.asarray(got_jax))

@@ -250,3 +250,66 @@ def test_compiled_program_size_does_not_grow_with_depth():
 
     shallow, deep = hlo_size(2), hlo_size(8)
     assert math.isclose(shallow, deep, rel_tol=0.05), (shallow, deep)
+
+
+def _plain_pi0_loss(params, rng, batch):
+    """The pi0 loss as it was before K flow samples existed (one draw per sample)."""
+    actions = jnp.asarray(batch["actions"], jnp.float32)
+    rng_augment, rng_noise, rng_time = jax.random.split(rng, 3)
+    observation = preprocess_observation(rng_augment, batch, config=TINY, train=True)
+    noise = jax.random.normal(rng_noise, actions.shape)
+    t = jax.random.beta(rng_time, 1.5, 1.0, actions.shape[:1]) * 0.999 + 0.001
+    x_t = t[:, None, None] * noise + (1.0 - t[:, None, None]) * actions
+    v = pi0.forward_velocity(params, observation, x_t, t, config=TINY)
+    valid = ~jnp.asarray(batch["action_is_pad"])
+    per_step = jnp.mean(jnp.square(v - (noise - actions)), axis=-1)
+    return jnp.sum(per_step * valid) / jnp.sum(valid)
+
+
+def test_one_flow_sample_is_the_plain_pi0_loss_bitwise(params):
+    batch, rng = _batch(), jax.random.key(5)
+    plain = jax.jit(jax.value_and_grad(lambda p: _plain_pi0_loss(p, rng, batch)))(params)
+    one = jax.jit(jax.value_and_grad(lambda p: policy.compute_loss(
+        p, rng, batch, config=TINY, layout=LAYOUT, train=True, strategy="uniform",
+        flow_samples=1)[0]))(params)
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(one)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_k_flow_samples_share_the_prefix_and_never_see_each_other(params):
+    obs = preprocess_observation(None, _observation(), config=TINY, train=False)
+    rng = np.random.default_rng(0)
+    x_t = jnp.asarray(rng.standard_normal((3 * BATCH, TINY.action_horizon, TINY.action_dim)),
+                      jnp.float32)
+    t = jnp.asarray(rng.uniform(0.05, 1.0, 3 * BATCH), jnp.float32)
+    together = pi0.forward_velocity(params, obs, x_t, t, config=TINY, samples=3)
+    for k in range(3):
+        rows = slice(k * BATCH, (k + 1) * BATCH)
+        alone = pi0.forward_velocity(params, obs, x_t[rows], t[rows], config=TINY)
+        np.testing.assert_allclose(together[rows], alone, rtol=1e-5, atol=1e-5)
+
+
+def test_k_flow_samples_average_the_losses_of_k_draws(params):
+    batch = _batch()
+    loss, _ = policy.compute_loss(params, jax.random.key(6), batch, config=TINY, layout=LAYOUT,
+                                  train=False, strategy="uniform", flow_samples=4)
+    assert np.isfinite(loss)
+    single = [policy.compute_loss(params, jax.random.key(s), batch, config=TINY, layout=LAYOUT,
+                                  train=False, strategy="uniform")[0] for s in range(8)]
+    # Another draw of noise and time: same scale as single draws, not K times it.
+    assert min(single) * 0.5 < loss < max(single) * 1.5
+
+
+def test_correlated_noise_has_the_configured_covariance():
+    from pi0_armfix.model import noise as noise_lib
+    rng = np.random.default_rng(0)
+    horizon, width = 4, 3
+    basis = rng.standard_normal((horizon * width, horizon * width))
+    cov = basis @ basis.T
+    correlation = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    factor = noise_lib.correlated_noise_factor(correlation, beta=0.3)
+    draws = np.asarray(noise_lib.flow_noise(jax.random.key(0), (200_000, horizon, width),
+                                         jnp.asarray(factor)))
+    empirical = np.cov(draws.reshape(len(draws), -1), rowvar=False)
+    expected = 0.3 * np.eye(horizon * width) + 0.7 * correlation
+    np.testing.assert_allclose(empirical, expected, atol=0.015)

@@ -200,7 +200,7 @@ def test_actions_wider_than_32_train_without_cameras_with_eval_groups_from_roles
     assert "no camera feeds" in result.stdout + result.stderr  # one warning, then masked
     records = [json.loads(line) for line in
                (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    evaluation = [r for r in records if "gripper_switch_recall" in r]
+    evaluation = [r for r in records if "gripper_switch/f1" in r]
     assert evaluation and "motion_gain/left_arm" in evaluation[-1]
 
 

@@ -54,7 +54,7 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
     assert expected <= training[-1].keys()
     assert 0 <= training[-1]["data_wait"] <= 1
     assert {f"{kind}/{g}" for kind in ("err", "motion_gain", "motion_ratio")
-            for g in B1K.group_names} | {"gripper_switch_recall"} <= evaluation[0].keys()
+            for g in B1K.group_names} | {"gripper_switch/f1"} <= evaluation[0].keys()
     assert training[-1]["weight/left_arm"] == pytest.approx(3 * training[-1]["weight/base"])
 
     assert list((workdir / "tensorboard").glob("events.out.tfevents.*"))

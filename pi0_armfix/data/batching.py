@@ -87,6 +87,16 @@ class BatchTransform:
             batch["image"], batch["image_mask"] = self._images(frames)
         return batch
 
+    def absolute_actions(self, actions: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """Normalized chunks `[b, H, >= A]` of the chunks starting at `frames` -> absolute actions
+        in the data's units `[b, H, A]` (normalization undone, then delta actions: each relative
+        dim gets the frame's state back). The inverse of the action part of `__call__`."""
+        actions = self.action_norm.inverse(actions)
+        if self.delta_mask is not None:
+            actions = transforms.from_delta(actions, self.table.state[np.asarray(frames)],
+                                            self.delta_mask)
+        return actions
+
     def _tokenized(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
         if prompt not in self._tokens:
             self._tokens[prompt] = self.tokenize(prompt)

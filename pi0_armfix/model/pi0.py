@@ -113,16 +113,63 @@ def embed_suffix(params: Params, state: jax.Array, x_t: jax.Array, t: jax.Array,
 
 
 def forward_velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: jax.Array, *,
-                     config: Pi0Config) -> jax.Array:
-    """One joint prefix + suffix pass. x_t [B, H, A], t [B] -> v [B, H, A] float32."""
+                     config: Pi0Config, samples: int = 1) -> jax.Array:
+    """One joint pass of the prefix and `samples` suffixes.
+
+    With K = `samples` > 1 the prefix (images + prompt, most of the compute) runs once and K
+    suffixes of K flow-matching draws of the same observation attend to it in one sequence: each
+    suffix sees the prefix and itself under the usual mask, never another suffix, at the positions
+    a lone suffix has. K = 1 is the plain pi0 forward.
+
+    Args:
+      x_t: [K * B, H, A] noisy actions, draw k of sample b at row k * B + b; t: [K * B].
+    Returns:
+      v [K * B, H, A] float32.
+    """
     prefix, prefix_mask, prefix_ar = embed_prefix(params, observation, config=config)
-    suffix, suffix_mask, suffix_ar = embed_suffix(params, observation["state"], x_t, t, config=config)
-    input_mask = jnp.concatenate([prefix_mask, suffix_mask], axis=1)
+    state = jnp.tile(observation["state"], (samples, 1))
+    suffix, suffix_mask, suffix_ar = embed_suffix(params, state, x_t, t, config=config)
+    batch, prefix_len = prefix_mask.shape
+    suffix_len = suffix.shape[1]
+    input_mask = jnp.concatenate([prefix_mask, suffix_mask[:batch]], axis=1)
     attn_mask = make_attn_mask(input_mask, jnp.concatenate([prefix_ar, suffix_ar]))
     positions = jnp.cumsum(input_mask, axis=1) - 1
+    if samples > 1:
+        suffix = _samples_into_sequence(suffix, samples)
+        attn_mask, positions = _samples_mask(attn_mask, positions, prefix_len, samples)
     (_, suffix_out), _ = transformer(config).apply(
         {"params": params["PaliGemma"]["llm"]}, [prefix, suffix], positions, attn_mask)
+    if samples > 1:  # [B, K * S, E] -> [K * B, S, E]
+        suffix_out = suffix_out.reshape(batch, samples, suffix_len, -1).swapaxes(0, 1).reshape(
+            samples * batch, suffix_len, -1)
     return dense(params["action_out_proj"], suffix_out[:, 1:]).astype(jnp.float32)
+
+
+def _samples_into_sequence(suffix: jax.Array, samples: int) -> jax.Array:
+    """[K * B, S, E] (row k * B + b) -> [B, K * S, E] (the K suffixes of sample b in a row)."""
+    _, length, width = suffix.shape
+    return suffix.reshape(samples, -1, length, width).swapaxes(0, 1).reshape(-1, samples * length,
+                                                                             width)
+
+
+def _samples_mask(attn_mask: jax.Array, positions: jax.Array, prefix_len: int, samples: int
+                  ) -> tuple[jax.Array, jax.Array]:
+    """The mask [B, P + S, P + S] and positions [B, P + S] of one suffix, widened to K suffixes:
+    [B, P + K S, P + K S] (suffix k sees the prefix and suffix k only) and [B, P + K S]."""
+    prefix_rows = attn_mask[:, :prefix_len]  # the prefix never sees a suffix
+    to_prefix, to_suffix = attn_mask[:, prefix_len:, :prefix_len], attn_mask[:, prefix_len:,
+                                                                              prefix_len:]
+    own = jnp.eye(samples, dtype=bool)
+    suffix_rows = jnp.concatenate([
+        jnp.tile(to_prefix, (1, samples, 1)),
+        (own[None, :, None, :, None] & to_suffix[:, None, :, None, :]).reshape(
+            attn_mask.shape[0], samples * to_suffix.shape[1], samples * to_suffix.shape[2]),
+    ], axis=2)
+    width = prefix_len + samples * to_suffix.shape[2]
+    prefix_rows = jnp.pad(prefix_rows, ((0, 0), (0, 0), (0, width - prefix_rows.shape[2])))
+    positions = jnp.concatenate([positions[:, :prefix_len],
+                                 jnp.tile(positions[:, prefix_len:], (1, samples))], axis=1)
+    return jnp.concatenate([prefix_rows, suffix_rows], axis=1), positions
 
 
 def prefix_kv_cache(params: Params, observation: Mapping[str, Any], *, config: Pi0Config

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import pi0
 from pi0_armfix.model.config import Pi0Config, dense_shapes
 from pi0_armfix.model.tree import flatten_tree
@@ -73,17 +74,23 @@ def velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: 
 
 
 def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, config: Pi0Config,
-                 layout: ActionLayout, train: bool, **loss_kwargs) -> tuple[jax.Array, dict[str, Any]]:
+                 layout: ActionLayout, train: bool, flow_samples: int = 1,
+                 noise_factor: jax.Array | None = None, **loss_kwargs
+                 ) -> tuple[jax.Array, dict[str, Any]]:
     """Flow-matching loss on a batch.
 
-    t ~ Beta(1.5, 1) * 0.999 + 0.001 per sample, x_t = t * noise + (1 - t) * a, u = noise - a,
-    e = (v - u)^2 [B, H, A], reduced by `loss.training_loss(e, actions, action_is_pad,
-    layout=layout, **loss_kwargs)`.
+    t ~ Beta(1.5, 1) * 0.999 + 0.001 per draw, x_t = t * noise + (1 - t) * a, u = noise - a,
+    e = (v - u)^2, reduced by `loss.training_loss(e, actions, action_is_pad, layout=layout,
+    **loss_kwargs)` over all K * B draws (the mean over the K draws of each sample's loss).
 
     Args:
       rng: splits into augmentation, noise and time keys.
       batch: CONTRACT.md batch with `actions` [B, H, A] and `action_is_pad` [B, H].
       train: apply image augmentation.
+      flow_samples: K noise / time draws per sample, all against one prefix pass
+        (`pi0.forward_velocity`); K = 1 is the plain pi0 loss.
+      noise_factor: `[H * A, H * A]` Cholesky factor of correlated noise (`noise.flow_noise`),
+        or None.
       **loss_kwargs: `strategy`, `group_weights`, ... of `loss.training_loss`.
     Returns:
       (scalar loss over valid timesteps, aux) with aux = {"group_loss": {group: scalar}}.
@@ -94,19 +101,21 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
                          f"[B, action_horizon={config.action_horizon}, action_dim={config.action_dim}]")
     rng_augment, rng_noise, rng_time = jax.random.split(rng, 3)
     observation = preprocess_observation(rng_augment, batch, config=config, train=train)
-    noise = jax.random.normal(rng_noise, actions.shape)
-    t = jax.random.beta(rng_time, 1.5, 1.0, actions.shape[:1]) * 0.999 + 0.001
+    draws = flow_samples * actions.shape[0]
+    actions = jnp.tile(actions, (flow_samples, 1, 1))  # row k * B + b: draw k of sample b
+    is_pad = jnp.tile(jnp.asarray(batch["action_is_pad"], bool), (flow_samples, 1))
+    noise = noise_lib.flow_noise(rng_noise, (draws, *actions.shape[1:]), noise_factor)
+    t = jax.random.beta(rng_time, 1.5, 1.0, (draws,)) * 0.999 + 0.001
     x_t = t[:, None, None] * noise + (1.0 - t[:, None, None]) * actions
-    v = pi0.forward_velocity(params, observation, x_t, t, config=config)
+    v = pi0.forward_velocity(params, observation, x_t, t, config=config, samples=flow_samples)
     per_dim_loss = jnp.square(v - (noise - actions))
-    return loss_lib.training_loss(per_dim_loss, actions, jnp.asarray(batch["action_is_pad"], bool),
-                                  layout=layout, **loss_kwargs)
+    return loss_lib.training_loss(per_dim_loss, actions, is_pad, layout=layout, **loss_kwargs)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache"))
 def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any], *,
                    config: Pi0Config, num_steps: int = 10, noise: jax.Array | None = None,
-                   use_kv_cache: bool = True) -> jax.Array:
+                   use_kv_cache: bool = True, noise_factor: jax.Array | None = None) -> jax.Array:
     """Integrates the flow from t = 1 (noise) to t = 0 with `num_steps` Euler steps.
 
     Args:
@@ -115,13 +124,15 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
       noise: optional [B, H, A] starting point.
       use_kv_cache: run the prefix once and reuse its keys / values at every step; False
         recomputes the full prefix + suffix forward each step (same result, for checking).
+      noise_factor: the correlated noise's Cholesky factor the policy was trained with, or None.
     Returns:
       actions [B, H, A] float32 (normalized, padded like the training targets).
     """
     observation = preprocess_observation(None, observation, config=config, train=False)
     batch_size = observation["state"].shape[0]
     if noise is None:
-        noise = jax.random.normal(rng, (batch_size, config.action_horizon, config.action_dim))
+        noise = noise_lib.flow_noise(rng, (batch_size, config.action_horizon, config.action_dim),
+                           noise_factor)
     dt = -1.0 / num_steps
     if use_kv_cache:
         kv_cache, prefix_mask = pi0.prefix_kv_cache(params, observation, config=config)

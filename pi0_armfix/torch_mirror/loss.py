@@ -64,26 +64,62 @@ def _shifted_delta(actions: torch.Tensor) -> torch.Tensor:
     return a - torch.cat([a[:, :1], a[:, :-1]], dim=1)
 
 
-def delta_scale(actions: torch.Tensor, layout: ActionLayout) -> torch.Tensor:
+def _valid_weights(valid: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    """`valid` `[B, H]` as 1/0 weights shaped `[B, H, 1...]` against `like` (all 1 if None)."""
+    shape = tuple(like.shape[:2]) + (1,) * (like.ndim - 2)
+    if valid is None:
+        return torch.ones(shape, dtype=like.dtype, device=like.device)
+    return valid.to(like.dtype).reshape(shape)
+
+
+def _valid_mean(x: torch.Tensor, valid: torch.Tensor | None, dim) -> torch.Tensor:
+    """Mean over the valid entries along `dim` (kept); 1 where none is valid."""
+    v = _valid_weights(valid, x)
+    count = torch.sum(v, dim=dim, keepdim=True)
+    mean = torch.sum(x * v, dim=dim, keepdim=True) / torch.clamp(count, min=1.0)
+    return torch.where(count > 0, mean, torch.ones_like(mean))
+
+
+def delta_scale(actions: torch.Tensor, layout: ActionLayout,
+                valid: torch.Tensor | None = None) -> torch.Tensor:
     """Per-sample, per-group motion scale `[B, H, G]` of delta weighting (see the JAX docstring)."""
     delta = _shifted_delta(actions)
     group_sq = torch.einsum("bhd,dg->bhg", delta.square(), _membership(layout, delta))
     c = torch.clamp(0.2 + torch.clamp(torch.sqrt(group_sq), max=0.5), 0.1, 3.0)
-    return c / torch.mean(c, dim=1, keepdim=True)
+    return c / _valid_mean(c, valid, dim=1)
 
 
-def _delta_dim_scale(actions: torch.Tensor, layout: ActionLayout) -> torch.Tensor:
-    scale = delta_scale(actions, layout)
+def _delta_dim_scale(actions: torch.Tensor, layout: ActionLayout,
+                     valid: torch.Tensor | None) -> torch.Tensor:
+    scale = delta_scale(actions, layout, valid)
     membership = _membership(layout, scale)
     ungrouped = 1.0 - membership.sum(-1)
     return torch.einsum("bhg,dg->bhd", scale, membership) + ungrouped
 
 
-def original_temporal_weights(actions: torch.Tensor) -> torch.Tensor:
-    """Weights `[B, H]` of the `original` strategy, normalized to mean 1 over the whole batch."""
+def original_temporal_weights(actions: torch.Tensor,
+                              valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Weights `[B, H]` of the `original` strategy, mean 1 over the batch's valid entries."""
     delta = _shifted_delta(actions)
     w = torch.clamp(0.2 + torch.clamp(torch.linalg.vector_norm(delta, dim=-1), max=0.5), 0.1, 3.0)
-    return w / torch.mean(w)
+    return w / _valid_mean(w, valid, dim=(0, 1))
+
+
+def switch_emphasis(actions: torch.Tensor, valid: torch.Tensor | None, layout: ActionLayout, *,
+                    threshold: Any, weight: float, window: int) -> torch.Tensor:
+    """Timestep weights `[B, H]`: `weight` within `window` steps of a gripper switch, else 1."""
+    dims = np.concatenate([layout.group_dims(g) for g in layout.groups_with_role("gripper")]
+                          + [np.zeros(0, int)])
+    a = _as_float32(actions).detach()
+    above = (a > torch.as_tensor(np.asarray(threshold), dtype=a.dtype, device=a.device))
+    above = above[..., torch.as_tensor(dims, dtype=torch.long)]
+    both_valid = (torch.ones(a.shape[0], a.shape[1] - 1, dtype=torch.bool, device=a.device)
+                  if valid is None else valid[:, 1:] & valid[:, :-1])
+    switch = torch.any(above[:, 1:] != above[:, :-1], dim=-1) & both_valid
+    switch = torch.cat([torch.zeros_like(switch[:, :1]), switch], dim=1)
+    padded = torch.nn.functional.pad(switch, (window, window))
+    near = torch.stack([padded[:, k:k + switch.shape[1]] for k in range(2 * window + 1)]).any(0)
+    return torch.where(near, torch.tensor(float(weight)), torch.tensor(1.0))
 
 
 def _group_means(x: torch.Tensor, layout: ActionLayout) -> torch.Tensor:
@@ -96,7 +132,8 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
                           layout: ActionLayout, group_weights: Mapping[str, Any] | None = None,
                           dimension_weights: Any = None, delta_weighting: bool = False,
                           log_vars: torch.Tensor | None = None,
-                          min_log_var: float = -5.0) -> torch.Tensor:
+                          min_log_var: float = -5.0, valid: torch.Tensor | None = None,
+                          timestep_weights: torch.Tensor | None = None) -> torch.Tensor:
     """Weighted loss per (sample, step) `[B, H]`; mirrors `pi0_armfix.loss.compute_weighted_loss`."""
     check_strategy(strategy, delta_weighting)
     e = _as_float32(per_dim_loss)
@@ -105,12 +142,15 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
                          f"{layout.action_dim}] (the layout's action_dim)")
     if tuple(actions.shape) != tuple(e.shape):
         raise ValueError(f"actions shape {tuple(actions.shape)} != per_dim_loss shape {tuple(e.shape)}")
+    if timestep_weights is not None:
+        e = _as_float32(timestep_weights).detach().to(e.dtype)[..., None] * e
 
     if strategy == "uniform":
         return torch.mean(e, dim=-1)
     if strategy == "original":
-        return original_temporal_weights(actions).to(e.dtype) * torch.mean(e, dim=-1)
-    e_scaled = _delta_dim_scale(actions, layout).to(e.dtype) * e if delta_weighting else e
+        return original_temporal_weights(actions, valid).to(e.dtype) * torch.mean(e, dim=-1)
+    e_scaled = (_delta_dim_scale(actions, layout, valid).to(e.dtype) * e if delta_weighting
+                else e)
     if strategy == "uncertainty":
         if log_vars is None or tuple(log_vars.shape) != (layout.num_groups,):
             raise ValueError(f"loss strategy 'uncertainty' needs log_vars of shape "
@@ -146,13 +186,18 @@ def per_group_losses(per_dim_loss: torch.Tensor, layout: ActionLayout,
 
 def training_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, action_is_pad: torch.Tensor, *,
                   layout: ActionLayout, strategy: str, group_weights=None, dimension_weights=None,
-                  delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0):
+                  delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0,
+                  switch_threshold=None, switch_weight: float = 1.0, switch_window: int = 0):
     """`(loss scalar, {"group_loss": {group: scalar}})`; mirrors `pi0_armfix.loss.training_loss`."""
     valid = torch.logical_not(action_is_pad)
+    timestep_weights = None
+    if switch_weight != 1.0:
+        timestep_weights = switch_emphasis(actions, valid, layout, threshold=switch_threshold,
+                                           weight=switch_weight, window=switch_window)
     weighted = compute_weighted_loss(
         per_dim_loss, actions, strategy=strategy, layout=layout, group_weights=group_weights,
         dimension_weights=dimension_weights, delta_weighting=delta_weighting, log_vars=log_vars,
-        min_log_var=min_log_var)
+        min_log_var=min_log_var, valid=valid, timestep_weights=timestep_weights)
     return masked_mean(weighted, valid), {
         "group_loss": per_group_losses(per_dim_loss.detach(), layout, valid)}
 

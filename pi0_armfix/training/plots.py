@@ -84,7 +84,7 @@ def plot_trajectories(predicted: np.ndarray, true: np.ndarray, layout: ActionLay
     """Predicted (dashed) vs true (solid) action chunks, one row per chunk, one column per group.
 
     Args:
-      predicted, true: `[N, H, D]` normalized action chunks (N rows are plotted).
+      predicted, true: `[N, H, D]` absolute action chunks in the data's units (N rows plotted).
       groups: the layout groups to show.
     """
     n = len(predicted)
@@ -104,10 +104,10 @@ def plot_trajectories(predicted: np.ndarray, true: np.ndarray, layout: ActionLay
             if row == n - 1:
                 ax.set_xlabel("step in chunk")
             if col == 0:
-                ax.set_ylabel(f"chunk {row + 1}\nnormalized action")
+                ax.set_ylabel(f"chunk {row + 1}\naction (data units)")
             ax.grid(alpha=0.3)
     fig.suptitle((title + "\n" if title else "") + "solid: demonstration, dashed: policy sample; "
-                 "normalized units (the run's norm stats)")
+                 "absolute actions in the dataset's units")
     fig.tight_layout()
     fig.savefig(epath.Path(path), dpi=90)
     plt.close(fig)
