@@ -35,6 +35,17 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
     return tuple(float(w) for w in vec)
 
 
+def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+    """Torso and arm joints as targets relative to the current state; base velocity and grippers
+    stay absolute (B1K 2025's winners' representation). The state must be in the action order:
+    B1K's `b1k_r1pro` preset at the b1k scale, the demo's 23-D baseline-order state reordered by
+    `b1k_baseline23` at the demo scale."""
+    config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
+    if not config.data.state_preset:
+        config.data.state_preset = "b1k_baseline23"
+    return config
+
+
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     """All keys of a run. `arg`: '' (demo scale) or 'b1k' (full pi0 on a B1K LeRobot root)."""
     scale = arg or ""
@@ -66,6 +77,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.loss.w_min = 0.1  # loss_balanced: clamp of the adaptive weights
     config.loss.w_max = 10.0
     config.loss.min_log_var = -5.0  # uncertainty: lower clamp of the learned log-variances
+    # Levers beside the weights (any strategy):
+    config.loss.flow_samples = 1  # K noise/time draws per sample against one prefix pass (1 = pi0)
+    config.loss.noise_beta = 1.0  # noise N(0, beta I + (1 - beta) chunk correlation); 1 = N(0, I)
+    config.loss.switch_weight = 1.0  # weight of the steps near a gripper switch (1 = off)
+    config.loss.switch_window = 3  # ... within this many steps of the switch
 
     config.layout = ml_collections.ConfigDict()
     config.layout.preset = "b1k_r1pro"
@@ -99,7 +115,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Phases (until_step, {source: weight}), sources `full` and `arm_heavy`; () = `full` throughout.
     config.data.curriculum = ()
     config.data.arm_heavy_episodes = ""  # filter_arm_heavy_episodes JSON; '' = default thresholds
-    config.data.delta_action_mask = ()  # action dims made relative to the state (() = absolute)
+    # Action dims made relative to the state: group names, e.g. ("torso", "left_arm",
+    # "right_arm"), or dim indices; () = absolute. Needs the state in the action order.
+    config.data.delta_action_mask = ()
+    config.data.norm_per_timestep = False  # action stats per chunk position h ([H, A])
+    config.data.chunk_stats_chunks = 20_000  # chunks sampled for per-timestep stats / correlation
     config.data.state_groups = config_dict.placeholder(object)  # the state's {group: (start, stop)}
     config.data.num_workers = 0  # grain worker processes (0 = in the main process)
     config.data.prefetch = 8  # batches buffered ahead of the step

@@ -48,8 +48,10 @@ from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import batching, sources, transforms
+from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import policy
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint, plots
@@ -234,9 +236,10 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
                          f"eval.batch_size = {eval_cfg['batch_size']}")
     if eval_cfg["num_steps"] <= 0:
         raise ValueError(f"eval.num_steps = {eval_cfg['num_steps']} must be positive")
-    if eval_cfg["switch_tolerance"] < 0:
-        raise ValueError(f"eval.switch_tolerance = {eval_cfg['switch_tolerance']} must be >= 0 "
-                         "(steps by which a predicted gripper switch may miss the true one)")
+    tolerance = eval_cfg.get("switch_tolerance", 2)
+    if tolerance < 0:
+        raise ValueError(f"eval.switch_tolerance = {tolerance} must be >= 0 (steps by which a "
+                         "predicted gripper switch may miss the true one)")
 
 
 # ---------------------------------------------------------------------- the evaluator
@@ -253,12 +256,14 @@ class Evaluator:
       tokenize: the run's prompt tokenizer.
       mesh: the run's mesh; params_sharding: NamedShardings of the params.
       source: the run's opened data source (None = open the one `config.data` names).
+      noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
     """
 
     def __init__(self, config: ml_collections.ConfigDict, layout: ActionLayout,
                  model_config: model_config_lib.Pi0Config,
                  norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
-                 mesh: jax.sharding.Mesh, params_sharding: Any, source=None):
+                 mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
+                 noise_factor: np.ndarray | None = None):
         eval_cfg = config.eval
         check_eval_config(eval_cfg, layout, mesh.size)
         self.layout = layout
@@ -290,7 +295,7 @@ class Evaluator:
         self.seed = int(config.seed)
         self._sample = jax.jit(
             functools.partial(policy.sample_actions, config=model_config,
-                              num_steps=eval_cfg.num_steps),
+                              num_steps=eval_cfg.num_steps, noise_factor=noise_factor),
             in_shardings=(params_sharding, None, self.batch_sharding),
             out_shardings=sharding_lib.replicated(mesh))
 
@@ -320,7 +325,7 @@ class Evaluator:
             predicted, self.true, self.valid, layout=self.layout,
             gripper_groups=self.groups["gripper_groups"],
             gripper_threshold=self.gripper_threshold,
-            switch_tolerance=self.eval_cfg.switch_tolerance)
+            switch_tolerance=self.eval_cfg.get("switch_tolerance", 2))
         return metrics, predicted, self.true
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
@@ -358,6 +363,23 @@ def norm_stats_from_json(payload: Mapping[str, Any]) -> dict[str, stats_lib.Norm
             for key, entry in payload["norm_stats"].items()}
 
 
+def run_noise_factor(workdir: epath.Path, config: ml_collections.ConfigDict,
+                     layout: ActionLayout, model_config: model_config_lib.Pi0Config
+                     ) -> np.ndarray | None:
+    """The correlated noise factor a run trained with (`loss.noise_beta < 1`), from the chunk
+    correlation in its workdir; None for pi0's independent noise."""
+    beta = float(config.loss.get("noise_beta", 1.0))
+    if beta >= 1.0:
+        return None
+    path = workdir / chunk_stats_lib.CORRELATION_FILE
+    if not path.exists():
+        raise ValueError(f"{path} is missing: the run trained with correlated noise "
+                         f"(loss.noise_beta = {beta}) and its policy samples from the same law")
+    return noise_lib.correlated_noise_factor(
+        np.load(path), beta, horizon=model_config.action_horizon, real_dim=layout.real_dim,
+        action_dim=layout.action_dim)
+
+
 def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                         params_name: str = "ema"
                         ) -> tuple[int, dict[str, float], ActionLayout]:
@@ -384,7 +406,8 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
         evaluator = Evaluator(config, layout, model_config, norm_stats_from_json(norm_stats),
                               tokenize, mesh=mesh,
                               params_sharding=sharding_lib.tree_shardings(params, mesh),
-                              source=source)
+                              source=source, noise_factor=run_noise_factor(
+                                  workdir, config, layout, model_config))
         metrics, predicted, true = evaluator(params)
     out = workdir / "eval" / f"step_{step}"
     out.mkdir(parents=True, exist_ok=True)

@@ -66,10 +66,12 @@ from tqdm import tqdm
 
 from pi0_armfix import console, evaluate
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import batching, pipeline, sources
+from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import pipeline, sources
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import policy, pretrained
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint, fingerprint, plots, preemption
@@ -253,6 +255,18 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
             config, layout, action_horizon=model_config.action_horizon,
             cache_path=workdir / NORM_STATS_FILE, progress=is_main, source=source,
             resuming=resuming, keep_cached=resuming and config.train.resume == "force")
+        noise_factor = None
+        if chunk_stats_lib.needed(config):
+            chunk = chunk_stats_lib.load_or_compute_chunk_stats(
+                config, layout, action_horizon=model_config.action_horizon, folder=workdir,
+                source=source, resuming=resuming)
+            if config.data.norm_per_timestep:
+                norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}
+            if config.loss.noise_beta < 1.0:
+                noise_factor = noise_lib.correlated_noise_factor(
+                    chunk.correlation, config.loss.noise_beta,
+                    horizon=model_config.action_horizon, real_dim=layout.real_dim,
+                    action_dim=layout.action_dim)
         train_iter = pipeline.make_train_iterator(
             config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
             global_batch_size=config.train.batch_size, sharding=batch_sharding,
@@ -267,7 +281,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         if config.eval.every > 0:
             evaluator = evaluate.Evaluator(config, layout, model_config, norm_stats, tokenize,
                                            mesh=mesh, params_sharding=state_shardings.params,
-                                           source=source)
+                                           source=source, noise_factor=noise_factor)
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
                                        every=config.train.checkpoint_every,
                                        keep=config.train.keep_checkpoints)
@@ -286,7 +300,11 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         train_step = jax.jit(
             functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
                               model_config=model_config, loss_cfg=config.loss, layout=layout,
-                              tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay),
+                              tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay,
+                              noise_factor=noise_factor,
+                              switch_threshold=batching.normalized_midpoints(
+                                  norm_stats, layout, config.data.norm,
+                                  model_config.action_horizon)),
             in_shardings=(state_shardings, batch_sharding),
             out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
             donate_argnums=0)

@@ -19,7 +19,7 @@ from pi0_armfix.data import sources
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix.training import checkpoint
 from pi0_armfix.training import step as step_lib
 
 B1K = ActionLayout.preset("b1k_r1pro")

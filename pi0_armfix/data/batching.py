@@ -21,13 +21,38 @@ from pi0_armfix.data.episodes import EpisodeTable
 Tokenize = Callable[[str], tuple[np.ndarray, np.ndarray]]
 
 
+def action_normalizer(norm_stats: Mapping[str, stats_lib.NormStats], real_dim: int,
+                      norm_mode: str, action_horizon: int) -> transforms.Normalizer:
+    """The actions' normalizer: per chunk position (`[H, A]`) when the stats hold an
+    `actions_per_timestep` entry (`data.norm_per_timestep`, see `data.chunk_stats`), else per dim."""
+    per_timestep = norm_stats.get("actions_per_timestep")
+    if per_timestep is None:
+        actions = stats_lib.fit_width(norm_stats["actions"], real_dim, "norm stats 'actions'")
+        return transforms.Normalizer.from_stats(actions, norm_mode)
+    if per_timestep.mean.shape != (action_horizon, real_dim):
+        raise ValueError(f"per-timestep norm stats have shape {per_timestep.mean.shape}; the run "
+                         f"needs [action_horizon={action_horizon}, real_dim={real_dim}]")
+    return transforms.Normalizer.from_stats(per_timestep, norm_mode)
+
+
+def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
+                         norm_mode: str, action_horizon: int) -> np.ndarray:
+    """The midpoint of each action dim's 1 % and 99 % quantiles (a gripper's open/close boundary)
+    in normalized units, padded: `[action_dim]`, or `[H, action_dim]` when normalized per
+    timestep."""
+    normalizer = action_normalizer(norm_stats, layout.real_dim, norm_mode, action_horizon)
+    actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim, "norm stats 'actions'")
+    return transforms.pad_last(normalizer((actions.q01 + actions.q99) / 2), layout.action_dim)
+
+
 class BatchTransform:
     """Frame indices of a table -> a numpy batch of the contract.
 
     Args:
       table: the episodes to draw from (its images are only read unless `actions_only`).
       layout: the action layout (padding width `action_dim`).
-      norm_stats: `{"actions": [A], "state": [S] (or padded)}` statistics.
+      norm_stats: `{"actions": [A], "state": [S] (or padded)}` statistics, and
+        `"actions_per_timestep": [H, A]` for per-timestep normalization.
       norm_mode: `data.norm`, "zscore" or "quantile".
       action_horizon: H.
       delta_mask: `[A]` bool relative action dims, or None.
@@ -59,10 +84,9 @@ class BatchTransform:
         self.delta_mask = delta_mask
         self.tokenize = tokenize
         self.actions_only = actions_only
-        actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
-                                      "norm stats 'actions'")
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
-        self.action_norm = transforms.Normalizer.from_stats(actions, norm_mode)
+        self.action_norm = action_normalizer(norm_stats, layout.real_dim, norm_mode,
+                                             self.horizon)
         self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)
         self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 

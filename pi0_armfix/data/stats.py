@@ -59,7 +59,8 @@ _MIN_LOG2_WIDTH = -1000
 
 @dataclasses.dataclass(frozen=True)
 class NormStats:
-    """Per-dim normalization statistics of one array (`actions` or `state`); each `[D]` float64."""
+    """Per-dim normalization statistics of one array (`actions` or `state`); each `[D]` float64
+    (`[H, D]` for per-timestep statistics, `data.chunk_stats`)."""
 
     mean: np.ndarray
     std: np.ndarray
@@ -70,8 +71,9 @@ class NormStats:
     def width(self) -> int:
         return len(self.mean)
 
-    def to_json(self) -> dict[str, list[float]]:
-        return {name: [float(v) for v in getattr(self, name)] for name in FIELDS}
+    def to_json(self) -> dict[str, list]:
+        """Plain lists (nested for per-timestep `[H, A]` fields)."""
+        return {name: np.asarray(getattr(self, name), np.float64).tolist() for name in FIELDS}
 
     def replace(self, **changes: np.ndarray) -> "NormStats":
         return dataclasses.replace(self, **changes)

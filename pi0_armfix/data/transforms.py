@@ -28,7 +28,8 @@ DEGENERATE = 1e-6  # a spread below this is a constant dim: centred, not scaled
 
 @dataclasses.dataclass(frozen=True)
 class Normalizer:
-    """`y = (x - offset) * scale + shift` per dim; each field `[D]` float32."""
+    """`y = (x - offset) * scale + shift` per dim; each field `[D]` float32, or `[H, D]` per chunk
+    position (per-timestep normalization of `[..., H, D]` chunks)."""
 
     offset: np.ndarray
     scale: np.ndarray
@@ -52,7 +53,7 @@ class Normalizer:
 
     @property
     def width(self) -> int:
-        return len(self.offset)
+        return self.offset.shape[-1]
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """`[..., D]` raw -> normalized float32."""
@@ -102,12 +103,22 @@ def chunk_indices(frames: np.ndarray, episode_starts: np.ndarray, horizon: int
 def delta_action_mask(value: Any, layout: ActionLayout) -> np.ndarray | None:
     """`data.delta_action_mask` -> `[real_dim]` bool, or None when no dim is relative.
 
-    Accepted: `()` (absolute actions); a sequence of bools of length real_dim or action_dim
-    (padding dims False); or a sequence of dim indices.
+    Accepted: `()` (absolute actions); group names of the layout (`("torso", "left_arm",
+    "right_arm")`: every dim of those groups); a sequence of bools of length real_dim or
+    action_dim (padding dims False); or a sequence of dim indices.
     """
     if value is None or len(value) == 0:
         return None
     items = list(value)
+    if all(isinstance(v, str) for v in items):
+        unknown = [v for v in items if v not in layout.groups]
+        if unknown:
+            raise ValueError(f"data.delta_action_mask names {unknown}, which are not groups of the "
+                             f"layout ({list(layout.group_names)})")
+        mask = np.zeros(layout.real_dim, bool)
+        for group in items:
+            mask[layout.group_dims(group)] = True
+        return mask
     if all(isinstance(v, (bool, np.bool_)) for v in items):
         if len(items) not in (layout.real_dim, layout.action_dim):
             raise ValueError(f"data.delta_action_mask has {len(items)} entries; expected "
@@ -125,8 +136,8 @@ def delta_action_mask(value: Any, layout: ActionLayout) -> np.ndarray | None:
         mask = np.zeros(layout.real_dim, bool)
         mask[items] = True
     else:
-        raise ValueError(f"data.delta_action_mask must be bools (a mask) or ints (dim indices), "
-                         f"got {value!r}")
+        raise ValueError(f"data.delta_action_mask must be group names, bools (a mask) or ints "
+                         f"(dim indices), got {value!r}")
     return mask if mask.any() else None
 
 

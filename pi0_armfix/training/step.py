@@ -41,6 +41,18 @@ def check_loss_config(loss_cfg: Mapping[str, Any], layout: ActionLayout) -> None
     if loss_cfg["weight_warmup_steps"] < 0:
         raise ValueError(f"loss.weight_warmup_steps = {loss_cfg['weight_warmup_steps']} must "
                          "be >= 0")
+    if loss_cfg["flow_samples"] < 1:
+        raise ValueError(f"loss.flow_samples = {loss_cfg['flow_samples']} must be >= 1 (flow "
+                         "matching draws per prefix pass; 1 = pi0)")
+    if not 0.0 < loss_cfg["noise_beta"] <= 1.0:
+        raise ValueError(f"loss.noise_beta = {loss_cfg['noise_beta']} must be in (0, 1] (the share "
+                         "of independent noise; 1 = pi0's N(0, I))")
+    if loss_cfg["switch_weight"] <= 0 or loss_cfg["switch_window"] < 0:
+        raise ValueError(f"loss.switch_weight = {loss_cfg['switch_weight']} must be > 0 and "
+                         f"loss.switch_window = {loss_cfg['switch_window']} >= 0")
+    if loss_cfg["switch_weight"] != 1.0 and not layout.groups_with_role("gripper"):
+        raise ValueError("loss.switch_weight emphasizes gripper switches, but the layout has no "
+                         "group of role gripper: set layout.roles, or loss.switch_weight=1")
     if strategy == "loss_balanced":
         if not 0.0 <= loss_cfg["ema_decay"] < 1.0:
             raise ValueError(f"loss.ema_decay = {loss_cfg['ema_decay']} must be in [0, 1)")
@@ -50,12 +62,18 @@ def check_loss_config(loss_cfg: Mapping[str, Any], layout: ActionLayout) -> None
 
 
 def loss_kwargs(loss_cfg: Mapping[str, Any], layout: ActionLayout, step: jax.Array,
-                loss_params: Mapping[str, jax.Array], balancer: Mapping[str, jax.Array]
-                ) -> dict[str, Any]:
-    """The keyword arguments of `loss.training_loss` for this step (weights as traced arrays)."""
+                loss_params: Mapping[str, jax.Array], balancer: Mapping[str, jax.Array],
+                switch_threshold: Any = None) -> dict[str, Any]:
+    """The keyword arguments of `loss.training_loss` for this step (weights as traced arrays).
+
+    `switch_threshold`: `[D]` or `[H, D]` the grippers' open/close boundary in normalized units,
+    for gripper-switch emphasis (`loss.switch_weight != 1`)."""
     strategy = loss_cfg["strategy"]
     warmup = loss_cfg["weight_warmup_steps"]
     kwargs: dict[str, Any] = dict(strategy=strategy, delta_weighting=loss_cfg["delta_weighting"])
+    if loss_cfg["switch_weight"] != 1.0:
+        kwargs.update(switch_threshold=switch_threshold, switch_weight=loss_cfg["switch_weight"],
+                      switch_window=loss_cfg["switch_window"])
     if strategy == "per_dimension":
         kwargs["dimension_weights"] = loss_lib.warmup_dimension_weights(
             jnp.asarray(loss_cfg["dimension_weights"], jnp.float32), step, warmup, layout)
@@ -94,9 +112,14 @@ def effective_group_weights(kwargs: Mapping[str, Any], layout: ActionLayout) -> 
 
 def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Array,
                model_config: Pi0Config, loss_cfg: Mapping[str, Any], layout: ActionLayout,
-               tx: optax.GradientTransformation, schedule: optax.Schedule, ema_decay: float
+               tx: optax.GradientTransformation, schedule: optax.Schedule, ema_decay: float,
+               noise_factor: jax.Array | None = None, switch_threshold: Any = None
                ) -> tuple[TrainState, dict[str, jax.Array]]:
     """One optimizer step on the global `batch`.
+
+    `noise_factor`: the correlated noise's Cholesky factor (`loss.noise_beta < 1`), else None;
+    `switch_threshold`: see `loss_kwargs`. `loss.flow_samples` draws per sample share one prefix
+    pass.
 
     Returns:
       the new state and scalar metrics: `loss`, `grad_norm`, `lr`, `loss/<group>` (unweighted
@@ -105,9 +128,12 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
     rng = jax.random.fold_in(base_rng, state.step)
 
     def loss_fn(trainable):
-        kwargs = loss_kwargs(loss_cfg, layout, state.step, trainable["loss_params"], state.balancer)
+        kwargs = loss_kwargs(loss_cfg, layout, state.step, trainable["loss_params"],
+                             state.balancer, switch_threshold)
         loss, aux = policy.compute_loss(trainable["params"], rng, batch, config=model_config,
-                                        layout=layout, train=True, **kwargs)
+                                        layout=layout, train=True,
+                                        flow_samples=loss_cfg["flow_samples"],
+                                        noise_factor=noise_factor, **kwargs)
         return loss, (aux, effective_group_weights(kwargs, layout))
 
     (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)

@@ -1,0 +1,16 @@
+"""`arm_focused` with gripper-switch emphasis: the steps within 3 of a gripper open/close switch
+weigh 3x (for "the gripper never closes").
+
+  python -m pi0_armfix.train --config=configs/gripper_switch.py
+"""
+
+from configs import base
+
+
+def get_config(arg=None):
+    config = base.get_config(arg)
+    config.loss.strategy = "per_group"
+    config.loss.group_weights = base.group_weights(arm_weight=3.0)
+    config.loss.switch_weight = 3.0
+    config.loss.switch_window = 3
+    return config
