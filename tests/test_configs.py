@@ -18,7 +18,14 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.training import checkpoint, sharding
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
-           "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty")
+           "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",
+           "arm_delta_focused", "arm_delta_per_timestep", "arm_delta_correlated_noise",
+           "arm_delta_flow_samples", "gripper_switch", "arm_recipe")
+# Trained at tiny scale: every strategy, and every lever (arm_recipe holds delta actions,
+# per-timestep stats, correlated noise and switch emphasis; K flow samples on its own).
+TRAINED = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
+           "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty",
+           "arm_delta_flow_samples", "arm_recipe")
 B1K = ActionLayout.preset("b1k_r1pro")
 
 
@@ -56,6 +63,8 @@ def test_config_has_exactly_the_keys_of_the_base(name, scale):
     ("arm_focused_balanced", "per_group", 3.0), ("arm_curriculum", "per_group", 3.0),
     ("uniform", "uniform", None), ("original", "original", None),
     ("loss_balanced", "loss_balanced", 1.0), ("uncertainty", "uncertainty", 1.0),
+    ("arm_delta", "uniform", None), ("arm_delta_focused", "per_group", 3.0),
+    ("gripper_switch", "per_group", 3.0), ("arm_recipe", "per_group", 3.0),
 ])
 def test_config_selects_its_strategy_and_arm_weight(name, strategy, arm_weight):
     config = load(name)
@@ -75,13 +84,25 @@ def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
     assert not weights[B1K.real_dim:].any()
 
 
-def test_only_the_balanced_and_curriculum_configs_change_the_data():
+DELTA_CONFIGS = {"arm_delta", "arm_delta_focused", "arm_delta_per_timestep",
+                 "arm_delta_correlated_noise", "arm_delta_flow_samples", "arm_recipe"}
+
+
+def test_only_the_balanced_curriculum_and_delta_configs_change_the_data():
     assert load("arm_focused_balanced").data.balanced_norm
     phases = load("arm_curriculum").data.curriculum
     assert [p[1] for p in phases] == [{"arm_heavy": 1.0}, {"arm_heavy": 0.3, "full": 0.7}]
     assert phases[0][0] == base.get_config().train.total_steps // 5
-    for name in set(CONFIGS) - {"arm_focused_balanced", "arm_curriculum"}:
+    for name in set(CONFIGS) - {"arm_focused_balanced", "arm_curriculum"} - DELTA_CONFIGS:
         assert load(name).data == base.get_config().data
+
+
+@pytest.mark.parametrize("scale, state_preset", [(None, "b1k_baseline23"), ("b1k", "b1k_r1pro")])
+def test_delta_configs_make_torso_and_arms_relative_through_a_state_preset(scale, state_preset):
+    for name in DELTA_CONFIGS:
+        data = load(name, scale).data
+        assert tuple(data.delta_action_mask) == ("torso", "left_arm", "right_arm")
+        assert data.state_preset == state_preset and not data.state_indices
 
 
 def test_b1k_scale_is_full_pi0_on_a_root_given_on_the_command_line():
@@ -102,7 +123,7 @@ def test_b1k_scale_without_a_data_root_fails_before_any_work(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("name", CONFIGS)
+@pytest.mark.parametrize("name", TRAINED)
 def test_config_trains_at_tiny_scale(name, tmp_path, cache_dir, demo_root):
     arm_heavy = tmp_path / "arm_heavy.json"
     arm_heavy.write_text(json.dumps({"episodes": [1, 3]}))  # the tiny demo is too short to filter
@@ -125,6 +146,11 @@ def test_config_trains_at_tiny_scale(name, tmp_path, cache_dir, demo_root):
         assert np.ptp(weights[1]) > 1e-3
     elif name == "uncertainty":  # the log-variances are trained
         assert np.abs(jax.device_get(state["loss_params"]["log_vars"])).min() > 0
+    elif name == "arm_recipe":  # the chunk statistics sit beside the norm stats
+        per_timestep = json.loads((workdir / "norm_stats_per_timestep.json").read_text())
+        horizon = model_config_lib.get_preset("tiny").action_horizon
+        assert np.asarray(per_timestep["norm_stats"]["actions"]["std"]).shape == (horizon, 23)
+        assert np.load(workdir / "action_chunk_correlation.npy").shape == (horizon * 23,) * 2
     elif name == "arm_focused_balanced":  # the run's stats are the balanced ones
         config = load(name)
         config.update_from_flattened_dict({"data.root": str(demo_root), "eval.episodes": 2})

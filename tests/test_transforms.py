@@ -120,11 +120,29 @@ def test_delta_mask_from_bools_and_from_indices():
     assert transforms.delta_action_mask((), B1K) is None
 
 
+def test_delta_mask_from_group_names_covers_their_dims():
+    mask = transforms.delta_action_mask(("torso", "left_arm", "right_arm"), B1K)
+    assert np.flatnonzero(mask).tolist() == list(range(3, 14)) + list(range(15, 22))
+
+
+def test_per_timestep_normalizer_normalizes_each_chunk_position_with_its_own_stats():
+    rng = np.random.default_rng(0)
+    mean, std = rng.normal(size=(4, 3)), rng.uniform(0.5, 2.0, size=(4, 3))
+    stats = NormStats(mean=mean, std=std, q01=mean - 2 * std, q99=mean + 2 * std)
+    normalizer = transforms.Normalizer.from_stats(stats, "zscore")
+    chunks = rng.normal(size=(5, 4, 3))
+    np.testing.assert_allclose(normalizer(chunks), (chunks - mean) / (std + transforms.EPS),
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(normalizer.inverse(normalizer(chunks)), chunks, atol=1e-5)
+    assert normalizer.width == 3
+
+
 @pytest.mark.parametrize("value, match", [
     ([True] * 5, "has 5 entries"),
     ([False] * 31 + [True], "marks padding dims"),
     ([3, 40], r"dims \[40\] outside"),
-    (["left_arm"], "bools .* or ints"),
+    (["claw"], r"names \['claw'\], which are not groups"),
+    ([1.5], "group names, bools .* or ints"),
 ])
 def test_bad_delta_masks_are_errors(value, match):
     with pytest.raises(ValueError, match=match):

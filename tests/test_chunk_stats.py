@@ -1,0 +1,112 @@
+"""Chunk statistics: per-timestep normalization stats and the chunk correlation (DESIGN §3)."""
+
+import numpy as np
+import pytest
+
+from pi0_armfix.data import chunk_stats, transforms
+from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.model import noise as noise_lib
+
+H = 4
+
+
+def _table(lengths=(9, 6, 12), width=3, seed=0):
+    rng = np.random.default_rng(seed)
+    n = sum(lengths)
+    actions = np.cumsum(rng.normal(size=(n, width)), axis=0).astype(np.float32)
+    state = (actions + rng.normal(scale=0.1, size=(n, width))).astype(np.float32)
+    starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+    return EpisodeTable(actions=actions, state=state, episode_starts=starts,
+                        episode_index=np.arange(len(lengths)), tasks=["t"] * len(lengths))
+
+
+def _chunks(table, delta_mask=None):
+    """Every chunk of the table the slow way: `[N, H, A]` and its padding `[N, H]`."""
+    chunks, pads = [], []
+    for e in range(table.num_episodes):
+        start, stop = table.episode_starts[e], table.episode_starts[e + 1]
+        for t in range(start, stop):
+            rows = [min(t + h, stop - 1) for h in range(H)]
+            chunk = table.actions[rows].astype(np.float64)
+            if delta_mask is not None:
+                chunk[:, delta_mask] -= table.state[t, delta_mask]
+            chunks.append(chunk)
+            pads.append([t + h >= stop for h in range(H)])
+    return np.stack(chunks), np.asarray(pads)
+
+
+@pytest.mark.parametrize("delta", [False, True])
+def test_per_timestep_stats_are_those_of_each_chunk_position_over_valid_steps(delta):
+    table = _table()
+    mask = np.array([True, False, True]) if delta else None
+    stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=mask,
+                                            max_chunks=1000)
+    chunks, pads = _chunks(table, mask)
+    for h in range(H):
+        steps = chunks[~pads[:, h], h]
+        np.testing.assert_allclose(stats.per_timestep.mean[h], steps.mean(0), rtol=1e-6)
+        np.testing.assert_allclose(stats.per_timestep.std[h], steps.std(0), rtol=1e-6)
+        np.testing.assert_allclose(stats.per_timestep.q99[h], np.quantile(steps, 0.99, axis=0),
+                                   rtol=1e-6)
+
+
+def test_chunk_correlation_is_that_of_the_unpadded_chunks():
+    table = _table()
+    stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
+                                            max_chunks=1000)
+    chunks, pads = _chunks(table)
+    whole = chunks[~pads.any(1)].reshape(-1, H * 3)
+    np.testing.assert_allclose(stats.correlation, np.corrcoef(whole, rowvar=False), atol=1e-9)
+
+
+def test_a_constant_entry_is_uncorrelated():
+    table = _table()
+    table.actions[:, 1] = 2.0
+    stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
+                                            max_chunks=1000)
+    constant = np.arange(H) * 3 + 1
+    np.testing.assert_array_equal(stats.correlation[constant][:, constant], np.eye(H))
+    assert not stats.correlation[constant][:, np.arange(0, H * 3, 3)].any()
+
+
+def test_chunk_starts_are_every_frame_or_an_even_sample():
+    assert chunk_stats.chunk_starts(5, 10).tolist() == [0, 1, 2, 3, 4]
+    sample = chunk_stats.chunk_starts(1001, 11)
+    assert sample.tolist() == list(range(0, 1001, 100))
+
+
+def test_per_timestep_stats_round_trip_through_their_file(tmp_path):
+    stats = chunk_stats.compute_chunk_stats(_table(), action_horizon=H, delta_mask=None,
+                                            max_chunks=1000).per_timestep
+    chunk_stats.save_per_timestep(tmp_path / "s.json", stats)
+    loaded = chunk_stats.load_per_timestep(tmp_path / "s.json")
+    for field in ("mean", "std", "q01", "q99"):
+        np.testing.assert_array_equal(getattr(loaded, field), getattr(stats, field))
+
+
+def test_noise_factor_embeds_the_correlation_into_the_padded_chunk():
+    rng = np.random.default_rng(0)
+    basis = rng.normal(size=(H * 2, H * 2))
+    cov = basis @ basis.T
+    corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    factor = noise_lib.correlated_noise_factor(corr, 0.5, horizon=H, real_dim=2, action_dim=3)
+    full = factor.astype(np.float64) @ factor.T.astype(np.float64)
+    real = (np.arange(H)[:, None] * 3 + np.arange(2)).reshape(-1)
+    padding = np.arange(H) * 3 + 2
+    np.testing.assert_allclose(full[np.ix_(real, real)], 0.5 * np.eye(H * 2) + 0.5 * corr,
+                               atol=1e-5)
+    np.testing.assert_allclose(full[np.ix_(padding, padding)], np.eye(H), atol=1e-6)
+
+
+def test_noise_beta_outside_zero_one_is_an_error_naming_the_key():
+    with pytest.raises(ValueError, match="loss.noise_beta"):
+        noise_lib.correlated_noise_factor(np.eye(2), 0.0)
+
+
+def test_to_delta_matches_the_slow_chunks():  # guards the helper above
+    table = _table()
+    mask = np.array([True, False, True])
+    index, _ = transforms.chunk_indices(np.arange(table.num_frames), table.episode_starts, H)
+    fast = transforms.to_delta(table.actions[index].astype(np.float64),
+                               table.state.astype(np.float64), mask)
+    np.testing.assert_allclose(fast, _chunks(table, mask)[0], atol=1e-6)
