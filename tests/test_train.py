@@ -134,7 +134,7 @@ def test_a_mistyped_key_is_one_readable_line_with_the_suggestion(tmp_path, cache
 
 @pytest.mark.parametrize("config, message", [
     ("configs/nope.py", "nope.py: no such config file; give a path or the name of an installed "
-                        "config: arm_curriculum, arm_focused, arm_focused_balanced,"),
+                        "config: arm_curriculum, arm_delta, arm_delta_correlated_noise,"),
     ("configs/arm_focused.py:foo", "arm_focused.py:foo: config argument 'foo' is not a scale"),
 ])
 def test_a_bad_config_file_or_scale_is_one_line(config, message, tmp_path, cache_dir):

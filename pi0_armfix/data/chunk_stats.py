@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -120,12 +122,11 @@ def load_or_compute_chunk_stats(config: Mapping[str, Any], layout: ActionLayout,
     key_path = folder / (CORRELATION_FILE + ".key.json")
     paths = (folder / PER_TIMESTEP_FILE, folder / CORRELATION_FILE)
     if all(p.is_file() for p in paths):
-        cached = _read_key(key_path)
+        cached = dataset_lib.read_key(key_path)
         if cached == key:
             return ChunkStats(load_per_timestep(paths[0]), np.load(paths[1]))
         if resuming:
-            differing = sorted(k for k in set(key) | set(cached or {})
-                               if (cached or {}).get(k) != key.get(k))
+            differing = dataset_lib.differing_keys(cached, key)
             raise ValueError(f"{paths[1]} was computed from other data or options than this "
                              f"config (differing: {differing}) and the run's checkpoints were "
                              "trained with it: resume with the config it was started with, or "
@@ -135,9 +136,12 @@ def load_or_compute_chunk_stats(config: Mapping[str, Any], layout: ActionLayout,
     stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=mask,
                                 max_chunks=int(config["data"].get("chunk_stats_chunks")))
     save_per_timestep(paths[0], stats.per_timestep)
-    tmp = paths[1].with_name(f".{paths[1].name}.tmp.npy")
-    np.save(tmp, stats.correlation)
-    tmp.replace(paths[1])
+    # Through a temporary file and a rename, like the norm stats: every process of a run writes.
+    with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{CORRELATION_FILE}.", suffix=".npy",
+                                     delete=False) as tmp:
+        np.save(tmp, stats.correlation)
+    os.chmod(tmp.name, 0o644)
+    Path(tmp.name).replace(paths[1])
     stats_lib.write_json_atomic(key_path, key)
     return stats
 
@@ -161,9 +165,3 @@ def load_per_timestep(path: str | Path) -> stats_lib.NormStats:
                          f"shapes {shapes}")
     return stats_lib.NormStats(**fields)
 
-
-def _read_key(path: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None

@@ -361,11 +361,10 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
         raise ValueError("load_or_compute_norm_stats: a cache holds the training episodes' stats")
     if cache_path is not None and Path(cache_path).is_file():
         cache_path = Path(cache_path)
-        cached = _read_key(_key_path(cache_path))
+        cached = read_key(_key_path(cache_path))
         if cached == key:
             return stats_lib.load_norm_stats(cache_path, widths)
-        differing = sorted(k for k in set(key) | set(cached or {})
-                           if (cached or {}).get(k) != key.get(k))
+        differing = differing_keys(cached, key)
         if keep_cached:
             logging.warning("%s: keeping the norm stats the run was trained with (differing: %s)",
                             cache_path, differing)
@@ -398,7 +397,14 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
     return stats
 
 
-def _read_key(path: Path) -> dict[str, Any] | None:
+def differing_keys(cached: Mapping[str, Any] | None, key: Mapping[str, Any]) -> list[str]:
+    """The entries in which a cache's key differs from this config's (`norm_stats_key`)."""
+    cached = cached or {}
+    return sorted(k for k in set(key) | set(cached) if cached.get(k) != key.get(k))
+
+
+def read_key(path: Path) -> dict[str, Any] | None:
+    """A cache's key file, or None when it is missing or unreadable."""
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
