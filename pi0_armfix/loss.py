@@ -28,6 +28,7 @@ real dims, `per_group` equals the mean of e over the real dims exactly (K = real
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
@@ -37,17 +38,48 @@ import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
 
-STRATEGIES = ("uniform", "original", "per_group", "per_dimension", "loss_balanced", "uncertainty")
-GROUP_WEIGHTED_STRATEGIES = ("per_group", "loss_balanced")
-DELTA_STRATEGIES = ("per_group", "per_dimension", "loss_balanced", "uncertainty")
+@dataclasses.dataclass(frozen=True)
+class LossStrategy:
+    """What a loss strategy weighs by and what it needs: the one place that knows it.
+
+    weighting:         how `compute_weighted_loss` reduces e over the dims: "mean" (uniform),
+                       "temporal" (original's per-step weights), "static" (normalized static dim
+                       weights), "precision" (learned per-group precisions).
+    config_weights:    the static weights it reads from the config (checked, ramped by the warmup
+                       schedule): "group" (`loss.group_weights`), "dimension"
+                       (`loss.dimension_weights`) or None.
+    delta_weighting:   whether `loss.delta_weighting` applies.
+    learns_log_vars:   the train state carries learned per-group log-variances (`loss_params`).
+    balances:          the train state carries an EMA of the group losses that rescales the weights.
+    """
+    name: str
+    weighting: str
+    config_weights: str | None = None
+    delta_weighting: bool = False
+    learns_log_vars: bool = False
+    balances: bool = False
 
 
-def check_strategy(strategy: str, delta_weighting: bool) -> None:
-    if strategy not in STRATEGIES:
-        raise ValueError(f"unknown loss strategy {strategy!r}; choose one of {list(STRATEGIES)}")
-    if delta_weighting and strategy not in DELTA_STRATEGIES:
-        raise ValueError(f"delta_weighting=True has no meaning for loss strategy {strategy!r}; "
-                         f"it applies to {list(DELTA_STRATEGIES)}")
+LOSS_STRATEGIES = {s.name: s for s in (
+    LossStrategy("uniform", "mean"),
+    LossStrategy("original", "temporal"),
+    LossStrategy("per_group", "static", "group", delta_weighting=True),
+    LossStrategy("per_dimension", "static", "dimension", delta_weighting=True),
+    LossStrategy("loss_balanced", "static", "group", delta_weighting=True, balances=True),
+    LossStrategy("uncertainty", "precision", "group", delta_weighting=True, learns_log_vars=True),
+)}
+STRATEGIES = tuple(LOSS_STRATEGIES)
+
+
+def loss_strategy(name: str, delta_weighting: bool = False) -> LossStrategy:
+    """The strategy called `name`; ValueError for an unknown name or a delta weighting it ignores."""
+    if name not in LOSS_STRATEGIES:
+        raise ValueError(f"unknown loss strategy {name!r}; choose one of {list(STRATEGIES)}")
+    strategy = LOSS_STRATEGIES[name]
+    if delta_weighting and not strategy.delta_weighting:
+        raise ValueError(f"delta_weighting=True has no meaning for loss strategy {name!r}; it "
+                         f"applies to {[s.name for s in LOSS_STRATEGIES.values() if s.delta_weighting]}")
+    return strategy
 
 
 def _as_float32(x: Any) -> jax.Array:
@@ -68,19 +100,20 @@ def static_dim_weights(strategy: str, layout: ActionLayout, group_weights=None,
 
     This is what a metric should report as the "effective weight" of a dim before delta weighting.
     """
-    if strategy in GROUP_WEIGHTED_STRATEGIES:
+    spec = loss_strategy(strategy)
+    if spec.weighting != "static":
+        raise ValueError(f"loss strategy {strategy!r} has no static dimension weights")
+    if spec.config_weights == "group":
         if group_weights is None:
             raise ValueError(f"loss strategy {strategy!r} needs group_weights "
                              f"(one weight per group: {list(layout.group_names)})")
         w = group_weight_vector(layout, group_weights)
-    elif strategy == "per_dimension":
+    else:
         if dimension_weights is None:
-            raise ValueError(f"loss strategy 'per_dimension' needs dimension_weights "
+            raise ValueError(f"loss strategy {strategy!r} needs dimension_weights "
                              f"({layout.action_dim} values)")
         layout.check_dimension_weights(dimension_weights)
         w = _as_float32(dimension_weights)
-    else:
-        raise ValueError(f"loss strategy {strategy!r} has no static dimension weights")
     return w / jnp.mean(w)
 
 
@@ -186,7 +219,7 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
     Returns:
       `[B, H]` float32.
     """
-    check_strategy(strategy, delta_weighting)
+    weighting = loss_strategy(strategy, delta_weighting).weighting
     e = _as_float32(per_dim_loss)
     if e.ndim != 3 or e.shape[-1] != layout.action_dim:
         raise ValueError(f"per_dim_loss has shape {e.shape}; expected [B, H, {layout.action_dim}] "
@@ -196,17 +229,17 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
     if timestep_weights is not None:
         e = jax.lax.stop_gradient(_as_float32(timestep_weights))[..., None] * e
 
-    if strategy == "uniform":
+    if weighting == "mean":
         return jnp.mean(e, axis=-1)
-    if strategy == "original":
+    if weighting == "temporal":
         return original_temporal_weights(actions, valid) * jnp.mean(e, axis=-1)
     if delta_weighting:
         e_scaled = jax.lax.stop_gradient(_delta_dim_scale(actions, layout, valid)) * e
     else:
         e_scaled = e
-    if strategy == "uncertainty":
+    if weighting == "precision":
         if log_vars is None or np.shape(log_vars) != (layout.num_groups,):
-            raise ValueError(f"loss strategy 'uncertainty' needs log_vars of shape "
+            raise ValueError(f"loss strategy {strategy!r} needs log_vars of shape "
                              f"({layout.num_groups},), got {None if log_vars is None else np.shape(log_vars)}")
         if group_weights is None:
             weights = jnp.ones((layout.num_groups,), jnp.float32)
@@ -223,9 +256,7 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
 def masked_mean(x: jax.Array, valid: jax.Array | None) -> jax.Array:
     """Mean of `x` `[B, H, ...]` over the entries where `valid` `[B, H]` is True (0 if none)."""
     x = _as_float32(x)
-    if valid is None:
-        return jnp.mean(x, axis=(0, 1))
-    v = jnp.asarray(valid, x.dtype).reshape(valid.shape + (1,) * (x.ndim - 2))
+    v = _valid_weights(valid, x)
     return jnp.sum(x * v, axis=(0, 1)) / jnp.maximum(jnp.sum(v, axis=(0, 1)), 1.0)
 
 

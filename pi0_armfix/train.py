@@ -65,6 +65,7 @@ from ml_collections import config_flags
 from tqdm import tqdm
 
 from pi0_armfix import console, evaluate
+from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import batching, pipeline, sources
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
@@ -326,7 +327,7 @@ def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
     frames = int(np.sum(source.episode_lengths))
     root = getattr(source, "root", config.data.root)
     loss = config.loss.strategy
-    if loss in ("per_group", "loss_balanced", "uncertainty"):
+    if loss_lib.loss_strategy(loss).config_weights == "group":
         loss += " " + ", ".join(f"{g} {w:g}" for g, w in config.loss.group_weights.items())
     axes = ", ".join(f"{name}={size}" for name, size in mesh.shape.items())
     return [

@@ -40,3 +40,16 @@ def test_fault_injection_benchmark_kills_restarts_and_finds_every_resume_bitwise
     assert out.count("  fault ") == 2
     assert "every restart resumed bitwise" in out
     assert "  faults                  2" in out
+
+
+def test_model_benchmark_runs_every_part_and_k_flow_samples_cost_less_per_sample(tmp_path):
+    out = _bench(tmp_path, "model", "--latency_preset=tiny", "--repeats=1", "--num_steps=2",
+                 "--memory_preset=tiny", "--memory_batch=8", "--flow_time_preset=tiny",
+                 "--flow_time_batch=2", "--flow_samples=1,4", "--rounds=1", "--steps=1",
+                 "--flow_memory_k=2")
+    assert "cached prefix KV:" in out and "train step memory per device, preset=tiny" in out
+    assert "train step per flow-matching sample, preset=tiny" in out
+    assert "train step memory per device at K=2" in out
+    flops = {line.split()[0]: float(line.split()[-2].rstrip("x"))
+             for line in out.splitlines() if "GFLOP per sample" in line}
+    assert flops["K=1"] == 1.0 and flops["K=4"] < 0.6  # one prefix pass for four samples

@@ -318,3 +318,18 @@ def test_switch_emphasis_scales_the_loss_of_the_emphasized_steps():
                                  switch_threshold=np.zeros(32), switch_weight=4.0,
                                  switch_window=2)[0]
     np.testing.assert_allclose(emphasized, plain * (7 + 5 * 4) / 12, rtol=1e-6)
+
+
+@pytest.mark.parametrize("strategy", L.STRATEGIES)
+def test_train_state_carries_the_log_variances_and_ema_its_strategy_declares(strategy):
+    import optax
+
+    from pi0_armfix.training.state import create_train_state
+
+    spec = L.loss_strategy(strategy)
+    state = create_train_state({"w": jnp.zeros(3)}, tx=optax.sgd(0.1), loss_cfg={"strategy": strategy},
+                               layout=B1K, ema_decay=0.0)
+    assert ("log_vars" in state.loss_params) == spec.learns_log_vars
+    assert ("ema" in state.balancer) == spec.balances
+    assert spec.learns_log_vars == (strategy == "uncertainty")
+    assert spec.balances == (strategy == "loss_balanced")

@@ -252,6 +252,16 @@ def test_compiled_program_size_does_not_grow_with_depth():
     assert math.isclose(shallow, deep, rel_tol=0.05), (shallow, deep)
 
 
+def test_unrolled_layers_compute_what_the_scan_computes(params):
+    unrolled = TINY.replace(unroll_layers=True)
+    batch, rng = _batch(), jax.random.key(3)
+    scanned_loss = policy.compute_loss(params, rng, batch, config=TINY, layout=LAYOUT, train=True,
+                                       strategy="uniform")[0]
+    unrolled_loss = policy.compute_loss(params, rng, batch, config=unrolled, layout=LAYOUT,
+                                        train=True, strategy="uniform")[0]
+    np.testing.assert_allclose(unrolled_loss, scanned_loss, rtol=1e-6)
+
+
 def _plain_pi0_loss(params, rng, batch):
     """The pi0 loss as it was before K flow samples existed (one draw per sample)."""
     actions = jnp.asarray(batch["actions"], jnp.float32)

@@ -81,6 +81,8 @@ class Pi0Config:
       image_keys: camera slots, in token order.
       dtype: activation dtype, "float32" or "bfloat16". Parameters are always float32.
       remat: rematerialize each scanned layer in the backward pass (saves activation memory).
+      unroll_layers: unroll the layer scans in the compiled program (same params and results).
+        XLA's cost analysis counts a loop body once, so FLOP counts need the unrolled program.
       augment: train-time augmentation.
     """
 
@@ -95,6 +97,7 @@ class Pi0Config:
     image_keys: tuple[str, ...] = IMAGE_KEYS
     dtype: str = "bfloat16"
     remat: bool = True
+    unroll_layers: bool = False
     augment: AugmentConfig = AugmentConfig()
 
     def __post_init__(self):

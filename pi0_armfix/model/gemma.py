@@ -190,12 +190,14 @@ class Transformer(nn.Module):
       vocab_size: rows of the embedding table.
       dtype: activation dtype (params stay float32).
       remat: rematerialize each layer in the backward pass.
+      unroll: unroll the layer scan (for XLA's cost analysis, which counts a loop body once).
     """
 
     configs: Sequence[GemmaConfig]
     vocab_size: int
     dtype: str
     remat: bool
+    unroll: bool = False
 
     def setup(self):
         self.embedder = Embedder(self.vocab_size, self.configs[0].width, name="embedder")
@@ -205,6 +207,7 @@ class Transformer(nn.Module):
         self.layers = nn.scan(
             block, variable_axes={"params": 0}, split_rngs={"params": True},
             in_axes=(0, nn.broadcast, nn.broadcast), length=self.configs[0].depth,
+            unroll=self.configs[0].depth if self.unroll else 1,
         )(self.configs, name="layers")
         self.final_norms = [RMSNorm(name=_name("final_norm", i)) for i in range(len(self.configs))]
 

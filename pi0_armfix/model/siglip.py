@@ -56,6 +56,7 @@ class Encoder(nn.Module):
     config: SiglipConfig
     dtype: str
     remat: bool
+    unroll: bool = False
 
     @nn.compact
     def __call__(self, x):
@@ -65,6 +66,7 @@ class Encoder(nn.Module):
         x, _ = nn.scan(
             block, variable_axes={"params": 0}, split_rngs={"params": True},
             in_axes=nn.broadcast, length=self.config.depth,
+            unroll=self.config.depth if self.unroll else 1,
         )(self.config.mlp_dim, self.config.num_heads, self.dtype, name="encoderblock")(x, None)
         return nn.LayerNorm(name="encoder_norm", dtype=self.dtype)(x)
 
@@ -78,6 +80,7 @@ class SigLIP(nn.Module):
       out_width: width of the `head` projection (the language model's width).
       dtype: matmul / activation dtype of the encoder; the patch stem stays float32.
       remat: rematerialize each block in the backward pass.
+      unroll: unroll the block scan (for XLA's cost analysis, which counts a loop body once).
     """
 
     config: SiglipConfig
@@ -85,6 +88,7 @@ class SigLIP(nn.Module):
     out_width: int
     dtype: str
     remat: bool
+    unroll: bool = False
 
     @nn.compact
     def __call__(self, image):
@@ -95,6 +99,6 @@ class SigLIP(nn.Module):
         x = x.reshape(batch, h * w, width)
         x = x + self.param("pos_embedding", nn.initializers.normal(stddev=1 / np.sqrt(width)),
                            (1, self.num_patches, width), jnp.float32)
-        x = Encoder(self.config, self.dtype, self.remat, name="Transformer")(x.astype(self.dtype))
+        x = Encoder(self.config, self.dtype, self.remat, self.unroll, name="Transformer")(x.astype(self.dtype))
         # DEVIATION from openpi (zero init): a zero head would make a from-scratch model blind.
         return nn.Dense(self.out_width, dtype=self.dtype, name="head")(x)

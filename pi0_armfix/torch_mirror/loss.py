@@ -14,8 +14,7 @@ import numpy as np
 import torch
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.loss import STRATEGIES, GROUP_WEIGHTED_STRATEGIES, check_strategy  # noqa: F401
-
+from pi0_armfix.loss import STRATEGIES, loss_strategy  # noqa: F401
 
 
 def _as_float32(x: Any, like: torch.Tensor | None = None) -> torch.Tensor:
@@ -41,21 +40,22 @@ def group_weight_vector(layout: ActionLayout, group_weights: Mapping[str, Any],
 def static_dim_weights(strategy: str, layout: ActionLayout, group_weights=None,
                        dimension_weights=None, like: torch.Tensor | None = None) -> torch.Tensor:
     """Normalized static weights `[D]` (mean 1 over all D dims) of a per_group-like strategy."""
-    if strategy in GROUP_WEIGHTED_STRATEGIES:
+    spec = loss_strategy(strategy)
+    if spec.weighting != "static":
+        raise ValueError(f"loss strategy {strategy!r} has no static dimension weights")
+    if spec.config_weights == "group":
         if group_weights is None:
             raise ValueError(f"loss strategy {strategy!r} needs group_weights "
                              f"(one weight per group: {list(layout.group_names)})")
         w = group_weight_vector(layout, group_weights, like)
-    elif strategy == "per_dimension":
+    else:
         if dimension_weights is None:
-            raise ValueError(f"loss strategy 'per_dimension' needs dimension_weights "
+            raise ValueError(f"loss strategy {strategy!r} needs dimension_weights "
                              f"({layout.action_dim} values)")
         layout.check_dimension_weights(
             dimension_weights.detach().cpu().numpy() if torch.is_tensor(dimension_weights)
             else dimension_weights)
         w = _as_float32(dimension_weights, like)
-    else:
-        raise ValueError(f"loss strategy {strategy!r} has no static dimension weights")
     return w / torch.mean(w)
 
 
@@ -135,7 +135,7 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
                           min_log_var: float = -5.0, valid: torch.Tensor | None = None,
                           timestep_weights: torch.Tensor | None = None) -> torch.Tensor:
     """Weighted loss per (sample, step) `[B, H]`; mirrors `pi0_armfix.loss.compute_weighted_loss`."""
-    check_strategy(strategy, delta_weighting)
+    weighting = loss_strategy(strategy, delta_weighting).weighting
     e = _as_float32(per_dim_loss)
     if e.ndim != 3 or e.shape[-1] != layout.action_dim:
         raise ValueError(f"per_dim_loss has shape {tuple(e.shape)}; expected [B, H, "
@@ -145,15 +145,15 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
     if timestep_weights is not None:
         e = _as_float32(timestep_weights).detach().to(e.dtype)[..., None] * e
 
-    if strategy == "uniform":
+    if weighting == "mean":
         return torch.mean(e, dim=-1)
-    if strategy == "original":
+    if weighting == "temporal":
         return original_temporal_weights(actions, valid).to(e.dtype) * torch.mean(e, dim=-1)
     e_scaled = (_delta_dim_scale(actions, layout, valid).to(e.dtype) * e if delta_weighting
                 else e)
-    if strategy == "uncertainty":
+    if weighting == "precision":
         if log_vars is None or tuple(log_vars.shape) != (layout.num_groups,):
-            raise ValueError(f"loss strategy 'uncertainty' needs log_vars of shape "
+            raise ValueError(f"loss strategy {strategy!r} needs log_vars of shape "
                              f"({layout.num_groups},), got {None if log_vars is None else tuple(log_vars.shape)}")
         if group_weights is None:
             weights = torch.ones(layout.num_groups, dtype=e.dtype, device=e.device)
@@ -171,9 +171,7 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
 def masked_mean(x: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
     """Mean of `x` `[B, H, ...]` over the entries where `valid` `[B, H]` is True (0 if none)."""
     x = _as_float32(x)
-    if valid is None:
-        return torch.mean(x, dim=(0, 1))
-    v = valid.to(x.dtype).reshape(tuple(valid.shape) + (1,) * (x.ndim - 2))
+    v = _valid_weights(valid, x)
     return torch.sum(x * v, dim=(0, 1)) / torch.clamp(torch.sum(v, dim=(0, 1)), min=1.0)
 
 

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 
 
@@ -47,10 +48,11 @@ def create_train_state(params: Any, *, tx: optax.GradientTransformation,
                        ema_decay: float) -> TrainState:
     """The state at step 0 around `params` (jit it with out_shardings to build it sharded)."""
     num_groups = layout.num_groups
+    strategy = loss_lib.loss_strategy(loss_cfg["strategy"])
     loss_params = ({"log_vars": jnp.zeros((num_groups,), jnp.float32)}
-                   if loss_cfg["strategy"] == "uncertainty" else {})
+                   if strategy.learns_log_vars else {})
     balancer = ({"ema": jnp.zeros((num_groups,), jnp.float32), "count": jnp.zeros((), jnp.int32)}
-                if loss_cfg["strategy"] == "loss_balanced" else {})
+                if strategy.balances else {})
     trainable = {"params": params, "loss_params": loss_params}
     return TrainState(
         step=jnp.zeros((), jnp.int32),

@@ -31,12 +31,11 @@ from pi0_armfix.training.state import TrainState
 
 def check_loss_config(loss_cfg: Mapping[str, Any], layout: ActionLayout) -> None:
     """Raises ValueError (naming the `loss.*` key) for a loss section the step cannot run."""
-    strategy = loss_cfg["strategy"]
-    loss_lib.check_strategy(strategy, loss_cfg["delta_weighting"])
-    if strategy == "per_dimension":
+    strategy = loss_lib.loss_strategy(loss_cfg["strategy"], loss_cfg["delta_weighting"])
+    if strategy.config_weights == "dimension":
         layout.check_dimension_weights(loss_cfg["dimension_weights"],
                                        field="loss.dimension_weights")
-    elif strategy in ("per_group", "loss_balanced", "uncertainty"):
+    elif strategy.config_weights == "group":
         layout.check_group_weights(dict(loss_cfg["group_weights"]), field="loss.group_weights")
     if loss_cfg["weight_warmup_steps"] < 0:
         raise ValueError(f"loss.weight_warmup_steps = {loss_cfg['weight_warmup_steps']} must "
@@ -53,7 +52,7 @@ def check_loss_config(loss_cfg: Mapping[str, Any], layout: ActionLayout) -> None
     if loss_cfg["switch_weight"] != 1.0 and not layout.groups_with_role("gripper"):
         raise ValueError("loss.switch_weight emphasizes gripper switches, but the layout has no "
                          "group of role gripper: set layout.roles, or loss.switch_weight=1")
-    if strategy == "loss_balanced":
+    if strategy.balances:
         if not 0.0 <= loss_cfg["ema_decay"] < 1.0:
             raise ValueError(f"loss.ema_decay = {loss_cfg['ema_decay']} must be in [0, 1)")
         if not 0.0 < loss_cfg["w_min"] <= loss_cfg["w_max"]:
@@ -68,24 +67,25 @@ def loss_kwargs(loss_cfg: Mapping[str, Any], layout: ActionLayout, step: jax.Arr
 
     `switch_threshold`: `[D]` or `[H, D]` the grippers' open/close boundary in normalized units,
     for gripper-switch emphasis (`loss.switch_weight != 1`)."""
-    strategy = loss_cfg["strategy"]
+    strategy = loss_lib.loss_strategy(loss_cfg["strategy"])
     warmup = loss_cfg["weight_warmup_steps"]
-    kwargs: dict[str, Any] = dict(strategy=strategy, delta_weighting=loss_cfg["delta_weighting"])
+    kwargs: dict[str, Any] = dict(strategy=strategy.name,
+                                  delta_weighting=loss_cfg["delta_weighting"])
     if loss_cfg["switch_weight"] != 1.0:
         kwargs.update(switch_threshold=switch_threshold, switch_weight=loss_cfg["switch_weight"],
                       switch_window=loss_cfg["switch_window"])
-    if strategy == "per_dimension":
+    if strategy.config_weights == "dimension":
         kwargs["dimension_weights"] = loss_lib.warmup_dimension_weights(
             jnp.asarray(loss_cfg["dimension_weights"], jnp.float32), step, warmup, layout)
-    elif strategy in ("per_group", "loss_balanced", "uncertainty"):
+    elif strategy.config_weights == "group":
         weights = loss_lib.warmup_group_weights(dict(loss_cfg["group_weights"]), step, warmup)
-        if strategy == "loss_balanced":
+        if strategy.balances:
             static = jnp.stack([weights[g] for g in layout.group_names])
             balanced = loss_lib.loss_balanced_weights(balancer["ema"], static, loss_cfg["w_min"],
                                                       loss_cfg["w_max"])
             weights = {g: balanced[i] for i, g in enumerate(layout.group_names)}
         kwargs["group_weights"] = weights
-    if strategy == "uncertainty":
+    if strategy.learns_log_vars:
         kwargs["log_vars"] = loss_params["log_vars"]
         kwargs["min_log_var"] = loss_cfg["min_log_var"]
     return kwargs
@@ -98,13 +98,13 @@ def effective_group_weights(kwargs: Mapping[str, Any], layout: ActionLayout) -> 
     dims; the static weights have mean 1 over all action dims). uncertainty: w_g exp(-s_g), the
     precision on the group's mean error. uniform / original: 1.
     """
-    strategy = kwargs["strategy"]
-    if strategy == "uncertainty":
+    weighting = loss_lib.loss_strategy(kwargs["strategy"]).weighting
+    if weighting == "precision":
         precision = jnp.exp(-jnp.maximum(kwargs["log_vars"], kwargs["min_log_var"]))
         return jnp.stack([kwargs["group_weights"][g] for g in layout.group_names]) * precision
-    if strategy in ("uniform", "original"):
+    if weighting != "static":
         return jnp.ones((layout.num_groups,), jnp.float32)
-    dim_weights = loss_lib.static_dim_weights(strategy, layout, kwargs.get("group_weights"),
+    dim_weights = loss_lib.static_dim_weights(kwargs["strategy"], layout, kwargs.get("group_weights"),
                                               kwargs.get("dimension_weights"))
     membership = jnp.asarray(layout.membership())
     return dim_weights @ membership / membership.sum(0)
