@@ -108,7 +108,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
     config.data.probe_episodes = 4  # episodes whose files and first/last frames are read first
     config.data.split = "train"  # RLDS: the split to read
-    config.data.norm = "zscore"  # zscore | quantile
+    config.data.norm = ""  # zscore | quantile; '' = the model's (pi0: zscore, pi0.5: quantile)
     config.data.norm_stats = ""  # norm_stats.json (openpi format); '' = compute into the workdir
     config.data.balanced_norm = False  # compute balanced stats (equal per-group motion) instead
     config.data.balanced_max_scale = 10.0  # balanced stats: cap on each group's change of scale

@@ -271,7 +271,7 @@ class Evaluator:
         self.groups = eval_groups(eval_cfg, layout)
         table = dataset_lib.heldout_table(config, layout, source=source)
         transform = batching.BatchTransform(
-            table, layout, norm_stats=norm_stats, norm_mode=config.data.norm,
+            table, layout, norm_stats=norm_stats, norm_mode=model_config_lib.norm_mode(config),
             action_horizon=model_config.action_horizon,
             delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
             tokenize=tokenize, image_size=model_config.image_resolution)

@@ -202,6 +202,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     is_main = jax.process_index() == 0
     layout = ActionLayout.from_config(config.layout)
     model_config = model_config_lib.from_model_config(config.model)
+    # Resolved once, before the fingerprint: a run records the normalization it used.
+    config.data.norm = model_config_lib.norm_mode(config)
     if model_config.action_dim != layout.action_dim:
         raise ValueError(f"layout.action_dim = {layout.action_dim} but the model (preset "
                          f"{config.model.preset!r}, model.action_dim={config.model.action_dim}) "

@@ -51,7 +51,7 @@ def _expert_outputs(params, obs, x_t, t):
     """Final prefix and suffix outputs of one joint forward ([B, P, W], [B, S, E]) and the masks."""
     obs = preprocess_observation(None, obs, config=TINY, train=False)
     prefix, prefix_mask, prefix_ar = pi0.embed_prefix(params, obs, config=TINY)
-    suffix, suffix_mask, suffix_ar = pi0.embed_suffix(params, obs["state"], x_t, t, config=TINY)
+    suffix, suffix_mask, suffix_ar, _ = pi0.embed_suffix(params, obs["state"], x_t, t, config=TINY)
     input_mask = jnp.concatenate([prefix_mask, suffix_mask], axis=1)
     attn_mask = pi0.make_attn_mask(input_mask, jnp.concatenate([prefix_ar, suffix_ar]))
     (prefix_out, suffix_out), _ = pi0.transformer(TINY).apply(

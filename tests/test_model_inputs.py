@@ -132,3 +132,26 @@ def test_pretrained_weights_require_their_tokenizer():
 def test_missing_tokenizer_file_is_named(tmp_path):
     with pytest.raises(ValueError, match="nope.model"):
         make_tokenizer(_model_cfg(tokenizer=str(tmp_path / "nope.model")))
+
+
+def test_pi05_prompt_writes_the_state_bins_in_openpi_format():
+    from pi0_armfix.model.tokenizer import pi05_prompt
+
+    state = np.array([-1.0, 0.0, 0.999, 1.5, -1.5, -0.5])
+    assert pi05_prompt("pick_up the cup\n", state) == (
+        "Task: pick up the cup, State: 0 128 255 255 -1 64;\nAction: ")
+
+
+def test_pi05_tokenizer_encodes_the_state_prompt_with_bos(tmp_path):
+    from pi0_armfix.model.tokenizer import pi05_prompt
+
+    model_cfg = ml_collections.ConfigDict({"preset": "pi05_demo", "tokenizer": "",
+                                           "pretrained": ""})
+    tokenizer = make_tokenizer(model_cfg, prompts=PROMPTS, cache_dir=tmp_path)
+    assert tokenizer.state_in_prompt and tokenizer.max_len == 64
+    state = np.array([0.25, -0.75, 1.0])
+    tokens, mask = tokenizer("open the fridge door", state)
+    text = pi05_prompt("open the fridge door", state)
+    assert tokens[0] == 2  # BOS
+    assert tokenizer.decode(tokens, mask) == text.rstrip()
+    assert 3 not in tokens[mask]  # no unknown piece: the numbers are in the vocabulary

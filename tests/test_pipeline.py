@@ -422,3 +422,28 @@ def test_too_many_held_out_episodes_is_an_error(lerobot_config):
     config.eval.episodes = 6
     with pytest.raises(ValueError, match="eval.episodes = 6"):
         dataset_lib.heldout_table(config, ActionLayout.from_config(config.layout))
+
+
+class StateTokenizer:
+    """A pi0.5-style tokenizer: called per sample with the normalized state."""
+    state_in_prompt = True
+
+    def __init__(self):
+        self.states = []
+
+    def __call__(self, prompt, state):
+        self.states.append(np.asarray(state))
+        return np.array([len(prompt), 1, 0], np.int32), np.array([True, True, False])
+
+
+def test_a_state_in_prompt_tokenizer_gets_each_samples_normalized_state():
+    table = frame_table()
+    stats = table_stats(table)
+    tokenizer = StateTokenizer()
+    transform = batching.BatchTransform(table, LAYOUT, norm_stats=stats, norm_mode="quantile",
+                                        action_horizon=4, tokenize=tokenizer)
+    batch = transform(np.array([0, 5, 9]))
+    assert len(tokenizer.states) == 3
+    np.testing.assert_allclose(np.stack(tokenizer.states),
+                               batch["state"][:, :table.state.shape[1]], rtol=1e-6)
+    assert tokenizer.states[0].shape == (table.state.shape[1],)  # real dims, not padded

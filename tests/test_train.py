@@ -64,6 +64,19 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
     assert json.loads((workdir / "config.json").read_text())["loss"]["strategy"] == "per_group"
 
 
+def test_a_pi05_run_trains_evaluates_and_records_its_quantile_normalization(tmp_path, cache_dir,
+                                                                            demo_root):
+    workdir = tmp_path / "run"
+    result = tf.run_train("configs/arm_focused.py", workdir,
+                          tf.tiny_overrides(demo_root, model__preset="pi05_tiny", eval__every=2),
+                          cache_dir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "model     pi05_tiny: " in result.stdout
+    assert json.loads((workdir / "config.json").read_text())["data"]["norm"] == "quantile"
+    records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+    assert any("motion_gain/left_arm" in r for r in records)
+
+
 def test_unknown_config_key_is_an_error(tmp_path, cache_dir, demo_root):
     result = tf.run_train("configs/arm_focused.py", tmp_path / "run",
                           {"loss.arm_weight": 3.0}, cache_dir)

@@ -2,10 +2,11 @@
 
 latency     `sample_actions` wall time on the `demo` preset, prefix KV cache vs full recomputation
             every Euler step (median of `--repeats` runs after compilation).
-memory      per-device memory of the compiled `pi0` train step (loss, gradient, AdamW update) on
-            an 8-device CPU mesh with fsdp=8, from `compiled.memory_analysis()`. Every input is an
-            abstract `jax.ShapeDtypeStruct` with its sharding, so nothing is allocated. Params and
-            AdamW moments are placed by the training rule table (`training.sharding`).
+memory      per-device memory of the compiled `pi0` and `pi05` train steps (loss, gradient, AdamW
+            update) on an 8-device CPU mesh with fsdp=8, from `compiled.memory_analysis()`. Every
+            input is an abstract `jax.ShapeDtypeStruct` with its sharding, so nothing is
+            allocated. Params and AdamW moments are placed by the training rule table
+            (`training.sharding`).
 flow_time   K flow-matching samples per prefix pass (`loss.flow_samples`): train-step time per
             flow-matching sample at each K of `--flow_samples` on the `demo` preset, against K
             separate K=1 steps. The K variants run interleaved round by round on one batch, so
@@ -51,7 +52,9 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--latency_batch", type=int, default=1)
     parser.add_argument("--num_steps", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--memory_preset", default="pi0", choices=model_config.PRESETS)
+    parser.add_argument("--memory_preset", default="pi0,pi05",
+                        help="comma-separated presets whose train step memory is compared; the "
+                             "first is the one of flow_flops")
     parser.add_argument("--memory_batch", type=int, default=32)
     parser.add_argument("--flow_samples", default="1,4,8", help="the K values compared")
     parser.add_argument("--flow_time_preset", default="demo", choices=model_config.PRESETS)
@@ -61,6 +64,11 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--flow_memory_k", type=int, default=4)
     args = parser.parse_args(argv[1:])
     args.flow_samples = tuple(int(k) for k in args.flow_samples.split(","))
+    args.memory_preset = tuple(args.memory_preset.split(","))
+    for preset in args.memory_preset:
+        if preset not in model_config.PRESETS:
+            parser.error(f"--memory_preset: unknown preset {preset!r}; choose from "
+                         f"{model_config.PRESETS}")
     if args.flow_samples[0] != 1:
         parser.error(f"--flow_samples={args.flow_samples} must start at 1 (the baseline)")
     return args
@@ -218,19 +226,21 @@ def main(argv: list[str]) -> None:
         _run_mesh_subprocess(argv, "mesh" if args.part == "all" else args.part)
         return
     if "memory" in mesh_parts:
-        config = model_config.get_preset(args.memory_preset)
-        print(f"train step memory per device, preset={args.memory_preset} (dtype={config.dtype}, "
-              f"remat={config.remat}), batch={args.memory_batch}, {_DEVICES} CPU devices, fsdp="
-              f"{_DEVICES}, AdamW:")
-        _print_memory(train_step_memory(lower_train_step(config, args.memory_batch)))
+        for preset in args.memory_preset:
+            config = model_config.get_preset(preset)
+            print(f"train step memory per device, preset={preset} (dtype={config.dtype}, "
+                  f"remat={config.remat}), batch={args.memory_batch}, {_DEVICES} CPU devices, "
+                  f"fsdp={_DEVICES}, AdamW:")
+            _print_memory(train_step_memory(lower_train_step(config, args.memory_batch)))
     if "flow_flops" in mesh_parts:
-        flops = flops_per_flow_sample(args.memory_preset, args.memory_batch, args.flow_samples)
-        print(f"train step FLOPs per flow-matching sample, preset={args.memory_preset}, batch="
+        preset = args.memory_preset[0]
+        flops = flops_per_flow_sample(preset, args.memory_batch, args.flow_samples)
+        print(f"train step FLOPs per flow-matching sample, preset={preset}, batch="
               f"{args.memory_batch} (abstract step, layers unrolled, cost analysis before "
               "partitioning):")
         for k, value in flops.items():
             print(f"  K={k:<3d} {value / 1e9:12.5g} GFLOP per sample   {value / flops[1]:5.3f}x K=1")
-        print(f"train step memory per device at K={args.flow_memory_k}, preset={args.memory_preset}, "
+        print(f"train step memory per device at K={args.flow_memory_k}, preset={preset}, "
               f"batch={args.memory_batch}, {_DEVICES} CPU devices, fsdp={_DEVICES}:")
         _print_memory(train_step_memory(lower_train_step(
-            model_config.get_preset(args.memory_preset), args.memory_batch, args.flow_memory_k)))
+            model_config.get_preset(preset), args.memory_batch, args.flow_memory_k)))

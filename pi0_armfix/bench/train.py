@@ -42,6 +42,7 @@ from pi0_armfix.training import step as step_lib
 def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     """Median seconds per step of (uniform, per_group + delta weighting) on one demo batch."""
     config = base.get_config()
+    config.data.norm = model_config_lib.norm_mode(config)
     layout = ActionLayout.from_config(config.layout)
     model_config = model_config_lib.from_model_config(config.model)
     mesh = sharding_lib.make_mesh(config.sharding.fsdp)

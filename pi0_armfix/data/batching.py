@@ -57,7 +57,9 @@ class BatchTransform:
       action_horizon: H.
       delta_mask: `[A]` bool relative action dims, or None.
       tokenize: `tokenize(prompt) -> (tokens int32 [L], mask bool [L])`; required unless
-        `actions_only`. Called once per distinct prompt (cached).
+        `actions_only`. Called once per distinct prompt (cached); a tokenizer with
+        `state_in_prompt` (pi0.5) is called per sample as `tokenize(prompt, state)` with the
+        sample's normalized state (real dims, before padding).
       actions_only: only `state`, `actions`, `action_is_pad` (no images, no prompt).
       image_size: (height, width) of the zero images of the cameras no stored camera feeds when
         the dataset has none at all (they are masked out; the model resizes them anyway).
@@ -98,14 +100,18 @@ class BatchTransform:
         state = self.table.state[frames]  # [b, S]
         if self.delta_mask is not None:
             actions = transforms.to_delta(actions, state, self.delta_mask)
+        state = self.state_norm(state)
         batch = {
-            "state": transforms.pad_last(self.state_norm(state), self.action_dim),
+            "state": transforms.pad_last(state, self.action_dim),
             "actions": transforms.pad_last(self.action_norm(actions), self.action_dim),
             "action_is_pad": is_pad,
         }
         if not self.actions_only:
-            episodes = self.table.episode_of_frame(frames)
-            tokens, masks = zip(*(self._tokenized(self.table.tasks[e]) for e in episodes))
+            prompts = [self.table.tasks[e] for e in self.table.episode_of_frame(frames)]
+            if getattr(self.tokenize, "state_in_prompt", False):
+                tokens, masks = zip(*map(self.tokenize, prompts, state))
+            else:
+                tokens, masks = zip(*map(self._tokenized, prompts))
             batch["tokenized_prompt"] = np.stack(tokens).astype(np.int32)
             batch["tokenized_prompt_mask"] = np.stack(masks).astype(bool)
             batch["image"], batch["image_mask"] = self._images(frames)

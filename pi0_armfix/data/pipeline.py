@@ -49,6 +49,7 @@ from pi0_armfix.data import transforms
 from pi0_armfix.data.batching import BatchTransform, Tokenize
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.sampling import SampleSelector, source_frames, stream_seed
+from pi0_armfix.model import config as model_config_lib
 
 ConfigLike = Mapping[str, Any]
 
@@ -59,10 +60,11 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
                   seed: int, norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                   global_batch_size: int, process_index: int = 0, process_count: int = 1,
                   tokenize: Tokenize | None = None, actions_only: bool = False,
-                  image_size: tuple[int, int] = (224, 224)
+                  image_size: tuple[int, int] = (224, 224), norm_mode: str | None = None
                   ) -> tuple[grain.MapDataset, curriculum_lib.Curriculum]:
     """The infinite MapDataset of this process's numpy batches (element i = step i), and the
-    curriculum (for the phase of a step)."""
+    curriculum (for the phase of a step). `norm_mode`: the run's resolved normalization (default:
+    `data.norm`, else z-score)."""
     if global_batch_size < 1 or global_batch_size % process_count:
         raise ValueError(f"train.batch_size = {global_batch_size} must be a positive multiple of "
                          f"the number of processes ({process_count})")
@@ -77,7 +79,7 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
     selector = SampleSelector(curriculum, streams, global_batch_size=global_batch_size,
                               process_index=process_index, process_count=process_count)
     transform = BatchTransform(table, layout, norm_stats=norm_stats,
-                               norm_mode=data_cfg.get("norm", "zscore"),
+                               norm_mode=norm_mode or data_cfg.get("norm") or "zscore",
                                action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
                                actions_only=actions_only, image_size=image_size)
     batches = (grain.MapDataset.range(sys.maxsize // global_batch_size)
@@ -199,7 +201,8 @@ def make_train_iterator(config: ConfigLike, layout: ActionLayout, *,
         table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,
         action_horizon=action_horizon, global_batch_size=global_batch_size,
         process_index=jax.process_index(), process_count=jax.process_count(),
-        tokenize=tokenize, actions_only=actions_only, image_size=image_size)
+        tokenize=tokenize, actions_only=actions_only, image_size=image_size,
+        norm_mode=model_config_lib.norm_mode(config) if "model" in config else None)
     return TrainIterator(batches, curriculum, sharding=sharding,
                          global_batch_size=global_batch_size, seed=int(config.get("seed", 0)),
                          num_workers=int(data.get("num_workers", 0)),

@@ -1,9 +1,11 @@
-"""Model configuration: frozen dataclasses and the `pi0` / `demo` / `tiny` presets.
+"""Model configuration: frozen dataclasses and the pi0 / pi0.5 presets.
 
 The config is the only knob of the model. The `pi0` preset reproduces openpi's pi0 (PaliGemma =
 SigLIP So400m/14 + Gemma 2B, action expert = Gemma 300M) so that its parameter tree equals
 `shared/reference/openpi_param_tree.json["pi0"]`; `demo` trains on a laptop CPU; `tiny` is for unit
-tests. Every preset uses the same parameter names, only the sizes differ.
+tests. `pi05`, `pi05_demo` and `pi05_tiny` are the same sizes as pi0.5 (`Pi0Config.pi05`; tree
+`openpi_param_tree.json["pi05"]`). Every preset of a model uses the same parameter names, only
+the sizes differ.
 
 `Pi0Config.to_dict()` / `Pi0Config.from_dict()` round-trip through JSON (the PyTorch mirror's
 `config.json`); `from_model_config(config.model)` builds one from the training config section.
@@ -81,6 +83,10 @@ class Pi0Config:
       image_keys: camera slots, in token order.
       dtype: activation dtype, "float32" or "bfloat16". Parameters are always float32.
       remat: rematerialize each scanned layer in the backward pass (saves activation memory).
+      pi05: pi0.5 instead of pi0: no state token (the state is written into the prompt, see
+        `tokenizer`), the flow time conditions every action-expert norm through adaptive RMSNorm
+        (`time_mlp_in -> swish -> time_mlp_out -> swish`), and the data default is quantile
+        normalization.
       unroll_layers: unroll the layer scans in the compiled program (same params and results).
         XLA's cost analysis counts a loop body once, so FLOP counts need the unrolled program.
       augment: train-time augmentation.
@@ -97,6 +103,7 @@ class Pi0Config:
     image_keys: tuple[str, ...] = IMAGE_KEYS
     dtype: str = "bfloat16"
     remat: bool = True
+    pi05: bool = False
     unroll_layers: bool = False
     augment: AugmentConfig = AugmentConfig()
 
@@ -152,7 +159,13 @@ class Pi0Config:
 
     @property
     def suffix_len(self) -> int:
-        return 1 + self.action_horizon
+        """Action tokens, after pi0's state token."""
+        return self.action_horizon + (0 if self.pi05 else 1)
+
+    @property
+    def default_norm(self) -> str:
+        """openpi's normalization for the model: quantile for pi0.5, z-score for pi0."""
+        return "quantile" if self.pi05 else "zscore"
 
     def replace(self, **changes) -> Pi0Config:
         return dataclasses.replace(self, **changes)
@@ -209,12 +222,23 @@ _PRESETS = {
         vocab_size=64, action_horizon=4, max_token_len=8,
         image_resolution=(16, 16), dtype="float32", remat=False),
 }
+# pi0.5 at each size: the prompt carries the state, so it is longer (openpi: 200 tokens).
+_PI05_PROMPT_LEN = {"pi0": 200, "demo": 64, "tiny": 48}
+_PRESETS.update({f"pi05{'' if name == 'pi0' else '_' + name}": _PRESETS[name].replace(
+    pi05=True, max_token_len=length) for name, length in _PI05_PROMPT_LEN.items()})
 PRESETS = tuple(_PRESETS)
 
 
 def dense_shapes(config: Pi0Config) -> dict[str, tuple[int, int]]:
     """(in, out) features of each dense layer outside the two towers."""
     width, action_dim = config.action_expert.width, config.action_dim
+    if config.pi05:
+        return {
+            "action_in_proj": (action_dim, width),
+            "time_mlp_in": (width, width),
+            "time_mlp_out": (width, width),
+            "action_out_proj": (width, action_dim),
+        }
     return {
         "state_proj": (action_dim, width),
         "action_in_proj": (action_dim, width),
@@ -225,7 +249,7 @@ def dense_shapes(config: Pi0Config) -> dict[str, tuple[int, int]]:
 
 
 def get_preset(name: str, **changes) -> Pi0Config:
-    """The named preset (`pi0`, `demo`, `tiny`), with top-level fields replaced by `changes`."""
+    """The named preset (`PRESETS`), with top-level fields replaced by `changes`."""
     if name not in _PRESETS:
         raise ValueError(f"unknown model preset {name!r}; choose one of {PRESETS}")
     return _PRESETS[name].replace(**changes)
@@ -245,3 +269,8 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
     if model_cfg.get("action_horizon"):
         changes["action_horizon"] = int(model_cfg["action_horizon"])
     return get_preset(model_cfg["preset"], **changes)
+
+
+def norm_mode(config: Any) -> str:
+    """The run's normalization: `data.norm` when set, else the model's (`Pi0Config.default_norm`)."""
+    return config.data.get("norm") or from_model_config(config.model).default_norm

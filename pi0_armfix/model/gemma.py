@@ -32,14 +32,35 @@ def _name(name: str, expert: int) -> str:
 
 
 class RMSNorm(nn.Module):
-    """`x * rsqrt(mean(x^2) + 1e-6) * (1 + scale)`, statistics in float32, output in x.dtype."""
+    """`n = x * rsqrt(mean(x^2) + 1e-6)`, statistics in float32, output in x.dtype.
+
+    Plain (cond None): `n * (1 + scale)`, a learned `scale` [D]; returns (out, None).
+    Adaptive (pi0.5's adaRMS, cond [B, C] or per token [B, T, C]): `scale, shift, gate` are the
+    three thirds of `Dense_0(cond)` ([C, 3D], zero-initialized kernel, so it starts as identity
+    with gate 0); `n * (1 + scale) + shift`; returns (out, gate), the gate scaling the residual
+    branch this norm feeds (`gated_residual`).
+    """
 
     @nn.compact
-    def __call__(self, x):
-        scale = self.param("scale", nn.initializers.zeros_init(), (x.shape[-1],))
+    def __call__(self, x, cond=None):
         var = jnp.mean(jnp.square(x.astype(jnp.float32)), axis=-1, keepdims=True)
         normed = x * jnp.reciprocal(jnp.sqrt(var + 1e-6))
-        return (normed * (1 + scale)).astype(x.dtype)
+        if cond is None:
+            scale = self.param("scale", nn.initializers.zeros_init(), (x.shape[-1],))
+            return (normed * (1 + scale)).astype(x.dtype), None
+        modulation = nn.Dense(3 * x.shape[-1], kernel_init=nn.initializers.zeros,
+                              dtype=x.dtype)(cond)
+        if modulation.ndim < x.ndim:  # one condition per sample, for every token
+            modulation = modulation[:, None, :]
+        scale, shift, gate = jnp.split(modulation, 3, axis=-1)
+        return (normed * (1 + scale) + shift).astype(x.dtype), gate
+
+
+def gated_residual(x, y, gate):
+    """`x + y`, or `x + y * gate` after an adaptive norm; None for an absent expert."""
+    if x is None:
+        return None
+    return x + y if gate is None else x + y * gate
 
 
 class Embedder(nn.Module):
@@ -163,21 +184,26 @@ class FeedForward(nn.Module):
 
 
 class Block(nn.Module):
-    """Pre-norm residual layer: joint attention, then each expert's own MLP."""
+    """Pre-norm residual layer: joint attention, then each expert's own MLP. An expert with a
+    condition (`conds[i]` not None) has adaptive norms and gated residuals."""
 
     configs: Sequence[GemmaConfig]
 
     @nn.compact
-    def __call__(self, xs, kv_cache, positions, attn_mask):
-        normed = [None if x is None else RMSNorm(name=_name("pre_attention_norm", i))(x)
-                  for i, x in enumerate(xs)]
+    def __call__(self, xs, kv_cache, positions, attn_mask, conds):
+        normed, gates = [], []
+        for i, (x, cond) in enumerate(zip(xs, conds)):
+            y, gate = (None, None) if x is None else RMSNorm(name=_name("pre_attention_norm", i))(
+                x, cond)
+            normed.append(y), gates.append(gate)
         attended, kv_cache = Attention(self.configs, name="attn")(normed, positions, attn_mask, kv_cache)
-        xs = [None if x is None else x + y for x, y in zip(xs, attended)]
+        xs = [gated_residual(x, y, gate) for x, y, gate in zip(xs, attended, gates)]
         out = []
-        for i, (x, config) in enumerate(zip(xs, self.configs)):
+        for i, (x, config, cond) in enumerate(zip(xs, self.configs, conds)):
             if x is not None:
-                y = RMSNorm(name=_name("pre_ffw_norm", i))(x)
-                x = x + FeedForward(config.width, config.mlp_dim, name=_name("mlp", i))(y)
+                y, gate = RMSNorm(name=_name("pre_ffw_norm", i))(x, cond)
+                x = gated_residual(x, FeedForward(config.width, config.mlp_dim,
+                                                  name=_name("mlp", i))(y), gate)
             out.append(x)
         return out, kv_cache
 
@@ -191,6 +217,8 @@ class Transformer(nn.Module):
       dtype: activation dtype (params stay float32).
       remat: rematerialize each layer in the backward pass.
       unroll: unroll the layer scan (for XLA's cost analysis, which counts a loop body once).
+      adaptive: per expert, whether its norms are adaptive (pi0.5's action expert): such an
+        expert takes a condition in every call.
     """
 
     configs: Sequence[GemmaConfig]
@@ -198,6 +226,7 @@ class Transformer(nn.Module):
     dtype: str
     remat: bool
     unroll: bool = False
+    adaptive: Sequence[bool] = (False, False)
 
     def setup(self):
         self.embedder = Embedder(self.vocab_size, self.configs[0].width, name="embedder")
@@ -206,7 +235,7 @@ class Transformer(nn.Module):
             block = nn.remat(Block, prevent_cse=False, policy=jax.checkpoint_policies.nothing_saveable)
         self.layers = nn.scan(
             block, variable_axes={"params": 0}, split_rngs={"params": True},
-            in_axes=(0, nn.broadcast, nn.broadcast), length=self.configs[0].depth,
+            in_axes=(0, nn.broadcast, nn.broadcast, nn.broadcast), length=self.configs[0].depth,
             unroll=self.configs[0].depth if self.unroll else 1,
         )(self.configs, name="layers")
         self.final_norms = [RMSNorm(name=_name("final_norm", i)) for i in range(len(self.configs))]
@@ -215,7 +244,7 @@ class Transformer(nn.Module):
         """[B, L] int -> [B, L, D_0] in `dtype`."""
         return self.embedder.encode(tokens).astype(self.dtype)
 
-    def __call__(self, xs, positions, attn_mask, kv_cache=None):
+    def __call__(self, xs, positions, attn_mask, kv_cache=None, cond=None):
         """Runs all layers.
 
         Args:
@@ -223,18 +252,28 @@ class Transformer(nn.Module):
           positions: [B, T] int.
           attn_mask: [B, T, S] bool (S = T + cached length).
           kv_cache: None, or (k, v) each [depth, B, S - T, K, H] from a previous call.
+          cond: the condition of the adaptive experts present in this call, [B, C] (or per token
+            [B, T_i, C]); None when no adaptive expert is present.
 
         Returns:
           per expert final-normed outputs [B, T_i, D_i] (or None), and the (k, v) of this call,
           each [depth, B, S, K, H].
         """
         xs = [None if x is None else x.astype(self.dtype) for x in xs]
-        xs, kv_cache = self.layers(xs, kv_cache, positions, attn_mask[:, None])
-        return [None if x is None else norm(x) for norm, x in zip(self.final_norms, xs)], kv_cache
+        conds = [cond if adaptive and x is not None else None
+                 for x, adaptive in zip(xs, self.adaptive)]
+        if any(a and x is not None for x, a in zip(xs, self.adaptive)) and cond is None:
+            raise ValueError("an adaptive (pi0.5) expert needs its condition: pass cond")
+        xs, kv_cache = self.layers(xs, kv_cache, positions, attn_mask[:, None], conds)
+        return [None if x is None else norm(x, c)[0]
+                for norm, x, c in zip(self.final_norms, xs, conds)], kv_cache
 
     def initialize(self):
         """Touches every parameter (for `init` / `eval_shape`)."""
         self.embed(jnp.zeros((1, 1), jnp.int32))
         xs = [jnp.zeros((1, 1, c.width), self.dtype) for c in self.configs]
         length = len(self.configs)
-        self(xs, jnp.zeros((1, length), jnp.int32), jnp.ones((1, length, length), bool))
+        # Adaptive experts are conditioned on a vector of their own width (the time embedding).
+        widths = [c.width for c, adaptive in zip(self.configs, self.adaptive) if adaptive]
+        cond = jnp.zeros((1, widths[0]), self.dtype) if widths else None
+        self(xs, jnp.zeros((1, length), jnp.int32), jnp.ones((1, length, length), bool), cond=cond)

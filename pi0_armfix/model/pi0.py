@@ -1,10 +1,12 @@
 """The pi0 forward computation over a plain params dict (see the package docstring for the spec).
 
 Parameter tree (openpi's names):
-  PaliGemma/llm   the two-expert Gemma transformer (`gemma.Transformer`)
+  PaliGemma/llm   the two-expert Gemma transformer (`gemma.Transformer`; pi0.5: the action
+                  expert's norms adaptive, `pre_attention_norm_1/Dense_0`, ...)
   PaliGemma/img   the SigLIP tower (`siglip.SigLIP`)
   state_proj, action_in_proj, action_time_mlp_in, action_time_mlp_out, action_out_proj
-                  dense layers {kernel [in, out], bias [out]}
+                  dense layers {kernel [in, out], bias [out]}; pi0.5: action_in_proj,
+                  time_mlp_in, time_mlp_out, action_out_proj
 
 All functions take an observation already through `inputs.preprocess_observation`.
 """
@@ -30,7 +32,8 @@ TIME_MAX_PERIOD = 4.0
 
 def transformer(config: Pi0Config) -> Transformer:
     return Transformer(configs=(config.paligemma, config.action_expert), vocab_size=config.vocab_size,
-                       dtype=config.dtype, remat=config.remat, unroll=config.unroll_layers)
+                       dtype=config.dtype, remat=config.remat, unroll=config.unroll_layers,
+                       adaptive=(False, config.pi05))
 
 
 def vision_tower(config: Pi0Config) -> SigLIP:
@@ -92,25 +95,39 @@ def embed_prefix(params: Params, observation: Mapping[str, Any], *, config: Pi0C
 
 
 def embed_suffix(params: Params, state: jax.Array, x_t: jax.Array, t: jax.Array, *, config: Pi0Config
-                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """State token then H action tokens (x_t mixed with the time embedding by a swish MLP).
+                 ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array | None]:
+    """pi0: a state token then H action tokens (x_t mixed with the time embedding by a swish
+    MLP). pi0.5: H action tokens of x_t alone; the time embedding through `time_mlp_in -> swish
+    -> time_mlp_out -> swish` is the condition of the action expert's adaptive norms.
 
     Args:
-      state: [B, A]; x_t: [B, H, A] noisy actions; t: [B] flow time.
+      state: [B, A] (unused by pi0.5, whose prompt carries it); x_t: [B, H, A] noisy actions;
+        t: [B] flow time.
     Returns:
-      tokens [B, 1 + H, E] float32, input mask [B, 1 + H] (all True), ar mask [1 + H]
-      (True for the state token and the first action token).
+      tokens [B, S, E] float32 (S = 1 + H, pi0.5: H), input mask [B, S] (all True), ar mask [S]
+      (True for the state token and the first action token), and the condition [B, E] (pi0.5)
+      or None.
     """
-    state_token = dense(params["state_proj"], state)[:, None, :]
     action_tokens = dense(params["action_in_proj"], x_t)
     time_emb = posemb_sincos(t, config.action_expert.width)
+    horizon = x_t.shape[1]
+    if config.pi05:
+        cond = jax.nn.swish(dense(params["time_mlp_in"], time_emb))
+        cond = jax.nn.swish(dense(params["time_mlp_out"], cond))
+        ar_mask = jnp.asarray([True] + [False] * (horizon - 1))
+        return action_tokens, jnp.ones(action_tokens.shape[:2], bool), ar_mask, cond
+    state_token = dense(params["state_proj"], state)[:, None, :]
     time_tokens = jnp.broadcast_to(time_emb[:, None, :], action_tokens.shape)
     hidden = dense(params["action_time_mlp_in"], jnp.concatenate([action_tokens, time_tokens], axis=-1))
     action_tokens = dense(params["action_time_mlp_out"], jax.nn.swish(hidden))
     tokens = jnp.concatenate([state_token, action_tokens], axis=1)
-    horizon = x_t.shape[1]
     ar_mask = jnp.asarray([True, True] + [False] * (horizon - 1))
-    return tokens, jnp.ones(tokens.shape[:2], bool), ar_mask
+    return tokens, jnp.ones(tokens.shape[:2], bool), ar_mask, None
+
+
+def velocity_out(params: Params, suffix_out: jax.Array, horizon: int) -> jax.Array:
+    """The action tokens' outputs (the last `horizon` of the suffix) -> v [B, H, A] float32."""
+    return dense(params["action_out_proj"], suffix_out[:, -horizon:]).astype(jnp.float32)
 
 
 def forward_velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: jax.Array, *,
@@ -129,7 +146,7 @@ def forward_velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Ar
     """
     prefix, prefix_mask, prefix_ar = embed_prefix(params, observation, config=config)
     state = jnp.tile(observation["state"], (samples, 1))
-    suffix, suffix_mask, suffix_ar = embed_suffix(params, state, x_t, t, config=config)
+    suffix, suffix_mask, suffix_ar, cond = embed_suffix(params, state, x_t, t, config=config)
     batch, prefix_len = prefix_mask.shape
     suffix_len = suffix.shape[1]
     input_mask = jnp.concatenate([prefix_mask, suffix_mask[:batch]], axis=1)
@@ -138,12 +155,16 @@ def forward_velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Ar
     if samples > 1:
         suffix = _samples_into_sequence(suffix, samples)
         attn_mask, positions = _samples_mask(attn_mask, positions, prefix_len, samples)
+        if cond is not None:  # each suffix token carries its own draw's condition
+            cond = _samples_into_sequence(
+                jnp.broadcast_to(cond[:, None, :], (cond.shape[0], suffix_len, cond.shape[1])),
+                samples)
     (_, suffix_out), _ = transformer(config).apply(
-        {"params": params["PaliGemma"]["llm"]}, [prefix, suffix], positions, attn_mask)
+        {"params": params["PaliGemma"]["llm"]}, [prefix, suffix], positions, attn_mask, cond=cond)
     if samples > 1:  # [B, K * S, E] -> [K * B, S, E]
         suffix_out = suffix_out.reshape(batch, samples, suffix_len, -1).swapaxes(0, 1).reshape(
             samples * batch, suffix_len, -1)
-    return dense(params["action_out_proj"], suffix_out[:, 1:]).astype(jnp.float32)
+    return velocity_out(params, suffix_out, x_t.shape[1])
 
 
 def _samples_into_sequence(suffix: jax.Array, samples: int) -> jax.Array:
@@ -188,7 +209,7 @@ def cached_velocity(params: Params, state: jax.Array, kv_cache: tuple[jax.Array,
                     prefix_mask: jax.Array, x_t: jax.Array, t: jax.Array, *, config: Pi0Config
                     ) -> jax.Array:
     """The suffix pass against a prefix KV cache; equals `forward_velocity`. -> v [B, H, A]."""
-    suffix, suffix_mask, suffix_ar = embed_suffix(params, state, x_t, t, config=config)
+    suffix, suffix_mask, suffix_ar, cond = embed_suffix(params, state, x_t, t, config=config)
     suffix_len = suffix.shape[1]
     # Suffix queries see every valid prefix key, and the suffix under its own block-causal mask.
     to_prefix = jnp.broadcast_to(prefix_mask[:, None, :], (prefix_mask.shape[0], suffix_len,
@@ -196,5 +217,6 @@ def cached_velocity(params: Params, state: jax.Array, kv_cache: tuple[jax.Array,
     attn_mask = jnp.concatenate([to_prefix, make_attn_mask(suffix_mask, suffix_ar)], axis=-1)
     positions = jnp.sum(prefix_mask, axis=-1)[:, None] + jnp.cumsum(suffix_mask, axis=-1) - 1
     (_, suffix_out), _ = transformer(config).apply(
-        {"params": params["PaliGemma"]["llm"]}, [None, suffix], positions, attn_mask, kv_cache)
-    return dense(params["action_out_proj"], suffix_out[:, 1:]).astype(jnp.float32)
+        {"params": params["PaliGemma"]["llm"]}, [None, suffix], positions, attn_mask, kv_cache,
+        cond=cond)
+    return velocity_out(params, suffix_out, x_t.shape[1])

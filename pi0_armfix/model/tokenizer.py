@@ -1,9 +1,12 @@
-"""Prompt tokenizer: a sentencepiece model, used the way openpi's PaligemmaTokenizer uses it for pi0.
+"""Prompt tokenizer: a sentencepiece model, used the way openpi's PaligemmaTokenizer uses it.
 
-`tokenizer(prompt) -> (tokens int32 [max_token_len], mask bool [max_token_len])`:
-the prompt is stripped, "_" and "\\n" become spaces, it is encoded with BOS, then "\\n" (the
-start-of-answer token) is encoded and appended; the result is right-padded with 0 (mask False) or
-truncated to max_token_len.
+`tokenizer(prompt, state=None) -> (tokens int32 [max_token_len], mask bool [max_token_len])`:
+the prompt is stripped and "_" and "\\n" become spaces. pi0 (no state): it is encoded with BOS,
+then "\\n" (the start-of-answer token) is encoded and appended. pi0.5 (`state_in_prompt`; the
+state given, normalized, real dims only): the state is digitized into 256 bins over [-1, 1]
+(`np.digitize(state, linspace(-1, 1, 257)[:-1]) - 1`, as openpi) and the text
+`"Task: {prompt}, State: {b_0} {b_1} ...;\\nAction: "` is encoded with BOS. The result is
+right-padded with 0 (mask False) or truncated to max_token_len.
 
 Which sentencepiece model (`make_tokenizer(config.model, prompts=...)`):
   * `model.tokenizer` set: that file (PaliGemma's `paligemma_tokenizer.model` for real runs;
@@ -37,16 +40,29 @@ def clean_prompt(prompt: str) -> str:
     return prompt.strip().replace("_", " ").replace("\n", " ")
 
 
-class Tokenizer:
-    """`tokenizer(prompt) -> (tokens int32 [max_len], mask bool [max_len])`."""
+def state_bins(state: np.ndarray) -> np.ndarray:
+    """Normalized state [S] -> its 256-bin indices over [-1, 1] (openpi's discretization)."""
+    return np.digitize(np.asarray(state), bins=np.linspace(-1, 1, 256 + 1)[:-1]) - 1
 
-    def __init__(self, model_proto: bytes, max_len: int, *, vocab_size: int, source: str):
+
+def pi05_prompt(prompt: str, state: np.ndarray) -> str:
+    """openpi's pi0.5 prompt text with the state written in."""
+    return f"Task: {clean_prompt(prompt)}, State: {' '.join(map(str, state_bins(state)))};\nAction: "
+
+
+class Tokenizer:
+    """`tokenizer(prompt, state=None) -> (tokens int32 [max_len], mask bool [max_len])`."""
+
+    def __init__(self, model_proto: bytes, max_len: int, *, vocab_size: int, source: str,
+                 state_in_prompt: bool = False):
         """Args:
           model_proto: serialized sentencepiece model.
           max_len: output length L.
           vocab_size: the model's embedding rows; a larger sentencepiece vocabulary is an error.
           source: where the model came from, for error messages.
+          state_in_prompt: pi0.5: the data pipeline passes each sample's normalized state.
         """
+        self.state_in_prompt = state_in_prompt
         self._processor = sentencepiece.SentencePieceProcessor(model_proto=model_proto)
         if self._processor.vocab_size() > vocab_size:
             raise ValueError(f"tokenizer {source} has {self._processor.vocab_size()} pieces but "
@@ -54,9 +70,13 @@ class Tokenizer:
         self.max_len = max_len
         self.vocab_size = self._processor.vocab_size()
 
-    def __call__(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
-        tokens = (self._processor.encode(clean_prompt(prompt), add_bos=True)
-                  + self._processor.encode("\n"))[: self.max_len]
+    def __call__(self, prompt: str, state: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        if state is None:
+            tokens = (self._processor.encode(clean_prompt(prompt), add_bos=True)
+                      + self._processor.encode("\n"))
+        else:
+            tokens = self._processor.encode(pi05_prompt(prompt, state), add_bos=True)
+        tokens = tokens[: self.max_len]
         mask = np.zeros((self.max_len,), bool)
         mask[: len(tokens)] = True
         padded = np.zeros((self.max_len,), np.int32)
@@ -67,15 +87,25 @@ class Tokenizer:
         return self._processor.decode([int(t) for t in np.asarray(tokens)[np.asarray(mask)]])
 
 
-def train_sentencepiece(prompts: Iterable[str], vocab_size: int) -> bytes:
-    """A small BPE sentencepiece model of the prompts, at most `vocab_size` pieces.
+def training_corpus(prompts: Iterable[str], state_in_prompt: bool) -> list[str]:
+    """The texts the offline tokenizer learns: the cleaned prompts; for pi0.5 each in its prompt
+    format with every state bin (-1 .. 255) written once, so numbers get pieces of their own."""
+    corpus = sorted({clean_prompt(p) for p in prompts} - {""})
+    if state_in_prompt:
+        every_bin = np.r_[-2.0, -1 + (np.arange(256) + 0.5) / 128]  # bins -1 (below -1) .. 255
+        corpus = [pi05_prompt(p, every_bin) for p in corpus]
+    return corpus
+
+
+def train_sentencepiece(corpus: Iterable[str], vocab_size: int) -> bytes:
+    """A small BPE sentencepiece model of the texts, at most `vocab_size` pieces.
 
     BPE (not unigram) because on a few dozen prompts it still merges up to whole words, keeping
     prompts short; unseen words fall back to characters.
 
     Normalization is the identity and "\\n" is a piece of its own, as in PaliGemma's tokenizer.
     """
-    corpus = sorted({clean_prompt(p) for p in prompts} - {""})
+    corpus = sorted(set(corpus))
     if not corpus:
         raise ValueError("cannot build the offline tokenizer: no non-empty prompts were given")
     model = io.BytesIO()
@@ -88,9 +118,10 @@ def train_sentencepiece(prompts: Iterable[str], vocab_size: int) -> bytes:
 
 
 def cached_sentencepiece(prompts: Iterable[str], vocab_size: int,
-                         cache_dir: str | os.PathLike | None = None) -> pathlib.Path:
+                         cache_dir: str | os.PathLike | None = None, *,
+                         state_in_prompt: bool = False) -> pathlib.Path:
     """Path of the offline model for these prompts, trained on first use (atomic write)."""
-    corpus = sorted({clean_prompt(p) for p in prompts} - {""})
+    corpus = training_corpus(prompts, state_in_prompt)
     digest = hashlib.sha256("\0".join([str(vocab_size), *corpus]).encode()).hexdigest()[:16]
     path = cache_root(cache_dir) / "tokenizers" / f"spm_{vocab_size}_{digest}.model"
     if not path.exists():
@@ -117,13 +148,14 @@ def make_tokenizer(model_cfg: Mapping[str, Any], *, prompts: Iterable[str] | Non
         if not path.is_file():
             raise ValueError(f"model.tokenizer = {str(path)!r} is not a file (a sentencepiece .model)")
         return Tokenizer(path.read_bytes(), config.max_token_len, vocab_size=config.vocab_size,
-                         source=f"model.tokenizer={str(path)!r}")
+                         source=f"model.tokenizer={str(path)!r}", state_in_prompt=config.pi05)
     if model_cfg.get("pretrained"):
         raise ValueError("model.pretrained is set but model.tokenizer is empty: pretrained weights need "
                          "the tokenizer they were trained with (PaliGemma's paligemma_tokenizer.model)")
     if prompts is None:
         raise ValueError("model.tokenizer is empty: pass the dataset's prompts to build the "
                          "offline tokenizer")
-    path = cached_sentencepiece(prompts, config.vocab_size, cache_dir)
+    path = cached_sentencepiece(prompts, config.vocab_size, cache_dir, state_in_prompt=config.pi05)
     return Tokenizer(path.read_bytes(), config.max_token_len, vocab_size=config.vocab_size,
-                     source=f"{str(path)!r} (offline, from the dataset prompts)")
+                     source=f"{str(path)!r} (offline, from the dataset prompts)",
+                     state_in_prompt=config.pi05)

@@ -165,7 +165,7 @@ def plot_motion(layout: ActionLayout, summary: motion_lib.MotionSummary, path: P
 
 def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]:
     layout = ActionLayout.from_config(config.layout)
-    norm_mode = config.data.get("norm", "zscore")
+    norm_mode = model_config_lib.norm_mode(config)
     horizon = model_config_lib.from_model_config(config.model).action_horizon
     source = sources.open_source(config.data, layout)
     dataset_lib.check_data(config, layout, source, images=False)

@@ -87,6 +87,8 @@ class Pi0(nn.Module):
 
     def __init__(self, config: Pi0Config):
         super().__init__()
+        if config.pi05:
+            raise ValueError("the PyTorch mirror covers pi0 only so far; this config is pi0.5")
         self.config = config
         self.dtype = _DTYPES[config.dtype]
         for path, shape in param_shapes(config).items():
