@@ -1,4 +1,5 @@
-"""The PyTorch mirror of pi0 (DESIGN §5) against the Flax model, on the tiny preset after conversion.
+"""The PyTorch mirror of pi0 and pi0.5 (DESIGN §5) against the Flax model, on the tiny presets after
+conversion.
 
 Every comparison feeds both sides the same parameters, observation, noise and time. float32 on
 CPU: the mirror agrees to ~1e-6; the tolerances (1e-5, sampling 1e-4) leave room for the time
@@ -30,25 +31,39 @@ BATCH = 3
 REFERENCE_TREE = Path(__file__).resolve().parent / "reference" / "openpi_param_tree.json"
 
 
-@pytest.fixture(scope="module")
-def flax_params():
-    return policy.init_params(CONFIG, jax.random.key(0))
+@pytest.fixture(scope="module", params=["tiny", "pi05_tiny"])
+def config(request):
+    return get_preset(request.param)
 
 
 @pytest.fixture(scope="module")
-def torch_model(flax_params, tmp_path_factory):
+def flax_params(config):
+    """Initial params; pi0.5's adaptive-norm kernels (zero at init) made random, so that the
+    time condition reaches the actions on both sides."""
+    params = policy.init_params(config, jax.random.key(0))
+    llm = params["PaliGemma"]["llm"]
+    norms = [llm["layers"][n]["Dense_0"] for n in ("pre_attention_norm_1", "pre_ffw_norm_1")
+             if "Dense_0" in llm["layers"].get(n, {})]
+    norms += [llm["final_norm_1"]["Dense_0"]] if "Dense_0" in llm["final_norm_1"] else []
+    for i, dense in enumerate(norms):
+        dense["kernel"] = 0.3 * jax.random.normal(jax.random.key(10 + i), dense["kernel"].shape)
+    return params
+
+
+@pytest.fixture(scope="module")
+def torch_model(config, flax_params, tmp_path_factory):
     """The Flax params through conversion and back: what a user of the mirror loads."""
     out = tmp_path_factory.mktemp("converted")
     arrays = {k: np.asarray(v) for k, v in flatten_tree(flax_params).items()}
-    checkpoint.write_converted(str(out), arrays, CONFIG, None, source="test")
+    checkpoint.write_converted(str(out), arrays, config, None, source="test")
     model, _ = checkpoint.load_converted(str(out))
     return model
 
 
 @pytest.fixture(scope="module")
-def observation():
+def observation(config):
     """Cameras stored at 20x24 (resized with padding to 16x16), one camera missing, padded prompts."""
-    obs = flax_inputs.fake_observation(CONFIG, BATCH, image_size=(20, 24), seed=1)
+    obs = flax_inputs.fake_observation(config, BATCH, image_size=(20, 24), seed=1)
     obs["image_mask"]["left_wrist_0_rgb"][1] = False
     obs["image"]["left_wrist_0_rgb"][1] = 0
     return obs
@@ -61,16 +76,17 @@ def _noise_and_time(seed):
 
 
 def test_param_shapes_equal_the_flax_tree_for_every_small_preset():
-    for name in ("tiny", "demo"):
+    for name in ("tiny", "demo", "pi05_tiny", "pi05_demo"):
         config = get_preset(name)
         flax_shapes = {k: v.shape for k, v in flatten_tree(policy.param_shapes(config)).items()}
         assert param_shapes(config) == flax_shapes, name
 
 
-def test_param_shapes_of_pi0_equal_openpi_published_tree():
+@pytest.mark.parametrize("preset", ["pi0", "pi05"])
+def test_param_shapes_equal_openpi_published_tree(preset):
     with open(REFERENCE_TREE) as f:
-        reference = {name: tuple(shape) for name, (shape, _) in json.load(f)["pi0"].items()}
-    assert param_shapes(get_preset("pi0")) == reference
+        reference = {name: tuple(shape) for name, (shape, _) in json.load(f)[preset].items()}
+    assert param_shapes(get_preset(preset)) == reference
 
 
 def test_torch_state_dict_names_are_openpi_names_with_dots():
@@ -89,9 +105,9 @@ def test_resize_with_pad_matches_jax_image_resize():
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-6)
 
 
-def test_velocity_matches_flax(flax_params, torch_model, observation):
+def test_velocity_matches_flax(config, flax_params, torch_model, observation):
     x_t, t = _noise_and_time(0)
-    expected = np.asarray(jax.jit(lambda p, o, x, t: policy.velocity(p, o, x, t, config=CONFIG))(
+    expected = np.asarray(jax.jit(lambda p, o, x, t: policy.velocity(p, o, x, t, config=config))(
         flax_params, observation, x_t, t))
     with torch.no_grad():
         got = torch_model.velocity(observation, x_t, t).numpy()
@@ -105,7 +121,7 @@ def test_velocity_matches_flax(flax_params, torch_model, observation):
                         "right_arm": 3.0, "right_gripper": 2.0}),
     dict(strategy="per_dimension", dimension_weights=[1.0] * 23 + [0.0] * 9),
 ], ids=lambda kw: kw["strategy"])
-def test_compute_loss_matches_flax(flax_params, torch_model, observation, loss_kwargs):
+def test_compute_loss_matches_flax(config, flax_params, torch_model, observation, loss_kwargs):
     rng = np.random.default_rng(2)
     actions = np.zeros((BATCH, CONFIG.action_horizon, CONFIG.action_dim), np.float32)
     actions[..., :LAYOUT.real_dim] = np.cumsum(rng.normal(0, 0.3, actions[..., :LAYOUT.real_dim].shape), 1)
@@ -113,7 +129,7 @@ def test_compute_loss_matches_flax(flax_params, torch_model, observation, loss_k
     action_is_pad[0, -2:] = True
     batch = {**observation, "actions": actions, "action_is_pad": action_is_pad}
     key = jax.random.key(7)
-    expected, expected_aux = policy.compute_loss(flax_params, key, batch, config=CONFIG, layout=LAYOUT,
+    expected, expected_aux = policy.compute_loss(flax_params, key, batch, config=config, layout=LAYOUT,
                                                  train=False, **loss_kwargs)
     # The draws of policy.compute_loss: its rng splits into augmentation, noise and time keys.
     _, key_noise, key_time = jax.random.split(key, 3)
@@ -129,9 +145,9 @@ def test_compute_loss_matches_flax(flax_params, torch_model, observation, loss_k
                                    np.asarray(expected_aux["group_loss"][group]), rtol=0, atol=1e-5)
 
 
-def test_sample_actions_matches_flax(flax_params, torch_model, observation):
+def test_sample_actions_matches_flax(config, flax_params, torch_model, observation):
     noise, _ = _noise_and_time(3)
-    expected = np.asarray(policy.sample_actions(flax_params, None, observation, config=CONFIG,
+    expected = np.asarray(policy.sample_actions(flax_params, None, observation, config=config,
                                                 num_steps=10, noise=jnp.asarray(noise)))
     got = torch_model.sample_actions(observation, noise, num_steps=10).numpy()
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-4)
@@ -144,10 +160,10 @@ def test_sampling_with_prefix_kv_cache_equals_full_recomputation(torch_model, ob
     torch.testing.assert_close(cached, full, rtol=0, atol=1e-5)
 
 
-def test_prefix_never_sees_the_suffix(torch_model, observation):
+def test_prefix_never_sees_the_suffix(config, torch_model, observation):
     """Changing the noisy actions leaves the prefix KV cache untouched, but moves v."""
     params = torch_model.params()
-    obs = inputs.preprocess_observation(observation, config=CONFIG)
+    obs = inputs.preprocess_observation(observation, config=config)
     cache, _ = torch_model.prefix_kv_cache(params, obs)
     x_a, t = (torch.from_numpy(a) for a in _noise_and_time(5))
     with torch.no_grad():

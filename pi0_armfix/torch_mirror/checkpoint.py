@@ -187,7 +187,6 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
         if not run_config or "model" not in run_config:
             raise CheckpointError(f"{folder / 'config'} is missing or has no 'model' section")
         config = from_model_config(run_config["model"])
-        _check_mirrored(config, folder)
         for flag, value, expected in (("preset", preset, run_config["model"].get("preset")),
                                       ("action_horizon", action_horizon, config.action_horizon)):
             if value and value != expected:
@@ -199,7 +198,6 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
         if ema:
             raise CheckpointError(f"--ema: the openpi checkpoint {folder} has no EMA parameters")
         config = get_preset(preset or "pi0")
-        _check_mirrored(config, folder)
         if action_horizon:
             config = config.replace(action_horizon=action_horizon)
         arrays = _restore_arrays(folder / "params", ["params"])
@@ -211,12 +209,6 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
         stats = json.loads(epath.Path(norm_stats).read_text())
     source = norm_stats or str(folder)
     return arrays, config, None if stats is None else _as_openpi_norm_stats(stats, source)
-
-
-def _check_mirrored(config: Pi0Config, folder: Any) -> None:
-    if config.pi05:
-        raise CheckpointError(f"{folder} holds a pi0.5 model; the PyTorch mirror covers pi0 only "
-                              "so far (convert a pi0 run, or use the JAX model)")
 
 
 # ---------------------------------------------------------------------------- writing, loading

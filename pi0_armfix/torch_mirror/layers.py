@@ -53,11 +53,30 @@ def layer_norm(params: Params, x: torch.Tensor) -> torch.Tensor:
     return ((x32 - mean) * mul + params["bias"]).to(x.dtype)
 
 
-def rms_norm(scale: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """`x * rsqrt(mean(x^2) + 1e-6) * (1 + scale)`, statistics in float32, output in x.dtype."""
+def rms_norm(params: Params, x: torch.Tensor, cond: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """`n = x * rsqrt(mean(x^2) + 1e-6)` (statistics in float32) -> (out in x.dtype, gate).
+
+    Plain (cond None): `n * (1 + scale)`, gate None. Adaptive (pi0.5, cond [B, C] or [B, T, C]):
+    `scale, shift, gate` = thirds of `Dense_0(cond)` in x's dtype, `n * (1 + scale) + shift`.
+    """
     var = torch.square(x.to(torch.float32)).mean(-1, keepdim=True)
     normed = x * torch.reciprocal(torch.sqrt(var + _RMS_EPS))
-    return (normed * (1 + scale)).to(x.dtype)
+    if cond is None:
+        return (normed * (1 + params["scale"])).to(x.dtype), None
+    modulation = dense(params["Dense_0"], cond.to(x.dtype))
+    if modulation.ndim < x.ndim:  # one condition per sample, for every token
+        modulation = modulation[:, None, :]
+    scale, shift, gate = torch.chunk(modulation, 3, dim=-1)
+    return (normed * (1 + scale) + shift).to(x.dtype), gate
+
+
+def gated_residual(x: torch.Tensor | None, y: torch.Tensor | None, gate: torch.Tensor | None
+                   ) -> torch.Tensor | None:
+    """`x + y`, or `x + y * gate` after an adaptive norm; None for an absent expert."""
+    if x is None:
+        return None
+    return x + y if gate is None else x + y * gate
 
 
 # ------------------------------------------------------------------------------------------ SigLIP
@@ -192,7 +211,8 @@ def _feed_forward(params: Params, x: torch.Tensor) -> torch.Tensor:
 
 def transformer(params: Params, xs: Sequence[torch.Tensor | None], positions: torch.Tensor,
                 attn_mask: torch.Tensor, kv_cache: KVCache | None = None, *,
-                configs: Sequence[GemmaConfig], dtype: torch.dtype
+                configs: Sequence[GemmaConfig], dtype: torch.dtype,
+                cond: torch.Tensor | None = None, adaptive: Sequence[bool] = (False, False)
                 ) -> tuple[list[torch.Tensor | None], KVCache]:
     """The `PaliGemma/llm` layers and final norms (experts share every attention layer).
 
@@ -202,24 +222,29 @@ def transformer(params: Params, xs: Sequence[torch.Tensor | None], positions: to
       positions: [B, T] int, T = sum of present T_i.
       attn_mask: [B, T, S] bool, S = T + cached length.
       kv_cache: None, or (k, v) each [depth, B, S - T, K, H] from a previous call.
+      cond: the condition of the adaptive experts present (pi0.5's time embedding), or None.
+      adaptive: per expert, whether its norms are adaptive.
     Returns:
       per expert final-normed outputs [B, T_i, D_i] (or None), and this call's (k, v), each
       [depth, B, S, K, H].
     """
     xs = [None if x is None else x.to(dtype) for x in xs]
+    conds = [cond if a and x is not None else None for x, a in zip(xs, adaptive)]
     keys, values = [], []
     for layer in range(configs[0].depth):
         p = _layer(params["layers"], layer)
-        normed = [None if x is None else rms_norm(p[_name("pre_attention_norm", i)]["scale"], x)
-                  for i, x in enumerate(xs)]
+        normed, gates = [], []
+        for i, (x, c) in enumerate(zip(xs, conds)):
+            y, gate = (None, None) if x is None else rms_norm(p[_name("pre_attention_norm", i)], x, c)
+            normed.append(y), gates.append(gate)
         cache = None if kv_cache is None else (kv_cache[0][layer], kv_cache[1][layer])
         attended, (k, v) = _attention(p["attn"], normed, positions, attn_mask, cache, configs)
         keys.append(k), values.append(v)
-        xs = [None if x is None else x + y for x, y in zip(xs, attended)]
-        for i, x in enumerate(xs):
+        xs = [gated_residual(x, y, gate) for x, y, gate in zip(xs, attended, gates)]
+        for i, (x, c) in enumerate(zip(xs, conds)):
             if x is not None:
-                y = rms_norm(p[_name("pre_ffw_norm", i)]["scale"], x)
-                xs[i] = x + _feed_forward(p[_name("mlp", i)], y)
-    outs = [None if x is None else rms_norm(params[_name("final_norm", i)]["scale"], x)
-            for i, x in enumerate(xs)]
+                y, gate = rms_norm(p[_name("pre_ffw_norm", i)], x, c)
+                xs[i] = gated_residual(x, _feed_forward(p[_name("mlp", i)], y), gate)
+    outs = [None if x is None else rms_norm(params[_name("final_norm", i)], x, c)[0]
+            for i, (x, c) in enumerate(zip(xs, conds))]
     return outs, (torch.stack(keys), torch.stack(values))

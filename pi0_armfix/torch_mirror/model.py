@@ -1,4 +1,4 @@
-"""pi0 in PyTorch: the mirror of `pi0_armfix/model/{pi0,policy}.py`, for converted checkpoints.
+"""pi0 and pi0.5 in PyTorch: the mirror of `pi0_armfix/model/{pi0,policy}.py`, for converted checkpoints.
 
 `Pi0(config)` is built from the same `Pi0Config` as the Flax model (`config.json` of a converted
 checkpoint is `Pi0Config.to_dict()`). Its parameters are openpi's tree under torch names
@@ -87,8 +87,6 @@ class Pi0(nn.Module):
 
     def __init__(self, config: Pi0Config):
         super().__init__()
-        if config.pi05:
-            raise ValueError("the PyTorch mirror covers pi0 only so far; this config is pi0.5")
         self.config = config
         self.dtype = _DTYPES[config.dtype]
         for path, shape in param_shapes(config).items():
@@ -128,45 +126,55 @@ class Pi0(nn.Module):
         return tokens, input_mask, torch.zeros(tokens.shape[1], dtype=torch.bool)
 
     def embed_suffix(self, params: Params, state: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """State token then H action tokens (x_t mixed with the time embedding by a swish MLP).
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """pi0: a state token then H action tokens (x_t mixed with the time embedding by a swish
+        MLP). pi0.5: H action tokens of x_t alone, and the time embedding through `time_mlp_in
+        -> swish -> time_mlp_out -> swish` as the adaptive norms' condition.
 
         Args:
-          state: [B, A]; x_t: [B, H, A] noisy actions; t: [B] flow time.
+          state: [B, A] (unused by pi0.5); x_t: [B, H, A] noisy actions; t: [B] flow time.
         Returns:
-          tokens [B, 1 + H, E] float32, input mask [B, 1 + H] (all True), ar mask [1 + H]
-          (True for the state token and the first action token).
+          tokens [B, S, E] float32 (S = 1 + H, pi0.5: H), input mask [B, S] (all True), ar mask
+          [S], and the condition [B, E] (pi0.5) or None.
         """
-        state_token = layers.dense(params["state_proj"], state)[:, None, :]
         action_tokens = layers.dense(params["action_in_proj"], x_t)
         time_emb = posemb_sincos(t, self.config.action_expert.width)
+        horizon = x_t.shape[1]
+        if self.config.pi05:
+            cond = nn.functional.silu(layers.dense(params["time_mlp_in"], time_emb))
+            cond = nn.functional.silu(layers.dense(params["time_mlp_out"], cond))
+            ar_mask = torch.tensor([True] + [False] * (horizon - 1))
+            return action_tokens, torch.ones(action_tokens.shape[:2], dtype=torch.bool), ar_mask, cond
+        state_token = layers.dense(params["state_proj"], state)[:, None, :]
         time_tokens = time_emb[:, None, :].broadcast_to(action_tokens.shape)
         hidden = layers.dense(params["action_time_mlp_in"], torch.cat([action_tokens, time_tokens], -1))
         action_tokens = layers.dense(params["action_time_mlp_out"], nn.functional.silu(hidden))
         tokens = torch.cat([state_token, action_tokens], dim=1)
-        horizon = x_t.shape[1]
         ar_mask = torch.tensor([True, True] + [False] * (horizon - 1))
-        return tokens, torch.ones(tokens.shape[:2], dtype=torch.bool), ar_mask
+        return tokens, torch.ones(tokens.shape[:2], dtype=torch.bool), ar_mask, None
 
     # ---------------------------------------------------------------------------- forward passes
 
-    def _llm(self, params: Params, xs, positions, attn_mask, kv_cache=None):
+    def _llm(self, params: Params, xs, positions, attn_mask, kv_cache=None, cond=None):
         config = self.config
         return layers.transformer(params["PaliGemma"]["llm"], xs, positions, attn_mask, kv_cache,
-                                  configs=(config.paligemma, config.action_expert), dtype=self.dtype)
+                                  configs=(config.paligemma, config.action_expert), dtype=self.dtype,
+                                  cond=cond, adaptive=(False, config.pi05))
 
     def _action_out(self, params: Params, suffix_out: torch.Tensor) -> torch.Tensor:
-        return layers.dense(params["action_out_proj"], suffix_out[:, 1:]).to(torch.float32)
+        """The action tokens' outputs (the last H of the suffix) -> v [B, H, A] float32."""
+        horizon = self.config.action_horizon
+        return layers.dense(params["action_out_proj"], suffix_out[:, -horizon:]).to(torch.float32)
 
     def forward_velocity(self, params: Params, observation: Mapping[str, Any], x_t: torch.Tensor,
                          t: torch.Tensor) -> torch.Tensor:
         """One joint prefix + suffix pass on a preprocessed observation -> v [B, H, A] float32."""
         prefix, prefix_mask, prefix_ar = self.embed_prefix(params, observation)
-        suffix, suffix_mask, suffix_ar = self.embed_suffix(params, observation["state"], x_t, t)
+        suffix, suffix_mask, suffix_ar, cond = self.embed_suffix(params, observation["state"], x_t, t)
         input_mask = torch.cat([prefix_mask, suffix_mask], dim=1)
         attn_mask = make_attn_mask(input_mask, torch.cat([prefix_ar, suffix_ar]))
         positions = torch.cumsum(input_mask.to(torch.int32), dim=1) - 1
-        (_, suffix_out), _ = self._llm(params, [prefix, suffix], positions, attn_mask)
+        (_, suffix_out), _ = self._llm(params, [prefix, suffix], positions, attn_mask, cond=cond)
         return self._action_out(params, suffix_out)
 
     def prefix_kv_cache(self, params: Params, observation: Mapping[str, Any]
@@ -180,14 +188,15 @@ class Pi0(nn.Module):
     def cached_velocity(self, params: Params, state: torch.Tensor, kv_cache: layers.KVCache,
                         prefix_mask: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The suffix pass against a prefix KV cache; equals `forward_velocity`. -> v [B, H, A]."""
-        suffix, suffix_mask, suffix_ar = self.embed_suffix(params, state, x_t, t)
+        suffix, suffix_mask, suffix_ar, cond = self.embed_suffix(params, state, x_t, t)
         batch, prefix_len = prefix_mask.shape
         # Suffix queries see every valid prefix key, and the suffix under its own block-causal mask.
         to_prefix = prefix_mask[:, None, :].broadcast_to(batch, suffix.shape[1], prefix_len)
         attn_mask = torch.cat([to_prefix, make_attn_mask(suffix_mask, suffix_ar)], dim=-1)
         positions = (prefix_mask.to(torch.int32).sum(-1)[:, None]
                      + torch.cumsum(suffix_mask.to(torch.int32), dim=-1) - 1)
-        (_, suffix_out), _ = self._llm(params, [None, suffix], positions, attn_mask, kv_cache)
+        (_, suffix_out), _ = self._llm(params, [None, suffix], positions, attn_mask, kv_cache,
+                                       cond=cond)
         return self._action_out(params, suffix_out)
 
     # ------------------------------------------------------------------------------- public API

@@ -19,11 +19,6 @@ from collections.abc import Mapping
 
 from pi0_armfix.model.config import GemmaConfig, Pi0Config, dense_shapes
 
-# Dense layers outside the two towers, each {kernel [in, out], bias [out]}.
-DENSE_LAYERS = ("state_proj", "action_in_proj", "action_time_mlp_in", "action_time_mlp_out",
-                "action_out_proj")
-
-
 def torch_name(openpi_path: str) -> str:
     """"PaliGemma/llm/final_norm/scale" -> "PaliGemma.llm.final_norm.scale"."""
     if "." in openpi_path:
@@ -41,22 +36,30 @@ def _suffix(name: str, expert: int) -> str:
     return name if expert == 0 else f"{name}_{expert}"
 
 
+def _norm_shapes(name: str, width: int, adaptive: bool) -> dict[str, tuple[int, ...]]:
+    """A plain RMSNorm's `scale`, or an adaptive one's `Dense_0` (condition of the same width)."""
+    if adaptive:
+        return {f"{name}/Dense_0/kernel": (width, 3 * width), f"{name}/Dense_0/bias": (3 * width,)}
+    return {f"{name}/scale": (width,)}
+
+
 def _gemma_shapes(config: Pi0Config) -> dict[str, tuple[int, ...]]:
     experts: tuple[GemmaConfig, ...] = (config.paligemma, config.action_expert)
     depth = config.paligemma.depth
     shapes = {"embedder/input_embedding": (config.vocab_size, config.paligemma.width)}
     for i, c in enumerate(experts):
+        adaptive = config.pi05 and i == 1  # pi0.5's action expert
         layer = {
             f"attn/{_suffix('q_einsum', i)}/w": (c.num_heads, c.width, c.head_dim),
             f"attn/{_suffix('kv_einsum', i)}/w": (2, c.num_kv_heads, c.width, c.head_dim),
             f"attn/{_suffix('attn_vec_einsum', i)}/w": (c.num_heads, c.head_dim, c.width),
             f"{_suffix('mlp', i)}/gating_einsum": (2, c.width, c.mlp_dim),
             f"{_suffix('mlp', i)}/linear": (c.mlp_dim, c.width),
-            f"{_suffix('pre_attention_norm', i)}/scale": (c.width,),
-            f"{_suffix('pre_ffw_norm', i)}/scale": (c.width,),
+            **_norm_shapes(_suffix("pre_attention_norm", i), c.width, adaptive),
+            **_norm_shapes(_suffix("pre_ffw_norm", i), c.width, adaptive),
         }
         shapes.update({f"layers/{name}": (depth, *shape) for name, shape in layer.items()})
-        shapes[f"{_suffix('final_norm', i)}/scale"] = (c.width,)
+        shapes.update(_norm_shapes(_suffix("final_norm", i), c.width, adaptive))
     return {f"PaliGemma/llm/{name}": shape for name, shape in shapes.items()}
 
 
