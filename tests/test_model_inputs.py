@@ -1,11 +1,13 @@
 """Model inputs: image conversion, resize-with-pad, augmentation, and the prompt tokenizer."""
 
 import jax
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import pytest
 
 from pi0_armfix.model import config as model_config
+from pi0_armfix.model import inputs
 from pi0_armfix.model.inputs import (fake_observation, image_to_float, preprocess_observation,
                                      resize_with_pad)
 from pi0_armfix.model.tokenizer import Tokenizer, make_tokenizer, train_sentencepiece
@@ -56,8 +58,7 @@ def test_augmentation_is_deterministic_given_the_rng():
 
 def test_wrist_cameras_get_no_crop_or_rotation():
     """With colour jitter off, wrist images pass unchanged while the base camera moves."""
-    no_color = TINY.replace(augment=model_config.AugmentConfig(brightness=0.0, contrast=0.0,
-                                                               saturation=0.0))
+    no_color = TINY.replace(augment=model_config.AugmentConfig(jitter_p=0.0))
     obs = fake_observation(no_color, 2)
     plain = preprocess_observation(None, obs, config=no_color, train=False)["image"]
     augmented = _preprocess(no_color, obs, 0)["image"]
@@ -67,10 +68,65 @@ def test_wrist_cameras_get_no_crop_or_rotation():
 
 
 def test_color_jitter_changes_wrist_cameras():
-    obs = fake_observation(TINY, 2)
-    plain = preprocess_observation(None, obs, config=TINY, train=False)["image"]
-    augmented = _preprocess(TINY, obs, 0)["image"]
+    always = TINY.replace(augment=model_config.AugmentConfig(jitter_p=1.0))
+    obs = fake_observation(always, 2)
+    plain = preprocess_observation(None, obs, config=always, train=False)["image"]
+    augmented = _preprocess(always, obs, 0)["image"]
     assert not np.allclose(augmented["left_wrist_0_rgb"], plain["left_wrist_0_rgb"], atol=1e-2)
+
+
+def test_hsv_round_trip_is_the_identity():
+    rgb = np.random.default_rng(0).uniform(0, 1, (500, 3)).astype(np.float32)
+    rgb[:5] = [[0, 0, 0], [1, 1, 1], [0.5, 0.5, 0.5], [1, 0, 0], [0, 0, 1]]
+    np.testing.assert_allclose(inputs.hsv_to_rgb(inputs.rgb_to_hsv(jnp.asarray(rgb))), rgb,
+                               atol=1e-6)
+
+
+def _jittered(cfg, images, seed=0):
+    keys = jax.random.split(jax.random.key(seed), len(images))
+    return np.asarray(jax.jit(jax.vmap(lambda k, x: inputs.color_jitter(k, x, cfg)))(keys, images))
+
+
+def test_color_jitter_leaves_images_unchanged_with_probability_one_minus_p():
+    images = jnp.asarray(np.random.default_rng(0).uniform(0.1, 0.9, (2000, 4, 4, 3)), jnp.float32)
+    out = _jittered(model_config.AugmentConfig(), images)
+    unchanged = np.all(np.isclose(out, images, atol=1e-6), axis=(1, 2, 3)).mean()
+    assert 0.46 <= unchanged <= 0.54  # openpi's ColorJitter p=0.5
+
+
+def test_color_jitter_shifts_hue_by_at_most_the_configured_fraction():
+    cfg = model_config.AugmentConfig(brightness=0.0, contrast=0.0, saturation=0.0, hue=0.1,
+                                     jitter_p=1.0)
+    pixel = jnp.asarray([[[0.9, 0.3, 0.2]]], jnp.float32)  # saturated, hue ~0.02
+    out = _jittered(cfg, jnp.broadcast_to(pixel, (500, 1, 1, 3)))
+    before = float(inputs.rgb_to_hsv(pixel)[0, 0, 0])
+    shift = (np.asarray(inputs.rgb_to_hsv(jnp.asarray(out)))[:, 0, 0, 0] - before + 0.5) % 1 - 0.5
+    assert np.abs(shift).max() <= 0.1 + 1e-5 and np.abs(shift).max() > 0.09
+    assert abs(shift.mean()) < 0.01
+
+
+def test_crop_and_rotation_are_one_map_that_keeps_distances_to_the_centre():
+    rotate = model_config.AugmentConfig(crop_scale=1.0, rotate_degrees=30.0)
+    coords = np.asarray(inputs.crop_rotate_map(jax.random.key(3), 16, 16, rotate))
+    ys, xs = np.meshgrid(np.arange(16) + 0.5, np.arange(16) + 0.5, indexing="ij")
+    np.testing.assert_allclose(np.hypot(coords[0] + 0.5 - 8, coords[1] + 0.5 - 8),
+                               np.hypot(ys - 8, xs - 8), atol=1e-4)
+    crop = model_config.AugmentConfig(crop_scale=0.5, rotate_degrees=0.0)
+    coords = np.asarray(inputs.crop_rotate_map(jax.random.key(3), 16, 16, crop))
+    assert np.ptp(coords[0]) == pytest.approx(7.5 * 0.5 * 2) and np.ptp(coords[1]) == pytest.approx(7.5)
+    identity = np.asarray(inputs.crop_rotate_map(
+        jax.random.key(3), 16, 16, model_config.AugmentConfig(crop_scale=1.0, rotate_degrees=0.0)))
+    np.testing.assert_allclose(identity, [ys - 0.5, xs - 0.5], atol=1e-6)
+
+
+def test_base_camera_is_resampled_once_through_the_composed_map():
+    cfg = model_config.AugmentConfig(jitter_p=0.0)
+    image = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (16, 16, 3)), jnp.float32)
+    rng = jax.random.key(5)
+    out = inputs.augment_image(rng, image, cfg, wrist=False)
+    rng_geometry, _ = jax.random.split(rng)
+    expected = inputs.resample(image / 2 + 0.5, inputs.crop_rotate_map(rng_geometry, 16, 16, cfg))
+    np.testing.assert_allclose(out, expected * 2 - 1, atol=1e-6)
 
 
 # ------------------------------------------------------------------------------ tokenizer

@@ -49,13 +49,20 @@ class SiglipConfig:
 
 @dataclasses.dataclass(frozen=True)
 class AugmentConfig:
-    """Train-time image augmentation (openpi's pi0 recipe). Wrist cameras get colour jitter only.
+    """Train-time image augmentation, openpi's `preprocess_observation` (augmax) semantics.
+
+    Non-wrist cameras: a random crop resized back and a rotation, fused into one bilinear
+    resample (black outside). Every camera: augmax's `ColorJitter` in HSV, applied to an image
+    with probability `jitter_p` (else the image is left as it is).
 
     Attributes:
-      crop_scale: side of the random crop as a fraction of the image side (then resized back);
-        1.0 disables cropping.
+      crop_scale: side of the random crop as a fraction of the image side; 1.0 disables cropping.
       rotate_degrees: rotation angle drawn uniformly from [-rotate_degrees, rotate_degrees].
-      brightness, contrast, saturation: jitter strengths; factors are drawn from [1 - s, 1 + s].
+      brightness: value shift, uniform in [-b, b].
+      contrast: c uniform in [-c, c]; value -> (value - 0.5) * tan((c + 1) pi / 4) + 0.5.
+      saturation: saturation shift, uniform in [-s, s], clipped to [0, 1].
+      hue: hue shift (a fraction of the colour circle), uniform in [-h, h].
+      jitter_p: probability that an image is colour-jittered at all.
     """
 
     crop_scale: float = 0.95
@@ -63,6 +70,8 @@ class AugmentConfig:
     brightness: float = 0.3
     contrast: float = 0.4
     saturation: float = 0.5
+    hue: float = 0.1
+    jitter_p: float = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,6 +155,10 @@ class Pi0Config:
         for field in ("brightness", "contrast", "saturation"):
             if not 0.0 <= getattr(aug, field) < 1.0:
                 raise ValueError(f"augment.{field}={getattr(aug, field)} must be in [0, 1)")
+        if not 0.0 <= aug.hue <= 0.5:
+            raise ValueError(f"augment.hue={aug.hue} must be in [0, 0.5] (a fraction of the circle)")
+        if not 0.0 <= aug.jitter_p <= 1.0:
+            raise ValueError(f"augment.jitter_p={aug.jitter_p} must be a probability in [0, 1]")
 
     @property
     def num_image_tokens(self) -> int:

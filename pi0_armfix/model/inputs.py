@@ -7,9 +7,10 @@ An observation is the batch dict of CONTRACT.md without the actions:
 
 `preprocess_observation` returns the same dict with every camera of `config.image_keys` as float32
 [B, *image_resolution, 3] in [-1, 1] (augmented when train=True) and an image_mask for each.
-Augmentation follows openpi's pi0 recipe: non-wrist cameras get a random crop (`crop_scale` of
-each side) resized back and a small rotation; every camera gets brightness / contrast /
-saturation jitter. Each image draws its own parameters from `fold_in(rng, camera)` split over the
+Augmentation has the semantics of openpi's (augmax) chain, `AugmentConfig`: non-wrist cameras get
+a random crop (`crop_scale` of each side) resized back and a small rotation, composed into one
+coordinate map and resampled once; every camera gets augmax's HSV colour jitter with probability
+`jitter_p`. Each image draws its own parameters from `fold_in(rng, camera)` split over the
 batch, so the result is a deterministic function of the rng.
 """
 
@@ -24,10 +25,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from pi0_armfix.model.config import AugmentConfig, Pi0Config
-
-# ITU-R 601 luma weights (grayscale for the saturation and contrast jitter).
-_LUMA = (0.299, 0.587, 0.114)
-
 
 def image_to_float(image: jax.Array) -> jax.Array:
     """uint8 [..., 3] in [0, 255] -> float32 in [-1, 1]; float images are taken as in [-1, 1]."""
@@ -53,59 +50,91 @@ def resize_with_pad(images: jax.Array, height: int, width: int) -> jax.Array:
     return jnp.pad(resized, padding, constant_values=-1.0)
 
 
-def _random_crop_resize(rng: jax.Array, image: jax.Array, scale: float) -> jax.Array:
-    """Crops a random window of `scale` x each side from [h, w, C] and resizes it back to [h, w, C]."""
-    height, width = image.shape[:2]
-    crop_h, crop_w = int(height * scale), int(width * scale)
-    rng_y, rng_x = jax.random.split(rng)
-    top = jax.random.randint(rng_y, (), 0, height - crop_h + 1)
-    left = jax.random.randint(rng_x, (), 0, width - crop_w + 1)
-    crop = jax.lax.dynamic_slice(image, (top, left, 0), (crop_h, crop_w, image.shape[2]))
-    return jax.image.resize(crop, image.shape, method="linear")
-
-
-def _rotate(rng: jax.Array, image: jax.Array, max_degrees: float) -> jax.Array:
-    """Rotates [h, w, C] about its centre by a uniform angle in +-max_degrees; outside is black (0)."""
-    height, width = image.shape[:2]
-    angle = jnp.deg2rad(jax.random.uniform(rng, (), minval=-max_degrees, maxval=max_degrees))
-    ys, xs = jnp.meshgrid(jnp.arange(height, dtype=jnp.float32), jnp.arange(width, dtype=jnp.float32),
-                          indexing="ij")
-    cy, cx = (height - 1) / 2.0, (width - 1) / 2.0
-    # Inverse map: each output pixel samples the input at the point rotated by -angle.
+def crop_rotate_map(rng: jax.Array, height: int, width: int, cfg: AugmentConfig) -> jax.Array:
+    """The source coordinates [2, h, w] (y, x) each output pixel samples: a random crop of
+    `crop_scale` of each side, resized back to (h, w), then rotated about the centre by an angle
+    uniform in +-rotate_degrees; crop, resize and rotation composed into one map."""
+    rng_y, rng_x, rng_angle = jax.random.split(rng, 3)
+    crop_h, crop_w = int(height * cfg.crop_scale), int(width * cfg.crop_scale)
+    top = jax.random.randint(rng_y, (), 0, height - crop_h + 1).astype(jnp.float32)
+    left = jax.random.randint(rng_x, (), 0, width - crop_w + 1).astype(jnp.float32)
+    angle = jnp.deg2rad(jax.random.uniform(rng_angle, (), minval=-cfg.rotate_degrees,
+                                           maxval=cfg.rotate_degrees))
+    # Pixel centres at i + 0.5: rotate the output point about the centre (inverse map), scale it
+    # into the crop, shift by the crop's corner.
+    ys, xs = jnp.meshgrid(jnp.arange(height, dtype=jnp.float32) + 0.5,
+                          jnp.arange(width, dtype=jnp.float32) + 0.5, indexing="ij")
+    cy, cx = height / 2.0, width / 2.0
     cos, sin = jnp.cos(angle), jnp.sin(angle)
-    src_y = cos * (ys - cy) - sin * (xs - cx) + cy
-    src_x = sin * (ys - cy) + cos * (xs - cx) + cx
-    channels = [jax.scipy.ndimage.map_coordinates(image[..., c], [src_y, src_x], order=1,
-                                                  mode="constant", cval=0.0)
-                for c in range(image.shape[2])]
-    return jnp.stack(channels, axis=-1)
+    rot_y = cos * (ys - cy) - sin * (xs - cx) + cy
+    rot_x = sin * (ys - cy) + cos * (xs - cx) + cx
+    src_y = top + rot_y * (crop_h / height) - 0.5
+    src_x = left + rot_x * (crop_w / width) - 0.5
+    return jnp.stack([src_y, src_x])
 
 
-def _color_jitter(rng: jax.Array, image: jax.Array, cfg: AugmentConfig) -> jax.Array:
-    """Brightness, contrast, saturation factors each uniform in [1 - s, 1 + s]; [h, w, 3] in [0, 1]."""
-    rng_b, rng_c, rng_s = jax.random.split(rng, 3)
+def resample(image: jax.Array, coords: jax.Array) -> jax.Array:
+    """Bilinear sample of [h, w, C] at coords [2, h', w'] (y, x); black (0) outside."""
+    return jnp.stack([jax.scipy.ndimage.map_coordinates(image[..., c], [coords[0], coords[1]],
+                                                        order=1, mode="constant", cval=0.0)
+                      for c in range(image.shape[2])], axis=-1)
 
-    def factor(key, strength):
-        return jax.random.uniform(key, (), minval=1.0 - strength, maxval=1.0 + strength)
 
-    luma = jnp.asarray(_LUMA, image.dtype)
-    image = jnp.clip(image * factor(rng_b, cfg.brightness), 0.0, 1.0)
-    mean_gray = jnp.mean(image @ luma)
-    image = jnp.clip((image - mean_gray) * factor(rng_c, cfg.contrast) + mean_gray, 0.0, 1.0)
-    gray = (image @ luma)[..., None]
-    return jnp.clip((image - gray) * factor(rng_s, cfg.saturation) + gray, 0.0, 1.0)
+def rgb_to_hsv(rgb: jax.Array) -> jax.Array:
+    """[..., 3] RGB in [0, 1] -> [..., 3] (hue in [0, 1), saturation, value)."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    value = jnp.max(rgb, axis=-1)
+    delta = value - jnp.min(rgb, axis=-1)
+    saturation = jnp.where(value > 0, delta / jnp.where(value > 0, value, 1.0), 0.0)
+    safe = jnp.where(delta > 0, delta, 1.0)
+    hue = jnp.where(value == r, (g - b) / safe,
+                    jnp.where(value == g, (b - r) / safe + 2.0, (r - g) / safe + 4.0))
+    hue = jnp.where(delta > 0, (hue / 6.0) % 1.0, 0.0)
+    return jnp.stack([hue, saturation, value], axis=-1)
+
+
+def hsv_to_rgb(hsv: jax.Array) -> jax.Array:
+    """Inverse of `rgb_to_hsv` (hue taken modulo 1)."""
+    hue, saturation, value = hsv[..., 0], hsv[..., 1], hsv[..., 2]
+    h6 = (hue % 1.0) * 6.0
+    sector = jnp.floor(h6)
+    f = h6 - sector
+    p = value * (1 - saturation)
+    q = value * (1 - saturation * f)
+    t = value * (1 - saturation * (1 - f))
+    sector = sector.astype(jnp.int32) % 6
+    choices = [jnp.stack(c, axis=-1) for c in
+               ((value, t, p), (q, value, p), (p, value, t), (p, q, value), (t, p, value),
+                (value, p, q))]
+    return jnp.select([(sector == i)[..., None] for i in range(6)], choices)
+
+
+def color_jitter(rng: jax.Array, image: jax.Array, cfg: AugmentConfig) -> jax.Array:
+    """augmax's ColorJitter on [h, w, 3] in [0, 1], one draw per image: hue + U(-h, h),
+    saturation + U(-s, s) clipped, value + U(-b, b), then the contrast slant, value clipped;
+    applied with probability `jitter_p`."""
+    rng_h, rng_s, rng_b, rng_c, rng_apply = jax.random.split(rng, 5)
+
+    def shift(key, strength):
+        return jax.random.uniform(key, (), minval=-strength, maxval=strength)
+
+    hue, saturation, value = jnp.moveaxis(rgb_to_hsv(image), -1, 0)
+    hue = hue + shift(rng_h, cfg.hue)
+    saturation = jnp.clip(saturation + shift(rng_s, cfg.saturation), 0.0, 1.0)
+    value = value + shift(rng_b, cfg.brightness)
+    slant = jnp.tan((shift(rng_c, cfg.contrast) + 1.0) * (jnp.pi / 4))
+    value = jnp.clip(value * slant + 0.5 * (1 - slant), 0.0, 1.0)
+    jittered = hsv_to_rgb(jnp.stack([hue, saturation, value], axis=-1))
+    return jnp.where(jax.random.bernoulli(rng_apply, cfg.jitter_p), jittered, image)
 
 
 def augment_image(rng: jax.Array, image: jax.Array, cfg: AugmentConfig, *, wrist: bool) -> jax.Array:
     """One image [h, w, 3] in [-1, 1] -> augmented [h, w, 3] in [-1, 1]. Wrist cameras: colour only."""
     image = image / 2.0 + 0.5
-    rng_crop, rng_rotate, rng_color = jax.random.split(rng, 3)
-    if not wrist:
-        if cfg.crop_scale < 1.0:
-            image = _random_crop_resize(rng_crop, image, cfg.crop_scale)
-        if cfg.rotate_degrees > 0.0:
-            image = _rotate(rng_rotate, image, cfg.rotate_degrees)
-    image = _color_jitter(rng_color, image, cfg)
+    rng_geometry, rng_color = jax.random.split(rng)
+    if not wrist and (cfg.crop_scale < 1.0 or cfg.rotate_degrees > 0.0):
+        image = resample(image, crop_rotate_map(rng_geometry, *image.shape[:2], cfg))
+    image = color_jitter(rng_color, image, cfg)
     return image * 2.0 - 1.0
 
 
