@@ -141,3 +141,22 @@ def test_pi05_loss_has_finite_gradients_for_every_parameter(params, strategy, kw
     assert np.isfinite(loss)
     assert all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
     assert float(jnp.abs(grads["time_mlp_in"]["kernel"]).sum()) > 0
+
+
+def test_pi05_trains_with_correlated_noise_and_gripper_switch_emphasis(params):
+    from pi0_armfix.model import noise
+
+    horizon, real = TINY05.action_horizon, LAYOUT.real_dim
+    walk = np.cumsum(np.random.default_rng(0).standard_normal((400, horizon, real)), axis=1)
+    correlation = np.corrcoef(walk.reshape(400, -1), rowvar=False)
+    factor = noise.correlated_noise_factor(correlation, 0.5, horizon=horizon, real_dim=real,
+                                           action_dim=TINY05.action_dim)
+    rng = np.random.default_rng(1)
+    batch = dict(_observation(),
+                 actions=rng.standard_normal((BATCH, horizon, TINY05.action_dim)).astype(np.float32),
+                 action_is_pad=np.zeros((BATCH, horizon), bool))
+    loss, grads = jax.value_and_grad(lambda p: policy.compute_loss(
+        p, jax.random.key(0), batch, config=TINY05, layout=LAYOUT, train=True, strategy="uniform",
+        noise_factor=jnp.asarray(factor), switch_threshold=np.zeros(TINY05.action_dim, np.float32),
+        switch_weight=3.0, switch_window=1)[0])(params)
+    assert np.isfinite(loss) and all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
