@@ -260,10 +260,10 @@ class Transformer(nn.Module):
           each [depth, B, S, K, H].
         """
         xs = [None if x is None else x.astype(self.dtype) for x in xs]
-        conds = [cond if adaptive and x is not None else None
-                 for x, adaptive in zip(xs, self.adaptive)]
-        if any(a and x is not None for x, a in zip(xs, self.adaptive)) and cond is None:
+        conditioned = [adaptive and x is not None for x, adaptive in zip(xs, self.adaptive)]
+        if any(conditioned) and cond is None:
             raise ValueError("an adaptive (pi0.5) expert needs its condition: pass cond")
+        conds = [cond if c else None for c in conditioned]
         xs, kv_cache = self.layers(xs, kv_cache, positions, attn_mask[:, None], conds)
         return [None if x is None else norm(x, c)[0]
                 for norm, x, c in zip(self.final_norms, xs, conds)], kv_cache

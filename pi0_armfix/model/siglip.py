@@ -99,6 +99,7 @@ class SigLIP(nn.Module):
         x = x.reshape(batch, h * w, width)
         x = x + self.param("pos_embedding", nn.initializers.normal(stddev=1 / np.sqrt(width)),
                            (1, self.num_patches, width), jnp.float32)
-        x = Encoder(self.config, self.dtype, self.remat, self.unroll, name="Transformer")(x.astype(self.dtype))
+        x = Encoder(self.config, self.dtype, self.remat, self.unroll, name="Transformer")(
+            x.astype(self.dtype))
         # DEVIATION from openpi (zero init): a zero head would make a from-scratch model blind.
         return nn.Dense(self.out_width, dtype=self.dtype, name="head")(x)
