@@ -32,6 +32,7 @@ and the per-group loss curves of `metrics.jsonl`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 from collections.abc import Mapping, Sequence
@@ -48,18 +49,22 @@ from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import batching, sources, transforms
-from pi0_armfix.data import chunk_stats as chunk_stats_lib
+from pi0_armfix import inference
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import policy
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import checkpoint, plots
+from pi0_armfix.sim import env as env_lib
+from pi0_armfix.sim import rollout as rollout_lib
+from pi0_armfix.sim.world import DemoSpec
+from pi0_armfix.training import plots
 from pi0_armfix.training import metrics as metrics_lib
 from pi0_armfix.training import sharding as sharding_lib
 
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
 METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
+CLOSED_LOOP_FILE = "closed_loop.json"  # of a closed-loop evaluation, in eval/step_<N>/
+ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
 
 # ---------------------------------------------------------------------- metrics
@@ -356,30 +361,6 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
 
 # ---------------------------------------------------------------------- offline entrypoint
 
-def norm_stats_from_json(payload: Mapping[str, Any]) -> dict[str, stats_lib.NormStats]:
-    """`{"norm_stats": {key: {mean, std, q01, q99}}}` (as checkpointed) -> `{key: NormStats}`."""
-    return {key: stats_lib.NormStats(**{f: np.asarray(entry[f], np.float64)
-                                        for f in stats_lib.FIELDS})
-            for key, entry in payload["norm_stats"].items()}
-
-
-def run_noise_factor(workdir: epath.Path, config: ml_collections.ConfigDict,
-                     layout: ActionLayout, model_config: model_config_lib.Pi0Config
-                     ) -> np.ndarray | None:
-    """The correlated noise factor a run trained with (`loss.noise_beta < 1`), from the chunk
-    correlation in its workdir; None for pi0's independent noise."""
-    beta = float(config.loss.get("noise_beta", 1.0))
-    if beta >= 1.0:
-        return None
-    path = workdir / chunk_stats_lib.CORRELATION_FILE
-    if not path.exists():
-        raise ValueError(f"{path} is missing: the run trained with correlated noise "
-                         f"(loss.noise_beta = {beta}) and its policy samples from the same law")
-    return noise_lib.correlated_noise_factor(
-        np.load(path), beta, horizon=model_config.action_horizon, real_dim=layout.real_dim,
-        action_dim=layout.action_dim)
-
-
 def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                         params_name: str = "ema"
                         ) -> tuple[int, dict[str, float], ActionLayout]:
@@ -387,32 +368,22 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
     the run kept them, else the params) or "params"; the metrics go to `metrics.json` there.
     Returns `(step, metrics, layout)`."""
-    workdir = epath.Path(workdir)
-    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
-    step = ckpts.latest_step() if step is None else step
-    if step is None or step not in ckpts.all_steps():
-        raise ValueError(f"{workdir / 'checkpoints'} has no checkpoint "
-                         f"{'at all' if step is None else f'of step {step}'} "
-                         f"(steps: {ckpts.all_steps()})")
+    run = inference.restore_run(workdir, step, params_name)
+    workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
+    model_config, params = run.model_config, run.params
     mesh = sharding_lib.make_mesh(1)
-    state, norm_stats, config = ckpts.restore_for_eval(step, mesh)
-    layout = ActionLayout.from_config(config.layout)
-    model_config = model_config_lib.from_model_config(config.model)
-    params = state["ema_params"] if params_name == "ema" and state.get("ema_params") else \
-        state["params"]
     source = sources.open_source(config.data, layout)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     with jax.set_mesh(mesh):
-        evaluator = Evaluator(config, layout, model_config, norm_stats_from_json(norm_stats),
-                              tokenize, mesh=mesh,
+        evaluator = Evaluator(config, layout, model_config, run.norm_stats, tokenize, mesh=mesh,
                               params_sharding=sharding_lib.tree_shardings(params, mesh),
-                              source=source, noise_factor=run_noise_factor(
+                              source=source, noise_factor=inference.run_noise_factor(
                                   workdir, config, layout, model_config))
         metrics, predicted, true = evaluator(params)
     out = workdir / "eval" / f"step_{step}"
     out.mkdir(parents=True, exist_ok=True)
     (out / METRICS_FILE).write_text(json.dumps(
-        {"step": step, "params": "ema_params" if params is state.get("ema_params") else "params",
+        {"step": step, "params": run.params_name,
          **{k: float(v) for k, v in metrics.items()}}, indent=2) + "\n")
     evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
                    "vs true (solid)")
@@ -421,11 +392,64 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     return step, metrics, layout
 
 
+def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
+                episodes: int = 50, n_exec: int = 0, sim_seed: int = env_lib.EVAL_SEED,
+                progress: bool = True) -> tuple[int, dict[str, Any]]:
+    """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
+    world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon);
+    writes `closed_loop.json` and `rollouts.png` (against the scripted expert) into
+    `<workdir>/eval/step_<N>/`. Returns `(step, summary)` (`sim.rollout.summarize`)."""
+    policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
+    run = policy_.run
+    if run.layout.real_dim != 23:
+        raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
+                         "takes the 23-D B1K action (layout b1k_r1pro)")
+    n_exec = n_exec or max(policy_.horizon // 2, 1)
+    spec = DemoSpec(seed=sim_seed)
+
+    class _Learned:
+        def start(self, envs):
+            pass
+
+        def __call__(self, active, observations):
+            return policy_.infer(observations)
+
+    records = rollout_lib.rollout(_Learned(), range(episodes), spec=spec, n_exec=n_exec,
+                                  progress=progress and jax.process_index() == 0)
+    summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
+               "sim_seed": sim_seed, **rollout_lib.summarize(records),
+               "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
+                                    "seconds": r.seconds,
+                                    "phases": [dataclasses.asdict(p) for p in r.results]}
+                                   for r in records]}
+    out = run.workdir / "eval" / f"step_{run.step}"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / CLOSED_LOOP_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+    shown = records[:ROLLOUT_ROWS]
+    expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
+                                 spec=spec, progress=False)
+    rollout_lib.plot_rollouts(shown, expert, out / "rollouts.png",
+                              f"step {run.step}: closed loop, n_exec {n_exec}")
+    return run.step, summary
+
+
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
     console.quiet_library_logging()
+    if FLAGS.closed_loop:
+        try:
+            step, summary = closed_loop(FLAGS.workdir, FLAGS.step, FLAGS.params,
+                                        episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
+                                        sim_seed=FLAGS.sim_seed)
+        except ValueError as e:
+            raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
+        print(f"step {step}, closed loop in the demo world (success rate):")
+        print(rollout_lib.format_summary(summary))
+        out = epath.Path(FLAGS.workdir) / "eval" / f"step_{step}"
+        print(f"results in {out / CLOSED_LOOP_FILE}; rollouts in {out / 'rollouts.png'}")
+        return
     try:
         step, metrics, layout = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params)
     except ValueError as e:
@@ -435,12 +459,20 @@ def main(argv: Sequence[str]) -> None:
     out = epath.Path(FLAGS.workdir) / "eval" / f"step_{step}"
     print(f"metrics in {out / METRICS_FILE}; figures in {out}")
 
+
 def cli() -> None:
     """The `pi0-armfix-evaluate` console script (also `python -m pi0_armfix.evaluate`)."""
     flags.DEFINE_string("workdir", None, "run folder (holds checkpoints/)", required=True)
     flags.DEFINE_integer("step", None, "checkpoint step (default: the latest)")
     flags.DEFINE_enum("params", "ema", ["ema", "params"],
                       "the EMA params (when the run kept them) or the raw params")
+    flags.DEFINE_bool("closed_loop", False, "run the policy in the demo world (pi0_armfix.sim) "
+                      "instead of sampling held-out chunks")
+    flags.DEFINE_integer("episodes", 50, "closed loop: episodes of the demo world")
+    flags.DEFINE_integer("n_exec", 0, "closed loop: actions executed per sampled chunk before "
+                         "replanning (0: half the action horizon)")
+    flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
+                         "episodes (the demo dataset is seed 0)")
     app.run(main)
 
 

@@ -1,0 +1,262 @@
+"""A trained run as a policy: raw observations in, action chunks in the dataset's units out.
+
+    policy = RunPolicy.from_workdir("runs/arm_focused")      # latest checkpoint, EMA params
+    actions = policy.infer([observation, ...])               # [B, H, real_dim]
+
+An observation is a dict with B1K's openpi keys by default (`B1K_KEYS`; any mapping through
+`ObservationKeys`): the cameras as uint8 [h, w, 3] (or [3, h, w]), the state as the dataset
+stores it (e.g. the demo's 23-D baseline-order state, B1K's 256-D proprioception: the run's
+`data.state_preset` selects from it), and the prompt. The policy does what training did to a
+sample (state selection and normalization, the prompt tokenizer, pi0.5's state tokens), samples
+with the run's `eval.num_steps` Euler steps and the KV cache (`model.policy.sample_actions`,
+jit-compiled once per batch shape), and undoes the action normalization and delta actions: the
+result is absolute actions in the dataset's units. Used by the closed-loop evaluation and by the
+policy server.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import ml_collections
+import numpy as np
+from etils import epath
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import batching, sources, transforms
+from pi0_armfix.data import chunk_stats as chunk_stats_lib
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import noise as noise_lib
+from pi0_armfix.model import policy
+from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.training import checkpoint
+from pi0_armfix.training import sharding as sharding_lib
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationKeys:
+    """Where an observation dict keeps each input: `cameras` maps an observation key to a batch
+    camera (`base_0_rgb`, `left_wrist_0_rgb`, `right_wrist_0_rgb`)."""
+
+    cameras: Mapping[str, str]
+    state: str
+    prompt: str
+
+    @classmethod
+    def parse(cls, text: str) -> "ObservationKeys":
+        """`"key=camera,...,key=state,key=prompt"` (e.g. `"cam_high=base_0_rgb,...,
+        observation/state=state,task=prompt"`); '' = `B1K_KEYS`."""
+        if not text:
+            return B1K_KEYS
+        cameras, roles = {}, {}
+        for item in text.split(","):
+            key, sep, role = item.partition("=")
+            if not sep or not key:
+                raise ValueError(f"observation key mapping item {item!r} is not key=role "
+                                 "(role: a batch camera, 'state' or 'prompt')")
+            if role in ("state", "prompt"):
+                roles[role] = key
+            else:
+                cameras[key] = role
+        missing = [r for r in ("state", "prompt") if r not in roles]
+        if missing or not cameras:
+            raise ValueError(f"observation key mapping {text!r} names no key for "
+                             f"{missing or ['any camera']}")
+        return cls(cameras, roles["state"], roles["prompt"])
+
+
+B1K_KEYS = ObservationKeys(
+    {"observation/egocentric_camera": "base_0_rgb",
+     "observation/wrist_image_left": "left_wrist_0_rgb",
+     "observation/wrist_image_right": "right_wrist_0_rgb"},
+    state="observation/state", prompt="prompt")
+
+
+def norm_stats_from_json(payload: Mapping[str, Any]) -> dict[str, stats_lib.NormStats]:
+    """`{"norm_stats": {key: {mean, std, q01, q99}}}` (as checkpointed) -> `{key: NormStats}`."""
+    return {key: stats_lib.NormStats(**{f: np.asarray(entry[f], np.float64)
+                                        for f in stats_lib.FIELDS})
+            for key, entry in payload["norm_stats"].items()}
+
+
+def run_noise_factor(workdir: epath.Path, config: ml_collections.ConfigDict,
+                     layout: ActionLayout, model_config: model_config_lib.Pi0Config
+                     ) -> np.ndarray | None:
+    """The correlated noise factor a run trained with (`loss.noise_beta < 1`), from the chunk
+    correlation in its workdir; None for pi0's independent noise."""
+    beta = float(config.loss.get("noise_beta", 1.0))
+    if beta >= 1.0:
+        return None
+    path = workdir / chunk_stats_lib.CORRELATION_FILE
+    if not path.exists():
+        raise ValueError(f"{path} is missing: the run trained with correlated noise "
+                         f"(loss.noise_beta = {beta}) and its policy samples from the same law")
+    return noise_lib.correlated_noise_factor(
+        np.load(path), beta, horizon=model_config.action_horizon, real_dim=layout.real_dim,
+        action_dim=layout.action_dim)
+
+
+@dataclasses.dataclass(frozen=True)
+class RestoredRun:
+    """A run's checkpoint with what it needs to run: its own config, layout and norm stats."""
+
+    workdir: epath.Path
+    step: int
+    config: ml_collections.ConfigDict
+    layout: ActionLayout
+    model_config: model_config_lib.Pi0Config
+    params: Any
+    params_name: str  # "ema_params" or "params"
+    norm_stats: dict[str, stats_lib.NormStats]
+
+
+def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema"
+                ) -> RestoredRun:
+    """The checkpoint of `step` (latest if None) of a run folder, on one device. `params_name`:
+    "ema" (the EMA params when the run kept them, else the params) or "params"."""
+    workdir = epath.Path(workdir)
+    ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
+    step = ckpts.latest_step() if step is None else step
+    if step is None or step not in ckpts.all_steps():
+        raise ValueError(f"{workdir / 'checkpoints'} has no checkpoint "
+                         f"{'at all' if step is None else f'of step {step}'} "
+                         f"(steps: {ckpts.all_steps()})")
+    state, norm_stats, config = ckpts.restore_for_eval(step, sharding_lib.make_mesh(1))
+    use_ema = params_name == "ema" and bool(state.get("ema_params"))
+    return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
+                       model_config_lib.from_model_config(config.model),
+                       state["ema_params"] if use_ema else state["params"],
+                       "ema_params" if use_ema else "params", norm_stats_from_json(norm_stats))
+
+
+class RunPolicy:
+    """Observations -> absolute action chunks `[B, H, real_dim]` in the dataset's units.
+
+    Args:
+      run: the restored run.
+      source: the run's opened data source (its state selection and, for the offline demo
+        tokenizer, its prompts); None opens the one `run.config.data` names.
+      keys: where observations keep their inputs.
+      num_steps: Euler steps of the sampler (None: the run's `eval.num_steps`).
+      seed: of the sampling noise (draw i of the policy uses fold_in(seed, i)).
+    """
+
+    def __init__(self, run: RestoredRun, *, source=None, keys: ObservationKeys = B1K_KEYS,
+                 num_steps: int | None = None, seed: int = 0):
+        config, layout = run.config, run.layout
+        source = source or sources.open_source(config.data, layout)
+        self.run, self.keys, self.layout = run, keys, layout
+        self.horizon = run.model_config.action_horizon
+        self.selection = getattr(source, "state_selection", None)
+        self.stored_state_width = (self.selection.stored_width if self.selection is not None
+                                   else source.state_width)
+        state_width = self.selection.width if self.selection is not None else source.state_width
+        norm_mode = model_config_lib.norm_mode(config)
+        self.state_norm = transforms.Normalizer.from_stats(
+            stats_lib.fit_width(run.norm_stats["state"], state_width, "norm stats 'state'"),
+            norm_mode)
+        self.action_norm = batching.action_normalizer(run.norm_stats, layout.real_dim, norm_mode,
+                                                      self.horizon)
+        self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
+        self.tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
+        self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
+        self._sample = functools.partial(
+            policy.sample_actions, config=run.model_config,
+            num_steps=int(num_steps or config.eval.num_steps), noise_factor=noise_factor)
+        self._key = jax.random.key(seed)
+        self._draws = 0
+
+    @classmethod
+    def from_workdir(cls, workdir: epath.PathLike, step: int | None = None,
+                     params_name: str = "ema", **kwargs) -> "RunPolicy":
+        return cls(restore_run(workdir, step, params_name), **kwargs)
+
+    def metadata(self) -> dict[str, Any]:
+        """What a client needs to know about the policy (sent on connect by the server)."""
+        run = self.run
+        return {"workdir": str(run.workdir), "step": run.step, "params": run.params_name,
+                "model": run.config.model.preset, "action_horizon": self.horizon,
+                "action_dim": self.layout.real_dim,
+                "action_groups": {g: list(map(int, v)) for g, v in self.layout.groups.items()},
+                "state_width": self.stored_state_width,
+                "observation_keys": {**{k: v for k, v in self.keys.cameras.items()},
+                                     self.keys.state: "state", self.keys.prompt: "prompt"},
+                "actions": "absolute, in the dataset's units"}
+
+    def infer(self, observations: Sequence[Mapping[str, Any]]) -> np.ndarray:
+        """`observations` (one dict per robot) -> actions float32 `[B, H, real_dim]`.
+
+        Raises:
+          ValueError naming the key and what it should be, for a malformed observation.
+        """
+        if not observations:
+            raise ValueError("infer needs at least one observation")
+        stored = np.stack([self._state(o) for o in observations])
+        state = self.selection(stored) if self.selection is not None else stored
+        normalized = self.state_norm(state)
+        prompts = [self._prompt(o) for o in observations]
+        if getattr(self.tokenize, "state_in_prompt", False):
+            tokens, masks = zip(*map(self.tokenize, prompts, normalized))
+        else:
+            tokens, masks = zip(*map(self._tokenized, prompts))
+        batch_size = len(observations)
+        images = {camera: np.stack([self._image(o, key) for o in observations])
+                  for key, camera in self.keys.cameras.items()}
+        observation = {
+            "image": images,
+            "image_mask": {camera: np.ones(batch_size, bool) for camera in images},
+            "state": transforms.pad_last(normalized, self.layout.action_dim),
+            "tokenized_prompt": np.stack(tokens).astype(np.int32),
+            "tokenized_prompt_mask": np.stack(masks).astype(bool),
+        }
+        rng = jax.random.fold_in(self._key, self._draws)
+        self._draws += 1
+        actions = self.action_norm.inverse(np.asarray(self._sample(self.run.params, rng,
+                                                                   observation)))
+        if self.delta_mask is not None:
+            actions = transforms.from_delta(actions, state, self.delta_mask)
+        return actions.astype(np.float32)
+
+    # ------------------------------------------------------------------ checks
+
+    def _state(self, observation: Mapping[str, Any]) -> np.ndarray:
+        key = self.keys.state
+        if key not in observation:
+            raise ValueError(f"the observation lacks {key!r} (the state); it has "
+                             f"{sorted(observation)}")
+        state = np.asarray(observation[key], np.float64).reshape(-1)
+        if state.shape != (self.stored_state_width,) or not np.isfinite(state).all():
+            raise ValueError(f"observation[{key!r}] must be {self.stored_state_width} finite "
+                             f"numbers (the dataset's state), got shape {np.shape(observation[key])}")
+        return state
+
+    def _prompt(self, observation: Mapping[str, Any]) -> str:
+        prompt = observation.get(self.keys.prompt)
+        if isinstance(prompt, bytes):
+            prompt = prompt.decode()
+        if not isinstance(prompt, str):
+            raise ValueError(f"observation[{self.keys.prompt!r}] must be the task prompt (a "
+                             f"string), got {type(prompt).__name__}")
+        return prompt
+
+    def _image(self, observation: Mapping[str, Any], key: str) -> np.ndarray:
+        if key not in observation:
+            raise ValueError(f"the observation lacks camera {key!r}; it has {sorted(observation)}")
+        image = np.asarray(observation[key])
+        if image.ndim == 3 and image.shape[0] == 3 and image.shape[-1] != 3:
+            image = image.transpose(1, 2, 0)  # [3, h, w] as some openpi clients send
+        if image.ndim != 3 or image.shape[-1] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"observation[{key!r}] must be a uint8 image [h, w, 3], got "
+                             f"{image.dtype} {image.shape}")
+        return image
+
+    def _tokenized(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
+        if prompt not in self._tokens:
+            self._tokens[prompt] = self.tokenize(prompt)
+        return self._tokens[prompt]

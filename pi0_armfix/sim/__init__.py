@@ -1,0 +1,3 @@
+"""The demo world as a simulator: world model and physics (`world`), cameras (`render`), the
+scripted teleoperator (`expert`), the Gymnasium environment (`env`) and closed-loop rollouts
+(`rollout`)."""

@@ -1,0 +1,197 @@
+"""Closed-loop rollouts: a policy drives environments of the demo world in lockstep.
+
+A policy maps the observations of the environments that need actions to action chunks
+`[b, h, 23]` (absolute, dataset units); each environment executes the first `n_exec` actions of
+its chunk, then asks again (receding horizon). Policies here: the scripted expert, a zero-action
+policy and a replay of random recorded chunks (the sanity bounds); a trained run is one through
+`pi0_armfix.inference.RunPolicy` (`pi0_armfix.evaluate --closed_loop`).
+
+Per episode the result of every phase (`sim.world`), whether navigation, manipulation and the task
+succeeded (every phase of that kind did), the time to success, and the traces of the base pose and
+the arm joints for the figure.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from pi0_armfix.sim import env as env_lib  # noqa: E402
+from pi0_armfix.sim.world import ACTION_DIM, STATE_ARM, DemoSpec, PhaseResult  # noqa: E402
+
+KINDS = ("navigation", "manipulation", "task")
+
+
+class ChunkPolicy(Protocol):
+    def start(self, envs: Sequence[env_lib.DemoWorldEnv]) -> None:
+        """Called once the environments are reset."""
+
+    def __call__(self, active: Sequence[int], observations: Sequence[dict]) -> np.ndarray:
+        """Chunks `[len(active), h, 23]` for the environments `active` (their observations)."""
+
+
+class ExpertPolicy:
+    """The scripted teleoperator of each episode (privileged: reads the world)."""
+
+    def start(self, envs):
+        self._experts = [env.unwrapped.expert() for env in envs]
+
+    def __call__(self, active, observations):
+        return np.stack([self._experts[i].act() for i in active])[:, None]
+
+
+class ZeroPolicy:
+    """Every action 0: base still, joints driven to 0, grippers half-way (closed)."""
+
+    def start(self, envs):
+        pass
+
+    def __call__(self, active, observations):
+        return np.zeros((len(active), 1, ACTION_DIM), np.float32)
+
+
+class RecordedChunkPolicy:
+    """Replays a random chunk of `horizon` recorded actions of the demo dataset (seed 0), whatever
+    the observation: motion of the right kind and size, at the wrong time and place."""
+
+    def __init__(self, horizon: int, seed: int = 0, episodes: int = 10):
+        from pi0_armfix.data import demo  # the generator records the expert in the world
+
+        spec = DemoSpec(num_episodes=episodes)
+        self.actions = [demo.generate_episode(spec, i)["actions"] for i in range(episodes)]
+        self.horizon, self.rng = horizon, np.random.default_rng(seed)
+
+    def start(self, envs):
+        pass
+
+    def __call__(self, active, observations):
+        chunks = []
+        for _ in active:
+            episode = self.actions[self.rng.integers(len(self.actions))]
+            start = self.rng.integers(len(episode) - self.horizon + 1)
+            chunks.append(episode[start:start + self.horizon])
+        return np.stack(chunks)
+
+
+@dataclasses.dataclass
+class EpisodeRecord:
+    """One closed-loop episode. `pose`: [T, 3] base x, y, heading; `arms`: [T, 14] measured arm
+    joints (left, right); `seconds`: to the end of the plan (success or not)."""
+
+    episode: int
+    task: str
+    results: list[PhaseResult]
+    success: dict[str, bool]
+    seconds: float
+    pose: np.ndarray
+    arms: np.ndarray
+
+
+def _arms(state: np.ndarray) -> np.ndarray:
+    return np.concatenate([state[STATE_ARM["left"]], state[STATE_ARM["right"]]])
+
+
+def rollout(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec, n_exec: int = 1,
+            progress: bool = True, desc: str = "closed loop") -> list[EpisodeRecord]:
+    """Runs `policy` on `episodes` of `spec` (one environment each, in lockstep).
+
+    Args:
+      n_exec: actions of each chunk executed before the policy is asked again (chunks shorter
+        than that are executed whole).
+    """
+    if n_exec < 1:
+        raise ValueError(f"n_exec = {n_exec} must be >= 1 (actions executed per chunk)")
+    envs = [env_lib.DemoWorldEnv(spec) for _ in episodes]
+    observations = [env.reset(seed=int(e))[0] for env, e in zip(envs, episodes)]
+    policy.start(envs)
+    queues: list[list[np.ndarray]] = [[] for _ in envs]
+    poses = [[env.world.pose.copy()] for env in envs]
+    arms = [[_arms(o[env_lib.STATE])] for o in observations]
+    active = list(range(len(envs)))
+    bar = tqdm(total=len(envs), desc=desc, unit="ep", disable=not progress, leave=False)
+    while active:
+        asking = [i for i in active if not queues[i]]
+        if asking:
+            chunks = policy(asking, [observations[i] for i in asking])
+            for i, chunk in zip(asking, chunks):
+                queues[i] = list(chunk[:n_exec])
+        for i in list(active):
+            observations[i], _, terminated, _, _ = envs[i].step(queues[i].pop(0))
+            poses[i].append(envs[i].world.pose.copy())
+            arms[i].append(_arms(observations[i][env_lib.STATE]))
+            if terminated:
+                active.remove(i)
+                bar.update()
+    bar.close()
+    records = []
+    for env, episode, pose, arm in zip(envs, episodes, poses, arms):
+        world = env.world
+        records.append(EpisodeRecord(int(episode), world.task.prompt, list(world.results),
+                                     env_lib.episode_success(world.results),
+                                     world.frame / spec.fps, np.array(pose), np.array(arm)))
+    return records
+
+
+def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
+    """Success rates over episodes (`success/<kind>`: every phase of that kind succeeded), over
+    phases (`phase_success/<kind>`), and the mean seconds to a successful task."""
+    summary: dict[str, Any] = {"episodes": len(records)}
+    for kind in KINDS:
+        summary[f"success/{kind}"] = float(np.mean([r.success[kind] for r in records]))
+    for kind in KINDS[:2]:
+        phases = [p.success for r in records for p in r.results if p.kind == kind]
+        summary[f"phase_success/{kind}"] = float(np.mean(phases)) if phases else float("nan")
+    done = [r.seconds for r in records if r.success["task"]]
+    summary["seconds_to_success"] = float(np.mean(done)) if done else float("nan")
+    return summary
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    lines = [f"{'':<14}{'episodes':>10}{'phases':>10}"]
+    for kind in KINDS:
+        phase = summary.get(f"phase_success/{kind}")
+        lines.append(f"{kind:<14}{summary[f'success/{kind}']:>10.3f}"
+                     + (f"{phase:>10.3f}" if phase is not None else f"{'':>10}"))
+    lines.append(f"{summary['episodes']} episodes; mean time to task success "
+                 f"{summary['seconds_to_success']:.1f} s")
+    return "\n".join(lines)
+
+
+def plot_rollouts(records: Sequence[EpisodeRecord], expert: Sequence[EpisodeRecord],
+                  path, title: str) -> None:
+    """One row per episode: the top-down base path and two arm joints of each arm over time,
+    the policy (solid) against the expert on the same episode (dashed)."""
+    rows = len(records)
+    fig, axes = plt.subplots(rows, 3, figsize=(13, 3.2 * rows), squeeze=False)
+    for row, (mine, theirs) in enumerate(zip(records, expert)):
+        ax = axes[row, 0]
+        for record, style in ((theirs, "--"), (mine, "-")):
+            ax.plot(record.pose[:, 0], record.pose[:, 1], style, color="C0" if style == "-"
+                    else "0.5")
+        ax.plot(*mine.pose[0, :2], "ko", ms=4)
+        ax.set_aspect("equal", adjustable="datalim")
+        flags = " ".join(f"{k[:3]} {'ok' if mine.success[k] else 'fail'}" for k in KINDS)
+        ax.set_title(f"episode {mine.episode}: {flags}", fontsize=9)
+        for col, (name, joints) in enumerate((("left arm", (0, 3)), ("right arm", (7, 10))),
+                                             start=1):
+            ax = axes[row, col]
+            for j, colour in zip(joints, ("C1", "C2")):
+                ax.plot(np.arange(len(theirs.arms)) / 30, theirs.arms[:, j], "--", color=colour,
+                        alpha=0.6)
+                ax.plot(np.arange(len(mine.arms)) / 30, mine.arms[:, j], "-", color=colour,
+                        label=f"joint {j % 7}")
+            ax.set_title(f"{name} (policy solid, expert dashed)", fontsize=9)
+            ax.set_xlabel("s")
+            ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)

@@ -1,0 +1,414 @@
+"""The demo world: one B1K-like mobile manipulator, its physics, its task plan and its cameras.
+
+The single source of truth of the demo: the dataset generator (`pi0_armfix.data.demo`) records the
+scripted teleoperator (`sim.expert`) acting in this world, and the Gymnasium environment
+(`sim.env`) lets any policy act in it instead. World parameters live in `DemoSpec`.
+
+Episode `index` of a spec runs task `TASKS[index % 5]`: a plan of navigation and manipulation
+phases. What the world draws for the episode (`EpisodeLayout`, from `rng([seed, index, 0])`, before
+any action, so that every policy faces the same episode): the arm and torso posture (around the
+published B1K statistics, low-discrepancy over episodes), per navigation phase the target's bearing
+and distance from the robot at the phase start, per manipulation phase the hand-frame offset of
+each arm's target and the width of a grasped object.
+
+Physics (one `step(action)` per frame at `fps`; action = the 23-D B1K action, DESIGN §2):
+  base      the pose integrates the velocity command (x, y in the robot frame, yaw rate).
+  joints    torso and arm joints track their targets with a first-order lag (0.5 per frame);
+            the state (23-D, the official baseline order: base velocity 0:3, torso 3:7, left arm
+            7:14, right arm 14:21, finger gaps 21, 22) is that lagged measurement.
+  hands     a joint change dq moves the hand by p = M^+ dq in hand-frame units, M = the arm's
+            fixed 7x3 reach map (`reach_map`); the expert's reach dq = M o lands exactly on o.
+  grippers  a command <= 0 is closed: the fingers close on a held object's width, else to 0;
+            open is a 0.1 gap (the state's gap lags at 0.35 per frame).
+
+Phases and success:
+  navigation    the target lies `distance` away at `bearing` from the robot at the phase start;
+                the robot must arrive along that line, driving forwards or backing up (the
+                teleoperator backs up to targets behind it). Succeeds at the first frame within
+                `arrive_radius`, with the heading within `heading_tolerance` of the line (either
+                way), and every base command below `stop_speed`; then the object stands 0.35 m
+                ahead of the robot.
+  manipulation  each arm of the phase must bring its hand within `reach_tolerance` of its target
+                offset o (measured from the hand at the phase start), then: grasp = close the
+                gripper there (the object is held), release = open it there while holding (placed;
+                opening elsewhere drops it), press = touch. Then the hand returns home (within
+                `reach_tolerance` of where it started). Succeeds when every arm did its part and a
+                grasped object is still held when the hands are home.
+  Each phase has a time limit (`navigation_seconds`, `manipulation_seconds`); a phase that runs out
+  fails and the world moves on to the next phase, so every phase of every episode is measured.
+  The task succeeds when every phase did.
+
+What the cameras show (uint8, `image_size` square), rendered from `scene()`:
+  head          a panorama: the current target as a disc whose column is its bearing (+-pi
+                across the width), whose row and size encode its distance; wall stripes shift
+                with the heading.
+  wrists        the fingers, whose gap is the gripper's; a held object between them; during a
+                manipulation phase a marker at the hand's remaining offset (x, y as position,
+                depth as size): the target's (object colour) until the arm has done its part,
+                then home's (white).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import statistics
+
+import numpy as np
+
+# Published B1K 2025 action statistics (../shared/reference/b1k_2025_norm_stats.json): per-joint
+# mean, std, q01, q99 of the torso (dims 3:6) and the two arms (7:14, 15:22).
+_TORSO = np.array([[0.9349, -1.2805, -0.5019], [0.4331, 0.7829, 0.4365],
+                   [0.4500, -2.5590, -1.8326], [1.7139, -0.4000, 0.2432]])
+_LEFT_ARM = np.array([
+    [-0.4411, 0.0456, -0.0972, -0.6205, 0.3803, 0.1655, -0.0447],
+    [0.4390, 0.1621, 0.4621, 0.5237, 0.5729, 0.5252, 0.5272],
+    [-2.2718, -0.1745, -2.3102, -1.6383, -1.7373, -1.0472, -1.5708],
+    [0.5087, 1.0496, 1.8854, 0.0951, 2.3562, 1.0472, 1.5708]])
+_RIGHT_ARM = np.array([
+    [-0.4936, -0.0581, 0.0607, -0.6374, -0.2398, 0.1692, 0.0499],
+    [0.4179, 0.1716, 0.4015, 0.5414, 0.5493, 0.5334, 0.4833],
+    [-2.2321, -1.2651, -1.8810, -1.6291, -2.3200, -1.0472, -1.5708],
+    [0.4026, 0.1745, 2.1230, 0.0832, 2.0049, 1.0472, 1.5708]])
+# The torso's joints move together (a crouch): signs of their loadings on one latent posture.
+TORSO_LOADING = np.array([1.0, -1.0, -1.0])
+
+ARMS = ("left", "right")
+# Action dims (DESIGN §2) and state dims (official baseline order).
+BASE, TORSO, ARM = slice(0, 3), slice(3, 6), {"left": slice(7, 14), "right": slice(15, 22)}
+GRIPPER = {"left": 14, "right": 22}
+STATE_ARM = {"left": slice(7, 14), "right": slice(14, 21)}
+STATE_GAP = {"left": 21, "right": 22}
+ACTION_DIM = STATE_DIM = 23
+OPEN_GAP = 0.1  # m, the fingers' gap when open
+JOINT_LAG, GAP_LAG = 0.5, 0.35  # fraction of the error closed per frame
+OBJECT_AHEAD = 0.35  # m: where the object stands once the robot has arrived
+WHITE = (255, 255, 255)
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoSpec:
+    """Parameters of the demo world and of its teleoperator (see `pi0_armfix.data.demo`)."""
+
+    num_episodes: int = 100
+    seed: int = 0
+    fps: int = 30
+    image_size: int = 32
+    max_speed: float = 0.35  # m/s per axis (B1K q01/q99 of dims 0, 1)
+    max_yaw_rate: float = 0.3  # rad/s (B1K q01/q99 of dim 2)
+    brake: float = 0.3  # m/s^2, deceleration towards the target
+    lateral_fraction: float = 0.8  # operators strafe less than they drive forward
+    yaw_gain: float = 0.7  # 1/s
+    linear_accel: float = 0.5  # m/s^2
+    yaw_accel: float = 0.8  # rad/s^2
+    base_noise: float = 0.02  # m/s and rad/s, OU noise on the commands while moving
+    nav_distance: tuple[float, float] = (0.6, 1.5)  # m
+    behind_fraction: float = 0.5  # targets drawn all around the robot (else in front)
+    front_bearing: float = 0.9  # rad: the other targets lie within ±front_bearing
+    back_up_distance: float = 1.2  # m: a target behind and nearer than this is reached backwards
+    arrive_radius: float = 0.06  # m
+    heading_tolerance: float = 0.8  # rad, from the approach line (either way) at arrival
+    stop_speed: float = 0.02  # m/s and rad/s: every base command below it counts as stopped
+    reach_offset: tuple[float, float] = (0.5, 1.2)  # |o|, hand-frame units
+    reach_tolerance: float = 0.15  # hand-frame units, to the target and back home
+    jacobian_scale: float = 0.25  # rad per hand-frame unit
+    arm_peak_speed: tuple[float, float] = (0.3, 0.5)  # rad/s, fastest joint
+    arm_jitter: float = 0.002  # rad
+    torso_bend: float = 0.06  # rad
+    gripper_ramp: int = 4  # frames
+    hold_time: tuple[float, float] = (0.3, 0.7)  # s
+    object_width: tuple[float, float] = (0.02, 0.06)  # m
+    posture_spread: float = 1.0  # fraction of the published std
+    idle_time: tuple[float, float] = (0.2, 0.6)  # s
+    navigation_seconds: float = 30.0  # time limit of a navigation phase
+    manipulation_seconds: float = 20.0  # time limit of a manipulation phase
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    prompt: str
+    plan: tuple  # ("nav",) or ("reach", arms, grip) with grip in {"grasp", "release", "press"}
+    colour: tuple[int, int, int]  # the task's objects
+
+
+TASKS = (
+    Task("put the soda can from the living room floor into the trash can",
+         (("nav",), ("reach", ("right",), "grasp"), ("nav",), ("reach", ("right",), "release")),
+         (40, 170, 60)),
+    Task("put the book from the coffee table onto the shelf",
+         (("nav",), ("reach", ("left",), "grasp"), ("nav",), ("reach", ("left",), "release")),
+         (60, 90, 200)),
+    Task("turn on the radio receiver on the table",
+         (("nav",), ("reach", ("right",), "press")), (200, 50, 40)),
+    Task("move the storage box from the living room to the garage",
+         (("nav",), ("reach", ("left", "right"), "grasp"), ("nav",),
+          ("reach", ("left", "right"), "release")), (150, 110, 60)),
+    Task("bring the two water bottles from the fridge to the counter",
+         (("nav",), ("reach", ("right",), "grasp"), ("reach", ("left",), "grasp"), ("nav",),
+          ("reach", ("left", "right"), "release")), (60, 190, 210)),
+)
+
+
+def phase_kind(step: tuple) -> str:
+    """"navigation" or "manipulation" for a step of a task plan."""
+    return "navigation" if step[0] == "nav" else "manipulation"
+
+
+def _reach_maps() -> dict[str, np.ndarray]:
+    """The robot's fixed hand-offset -> joint maps M, [7, 3] per arm (the same for every seed):
+    N(0, 1) entries drawn once from seed 1234, each row scaled by its joint's published std over
+    the arm's mean std (joints with a narrow range in B1K move less)."""
+    rng = np.random.default_rng(1234)
+    jacobians = {arm: rng.normal(size=(7, 3)) for arm in ARMS}
+    joint_scale = {"left": _LEFT_ARM[1] / _LEFT_ARM[1].mean(),
+                   "right": _RIGHT_ARM[1] / _RIGHT_ARM[1].mean()}
+    return {arm: joint_scale[arm][:, None] * jacobians[arm] for arm in ARMS}
+
+
+_REACH_MAPS = _reach_maps()
+_HAND_MAPS = {arm: np.linalg.pinv(m) for arm, m in _REACH_MAPS.items()}  # [3, 7]
+
+
+def reach_map(spec: DemoSpec, arm: str) -> np.ndarray:
+    """M [7, 3]: joint change (rad) per hand-frame offset."""
+    return spec.jacobian_scale * _REACH_MAPS[arm]
+
+
+def hand_offset(spec: DemoSpec, arm: str, dq: np.ndarray) -> np.ndarray:
+    """[3] hand displacement (hand-frame units) of a joint change dq [7]: M^+ dq."""
+    return _HAND_MAPS[arm] @ dq / spec.jacobian_scale
+
+
+def _low_discrepancy(index: int, dims: int, seed: int) -> np.ndarray:
+    """[dims] standard-normal draws for episode `index`, spread evenly over episodes (an additive
+    recurrence with irrational steps, offset by the seed), clipped to the 1%-99% quantiles."""
+    steps = np.sqrt(np.array([2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59]))
+    offsets = np.random.default_rng([seed, 7]).random(dims)
+    uniform = (offsets + (index + 1) * steps[:dims]) % 1.0
+    normal = statistics.NormalDist()
+    return np.clip([normal.inv_cdf(float(u)) for u in uniform], -2.33, 2.33)
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeLayout:
+    """What the world draws for one episode, before any action.
+
+    arm: {arm: [7]} and torso [3] posture; phases: one dict per plan step, navigation
+    {"bearing", "distance"}, manipulation {"offsets": {arm: [3]}, "width": m (grasp only)}.
+    """
+
+    task: Task
+    arm: dict
+    torso: np.ndarray
+    phases: tuple
+
+
+def draw_layout(spec: DemoSpec, index: int) -> EpisodeLayout:
+    """Episode `index` of `spec` (depends only on them)."""
+    rng = np.random.default_rng([spec.seed, index, 0])
+    task = TASKS[index % len(TASKS)]
+    z = _low_discrepancy(index, 15, spec.seed)
+    arm = {}
+    for k, (name, stats) in enumerate((("left", _LEFT_ARM), ("right", _RIGHT_ARM))):
+        posture = stats[0] + spec.posture_spread * stats[1] * z[7 * k:7 * k + 7]
+        arm[name] = np.clip(posture, stats[2], stats[3])
+    torso = np.clip(_TORSO[0] + spec.posture_spread * _TORSO[1] * TORSO_LOADING * z[14],
+                    _TORSO[2], _TORSO[3])
+    phases = []
+    for step in task.plan:
+        if step[0] == "nav":
+            behind = rng.random() < spec.behind_fraction
+            bearing = (rng.uniform(-math.pi, math.pi) if behind
+                       else rng.uniform(-spec.front_bearing, spec.front_bearing))
+            phases.append({"bearing": bearing, "distance": rng.uniform(*spec.nav_distance)})
+        else:
+            offsets = {}
+            for name in step[1]:
+                direction = rng.normal(size=3)
+                offsets[name] = (direction / np.linalg.norm(direction)
+                                 * rng.uniform(*spec.reach_offset))
+            phases.append({"offsets": offsets, "width": rng.uniform(*spec.object_width)})
+    return EpisodeLayout(task, arm, torso, tuple(phases))
+
+
+def wrap_angle(angle: float) -> float:
+    """angle in (-pi, pi]."""
+    return math.atan2(math.sin(angle), math.cos(angle))
+
+
+@dataclasses.dataclass
+class PhaseResult:
+    kind: str  # "navigation" | "manipulation"
+    success: bool
+    frames: int  # frames the phase took (to success or to its time limit)
+
+
+class World:
+    """One episode of the demo world (see the module docstring).
+
+    step(action [23]) advances one frame; state() is the 23-D measured state; scene() what the
+    cameras render; results holds a PhaseResult per finished phase; done once the plan is over
+    (the world keeps stepping after that, with nothing left to do).
+    """
+
+    def __init__(self, spec: DemoSpec, index: int):
+        self.spec, self.index, self.dt = spec, index, 1.0 / spec.fps
+        self.layout = draw_layout(spec, index)
+        self.task = self.layout.task
+        self.pose = np.zeros(3)  # x, y, heading
+        self.command = np.zeros(ACTION_DIM)  # the last action
+        self.command[TORSO] = self.layout.torso
+        for arm in ARMS:
+            self.command[ARM[arm]] = self.layout.arm[arm]
+            self.command[GRIPPER[arm]] = 1.0
+        self.gap = {arm: OPEN_GAP for arm in ARMS}  # the fingers' gap
+        self.held = {arm: None for arm in ARMS}  # colour of a held object
+        self._state = self._measured()
+        self.frame = 0
+        self.results: list[PhaseResult] = []
+        self.phase = -1
+        self._start_phase(0)
+
+    # ------------------------------------------------------------------ observations
+
+    @property
+    def done(self) -> bool:
+        return self.phase >= len(self.task.plan)
+
+    @property
+    def phase_step(self) -> tuple | None:
+        return None if self.done else self.task.plan[self.phase]
+
+    def state(self) -> np.ndarray:
+        """[23] float32, the official baseline order."""
+        return self._state.astype(np.float32)
+
+    def relative_target(self) -> np.ndarray:
+        """[2] the current target in the robot frame (m)."""
+        x, y, heading = self.pose
+        c, s = math.cos(heading), math.sin(heading)
+        dx, dy = self.target - (x, y)
+        return np.array([c * dx + s * dy, -s * dx + c * dy])
+
+    def hand(self, arm: str) -> np.ndarray:
+        """[3] the hand's displacement since the manipulation phase started (hand-frame units)."""
+        return hand_offset(self.spec, arm, self._state[STATE_ARM[arm]] - self._home[arm])
+
+    def scene(self) -> dict:
+        """What the cameras see (the renderer's input, `sim.render`)."""
+        marks = {}
+        if not self.done and self.phase_step[0] == "reach":
+            for arm in self.phase_step[1]:
+                if self._outcome[arm] is None:
+                    marks[arm] = (self._offsets[arm] - self.hand(arm), self.task.colour)
+                else:
+                    marks[arm] = (-self.hand(arm), WHITE)
+        return {"target": self.relative_target(), "heading": float(self.pose[2]),
+                "marks": marks, "gap": dict(self.gap), "held": dict(self.held)}
+
+    # ------------------------------------------------------------------ physics
+
+    def _measured(self) -> np.ndarray:
+        """What the sensors read of the last command, in the state order."""
+        measured = np.zeros(STATE_DIM)
+        measured[0:7] = self.command[0:7]
+        for arm in ARMS:
+            measured[STATE_ARM[arm]] = self.command[ARM[arm]]
+            measured[STATE_GAP[arm]] = self.gap[arm]
+        return measured
+
+    def step(self, action: np.ndarray) -> None:
+        """Applies one action [23] for one frame."""
+        action = np.asarray(action, np.float64)
+        if action.shape != (ACTION_DIM,):
+            raise ValueError(f"an action of the demo world is [{ACTION_DIM}], got {action.shape}")
+        closing = {arm: action[GRIPPER[arm]] <= 0 < self.command[GRIPPER[arm]] for arm in ARMS}
+        opening = {arm: self.command[GRIPPER[arm]] <= 0 < action[GRIPPER[arm]] for arm in ARMS}
+        self.command = action.copy()
+        x, y, heading = self.pose
+        c, s = math.cos(heading), math.sin(heading)
+        base = action[BASE]
+        self.pose = np.array([x + (c * base[0] - s * base[1]) * self.dt,
+                              y + (s * base[0] + c * base[1]) * self.dt,
+                              heading + base[2] * self.dt])
+        lag = np.full(STATE_DIM, JOINT_LAG)
+        lag[[STATE_GAP["left"], STATE_GAP["right"]]] = GAP_LAG
+        # The gripper acts on what the hand touches now, before the joints move on.
+        self._grip(closing, opening)
+        self._state = self._state + lag * (self._measured() - self._state)
+        self.frame += 1
+        self._phase_frames += 1
+        if not self.done:
+            self._check_phase()
+
+    def _at_target(self, arm: str) -> bool:
+        return bool(np.linalg.norm(self._offsets[arm] - self.hand(arm)) < self.spec.reach_tolerance)
+
+    def _grip(self, closing: dict, opening: dict) -> None:
+        step = self.phase_step
+        active = step is not None and step[0] == "reach"
+        for arm in ARMS:
+            if closing[arm]:
+                grasps = (active and arm in step[1] and step[2] == "grasp"
+                          and self._outcome[arm] is None and self._at_target(arm))
+                if grasps:
+                    self.held[arm] = self.task.colour
+                    self._outcome[arm] = True
+                self.gap[arm] = self._width if self.held[arm] is not None else 0.0
+            elif opening[arm]:
+                if (active and arm in step[1] and step[2] == "release"
+                        and self._outcome[arm] is None and self.held[arm] is not None):
+                    self._outcome[arm] = self._at_target(arm)  # placed, or dropped elsewhere
+                self.held[arm] = None
+                self.gap[arm] = OPEN_GAP
+
+    # ------------------------------------------------------------------ phases
+
+    def _start_phase(self, phase: int) -> None:
+        self.phase, self._phase_frames = phase, 0
+        if self.done:
+            return
+        draws = self.layout.phases[phase]
+        step = self.task.plan[phase]
+        x, y, heading = self.pose
+        if step[0] == "nav":
+            bearing, distance = draws["bearing"], draws["distance"]
+            self.target = np.array([x + distance * math.cos(heading + bearing),
+                                    y + distance * math.sin(heading + bearing)])
+            self._approach = heading + bearing
+        else:
+            if self.results[-1].kind == "navigation":  # the first phase is a navigation
+                self.target = np.array([x + OBJECT_AHEAD * math.cos(heading),
+                                        y + OBJECT_AHEAD * math.sin(heading)])
+            self._offsets = draws["offsets"]
+            self._width = draws["width"]
+            self._home = {arm: self._state[STATE_ARM[arm]].copy() for arm in ARMS}
+            self._outcome = {arm: None for arm in step[1]}  # True done, False failed
+
+    def _check_phase(self) -> None:
+        step, spec = self.phase_step, self.spec
+        if step[0] == "nav":
+            distance = float(np.linalg.norm(self.relative_target()))
+            heading_error = abs(wrap_angle(2 * (self.pose[2] - self._approach))) / 2
+            stopped = np.abs(self.command[BASE]).max() < spec.stop_speed
+            if distance < spec.arrive_radius and heading_error < spec.heading_tolerance \
+                    and stopped:
+                return self._finish(True)
+            limit = spec.navigation_seconds
+        else:
+            arms = step[1]
+            for arm in arms:
+                if step[2] == "press" and self._outcome[arm] is None and self._at_target(arm):
+                    self._outcome[arm] = True
+            home = all(np.linalg.norm(self.hand(arm)) < spec.reach_tolerance for arm in arms)
+            if all(self._outcome[arm] is not None for arm in arms) and home:
+                held = all(self.held[arm] is not None for arm in arms) if step[2] == "grasp" \
+                    else True
+                return self._finish(all(self._outcome[arm] for arm in arms) and held)
+            limit = spec.manipulation_seconds
+        if self._phase_frames >= limit * spec.fps:
+            self._finish(False)
+
+    def _finish(self, success: bool) -> None:
+        self.results.append(PhaseResult(phase_kind(self.phase_step), success, self._phase_frames))
+        self._start_phase(self.phase + 1)
