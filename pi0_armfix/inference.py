@@ -195,6 +195,15 @@ class RunPolicy:
         Raises:
           ValueError naming the key and what it should be, for a malformed observation.
         """
+        observation, state = self.model_inputs(observations)
+        rng = jax.random.fold_in(self._key, self._draws)
+        self._draws += 1
+        return self.absolute(np.asarray(self._sample(self.run.params, rng, observation)), state)
+
+    def model_inputs(self, observations: Sequence[Mapping[str, Any]]
+                     ) -> tuple[dict[str, Any], np.ndarray]:
+        """The model's observation batch (what `data.batching.BatchTransform` makes of a training
+        sample) and the selected state `[B, S]` in the dataset's units."""
         if not observations:
             raise ValueError("infer needs at least one observation")
         stored = np.stack([self._state(o) for o in observations])
@@ -208,17 +217,18 @@ class RunPolicy:
         batch_size = len(observations)
         images = {camera: np.stack([self._image(o, key) for o in observations])
                   for key, camera in self.keys.cameras.items()}
-        observation = {
+        return {
             "image": images,
             "image_mask": {camera: np.ones(batch_size, bool) for camera in images},
             "state": transforms.pad_last(normalized, self.layout.action_dim),
             "tokenized_prompt": np.stack(tokens).astype(np.int32),
             "tokenized_prompt_mask": np.stack(masks).astype(bool),
-        }
-        rng = jax.random.fold_in(self._key, self._draws)
-        self._draws += 1
-        actions = self.action_norm.inverse(np.asarray(self._sample(self.run.params, rng,
-                                                                   observation)))
+        }, state
+
+    def absolute(self, actions: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Normalized chunks `[B, H, >= real_dim]` sampled at the selected `state` `[B, S]` ->
+        absolute actions float32 `[B, H, real_dim]` in the dataset's units."""
+        actions = self.action_norm.inverse(actions)
         if self.delta_mask is not None:
             actions = transforms.from_delta(actions, state, self.delta_mask)
         return actions.astype(np.float32)

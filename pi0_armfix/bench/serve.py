@@ -1,0 +1,105 @@
+"""Policy server latency: openpi's client against `python -m pi0_armfix.serve` over localhost.
+
+    python -m pi0_armfix.bench serve [--workdir=RUN] [--requests=200] [--warmup=5] [--port=0]
+
+The server runs in its own process on RUN's latest checkpoint (no --workdir: a 2-step run of
+`configs/uniform.py` on the demo preset is trained into a temporary folder first; latency does not
+depend on the weights). The client is `openpi_client.WebsocketClientPolicy`, sending observations
+of the demo world (`pi0_armfix.sim.env`, episode 0, one frame each); it prints the round trip per
+`infer` (p50, p95, mean, max) and the server's own `infer_ms`, after `--warmup` untimed requests
+(the first compiles the sampler).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m pi0_armfix.bench serve")
+    parser.add_argument("--workdir", default="", help="run folder ('' = train a 2-step demo run)")
+    parser.add_argument("--requests", type=int, default=200)
+    parser.add_argument("--warmup", type=int, default=5)
+    parser.add_argument("--port", type=int, default=0, help="0 = a free port")
+    return parser.parse_args(argv[1:])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _train_demo_run(folder: Path) -> Path:
+    workdir = folder / "run"
+    subprocess.run([sys.executable, "-m", "pi0_armfix.train", "--config=configs/uniform.py",
+                    f"--workdir={workdir}", "--config.train.total_steps=2",
+                    "--config.train.checkpoint_every=2", "--config.eval.every=0"],
+                   cwd=REPO_ROOT, check=True, capture_output=True)
+    return workdir
+
+
+def start_server(workdir: Path, port: int, timeout: float = 300) -> subprocess.Popen:
+    """`python -m pi0_armfix.serve` in its own process, returned once /healthz answers."""
+    server = subprocess.Popen(
+        [sys.executable, "-m", "pi0_armfix.serve", f"--workdir={workdir}", "--host=127.0.0.1",
+         f"--port={port}"], cwd=REPO_ROOT, env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)),
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if server.poll() is not None:
+            raise RuntimeError(f"the server exited:\n{server.stdout.read()}")
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=1):
+                return server
+        except OSError:
+            time.sleep(0.2)
+    server.kill()
+    raise RuntimeError(f"the server did not answer on port {port} within {timeout} s")
+
+
+def main(argv: list[str]) -> None:
+    args = _parse(argv)
+    from openpi_client.websocket_client_policy import WebsocketClientPolicy
+
+    from pi0_armfix.sim.env import DemoWorldEnv
+
+    with tempfile.TemporaryDirectory() as folder:
+        workdir = Path(args.workdir) if args.workdir else _train_demo_run(Path(folder))
+        port = args.port or _free_port()
+        server = start_server(workdir, port)
+        try:
+            client = WebsocketClientPolicy(host="127.0.0.1", port=port)
+            meta = client.get_server_metadata()
+            env = DemoWorldEnv()
+            observation, _ = env.reset(seed=0)
+            for _ in range(args.warmup):
+                client.infer(observation)
+            round_trip, server_ms = [], []
+            for _ in range(args.requests):
+                start = time.perf_counter()
+                result = client.infer(observation)
+                round_trip.append(1000 * (time.perf_counter() - start))
+                server_ms.append(result["server_timing"]["infer_ms"])
+        finally:
+            server.terminate()
+            server.wait(30)
+    rt, sv = np.array(round_trip), np.array(server_ms)
+    print(f"policy server, {meta['model']} preset (H = {meta['action_horizon']}), step "
+          f"{meta['step']}, {args.requests} requests over localhost (openpi-client):")
+    print(f"  round trip per infer: p50 {np.percentile(rt, 50):.2f} ms, p95 "
+          f"{np.percentile(rt, 95):.2f} ms, mean {rt.mean():.2f} ms, max {rt.max():.2f} ms")
+    print(f"  server infer_ms:      p50 {np.percentile(sv, 50):.2f} ms, p95 "
+          f"{np.percentile(sv, 95):.2f} ms")

@@ -1,0 +1,150 @@
+"""A trained run as a policy server that speaks openpi's websocket protocol.
+
+    python -m pi0_armfix.serve --workdir=runs/arm_focused [--step=N] [--port=8000] \
+        [--keys=observation/egocentric_camera=base_0_rgb,...,observation/state=state,prompt=prompt]
+
+Any openpi client works against it (`openpi_client.websocket_client_policy.WebsocketClientPolicy`,
+B1K's evaluation harness): on connect the server sends its metadata; then every binary message is
+an observation dict, answered by `{"actions": float32 [H, A], "server_timing": {"infer_ms"}}`,
+actions absolute and in the dataset's units (`pi0_armfix.inference.RunPolicy`). Messages are
+msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
+read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
+message naming the problem (openpi's client raises it as a RuntimeError); the connection and the
+server stay up. `GET /healthz` answers 200 (openpi's health check).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import http
+import logging
+import time
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+import msgpack
+import numpy as np
+from absl import app, flags
+from websockets.asyncio import server as ws_server
+
+from pi0_armfix import console
+from pi0_armfix import inference
+
+
+# ---------------------------------------------------------------------- openpi's msgpack encoding
+
+def _pack_array(obj: Any) -> Any:
+    if isinstance(obj, (np.ndarray, np.generic)) and obj.dtype.kind in ("V", "O", "c"):
+        raise ValueError(f"unsupported dtype {obj.dtype}")
+    if isinstance(obj, np.ndarray):
+        return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str,
+                b"shape": obj.shape}
+    if isinstance(obj, np.generic):
+        return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
+    return obj
+
+
+def _unpack_array(obj: dict) -> Any:
+    if b"__ndarray__" in obj:
+        return np.ndarray(buffer=obj[b"data"], dtype=np.dtype(obj[b"dtype"]),
+                          shape=obj[b"shape"])
+    if b"__npgeneric__" in obj:
+        return np.dtype(obj[b"dtype"]).type(obj[b"data"])
+    return obj
+
+
+pack = functools.partial(msgpack.packb, default=_pack_array)
+unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
+
+
+# ---------------------------------------------------------------------- the server
+
+class PolicyServer:
+    """Serves `policy` (a `RunPolicy`, or anything with `infer([obs]) -> [1, H, A]` and
+    `metadata()`) to websocket clients, one request at a time."""
+
+    def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000):
+        self.policy, self.host, self.port = policy, host, port
+        self._metadata = pack(policy.metadata())
+
+    def answer(self, message: bytes | str) -> bytes | str:
+        """One request -> the packed actions, or the error text (never raises)."""
+        try:
+            if isinstance(message, str):
+                raise ValueError("requests are binary msgpack messages, got a text message")
+            try:
+                observation = unpack(message)
+            except Exception as e:  # msgpack raises several types for garbage
+                raise ValueError(f"the request is not msgpack ({type(e).__name__}: {e})") from e
+            if not isinstance(observation, dict):
+                raise ValueError(f"the request must be an observation dict, got "
+                                 f"{type(observation).__name__}")
+            start = time.monotonic()
+            actions = self.policy.infer([observation])[0]
+            return pack({"actions": actions,
+                         "server_timing": {"infer_ms": 1000 * (time.monotonic() - start)}})
+        except ValueError as e:
+            return f"pi0_armfix.serve: {e}"
+        except Exception:  # a bug of ours: report it, keep serving
+            return f"pi0_armfix.serve: internal error\n{traceback.format_exc()}"
+
+    async def _handle(self, websocket) -> None:
+        await websocket.send(self._metadata)
+        async for message in websocket:
+            await websocket.send(self.answer(message))
+
+    @staticmethod
+    def _health(connection, request):
+        if request.path == "/healthz":
+            return connection.respond(http.HTTPStatus.OK, "OK\n")
+        return None
+
+    async def serve(self, ready: asyncio.Event | None = None) -> None:
+        """Serves until cancelled; sets `ready` once listening (and `self.port` to the bound
+        port, for port 0)."""
+        async with ws_server.serve(self._handle, self.host, self.port, compression=None,
+                                   max_size=None, process_request=self._health) as server:
+            self.port = server.sockets[0].getsockname()[1]
+            if ready is not None:
+                ready.set()
+            await server.serve_forever()
+
+
+def main(argv: Sequence[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments {argv[1:]}")
+    FLAGS = flags.FLAGS
+    console.quiet_library_logging()
+    logging.getLogger("websockets").setLevel(logging.WARNING)
+    try:
+        policy = inference.RunPolicy.from_workdir(
+            FLAGS.workdir, FLAGS.step, FLAGS.params,
+            keys=inference.ObservationKeys.parse(FLAGS.keys))
+    except ValueError as e:
+        raise SystemExit(f"pi0_armfix.serve: {e}") from None
+    server = PolicyServer(policy, FLAGS.host, FLAGS.port)
+    meta = policy.metadata()
+    print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
+          f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "
+          f"{meta['observation_keys']}", flush=True)
+    asyncio.run(server.serve())
+
+
+def cli() -> None:
+    """`python -m pi0_armfix.serve`."""
+    flags.DEFINE_string("workdir", None, "run folder (holds checkpoints/)", required=True)
+    flags.DEFINE_integer("step", None, "checkpoint step (default: the latest)")
+    flags.DEFINE_enum("params", "ema", ["ema", "params"],
+                      "the EMA params (when the run kept them) or the raw params")
+    flags.DEFINE_string("host", "0.0.0.0", "interface to listen on")
+    flags.DEFINE_integer("port", 8000, "port to listen on")
+    flags.DEFINE_string("keys", "", "observation key mapping key=role,... (role: a batch camera "
+                        "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state' or 'prompt'); "
+                        "'' = B1K's openpi keys")
+    app.run(main)
+
+
+if __name__ == "__main__":
+    cli()
