@@ -1,7 +1,8 @@
 """Every config x every seed -> one table with the spread over seeds: which lever fixes the arms?
 
     python -m pi0_armfix.study --configs=uniform,arm_focused,arm_delta --seeds=3 \
-        [--steps=1500] [--workdir=runs/study] [--parallel=1] [--override=data.root=/data/b1k]
+        [--steps=1500] [--workdir=runs/study] [--parallel=1] [--override=data.root=/data/b1k] \
+        [--closed_loop_episodes=50]
 
 Each (config, seed) trains in its own run folder `<workdir>/<config>/seed_<s>` through
 `python -m pi0_armfix.train` (`--config.seed=s`, `--config.train.total_steps=steps`, one
@@ -14,6 +15,12 @@ rerunning the same command finishes a study. The results of all finished runs ar
               baseline) with a 95 % bootstrap interval over seeds, and the targets it meets.
   study.json  every run's metrics and every aggregate.
   study.png   per-group motion gain, mean with the seeds' spread as error bars.
+
+Closed loop (`--closed_loop_episodes=N`, default 50; 0 = off): every run's final checkpoint also
+drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N`, the same N
+episodes for every run), and study.md / study.png add the success of navigation, manipulation and
+the whole task (episodes whose every phase of that kind succeeded), mean ± std over seeds, with
+the difference to the baseline. A finished run without them gets them on the next call.
 
 A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1k`); every
 `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
@@ -48,6 +55,8 @@ from pi0_armfix.training import metrics as metrics_lib  # noqa: E402
 RESULT_FILE = "result.json"
 BOOTSTRAP_RESAMPLES = 2000
 SWITCH_METRICS = ("precision", "recall", "f1")
+CLOSED_LOOP = "closed_loop/"  # prefix of the closed-loop metrics of a run
+CLOSED_LOOP_KINDS = ("navigation", "manipulation", "task")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,18 +95,35 @@ def final_evaluation(folder: Path) -> dict[str, float]:
     return records[-1]
 
 
-def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequence[str]
-            ) -> dict[str, Any]:
-    """Trains (or resumes) one run and writes its `result.json`; returns the result."""
-    folder = run_folder(workdir, config, seed)
-    folder.mkdir(parents=True, exist_ok=True)
-    command = train_command(config, seed, steps, folder, overrides)
+def _logged(command: list[str], folder: Path, what: str) -> None:
+    """Runs `command`, its output appended to the run's `train.log`; raises on failure."""
     with open(folder / "train.log", "a") as log:
         done = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, env=os.environ)
     if done.returncode:
         tail = (folder / "train.log").read_text().splitlines()[-5:]
-        raise RuntimeError(f"{config} seed {seed} failed (exit {done.returncode}); the end of "
+        raise RuntimeError(f"{what} failed (exit {done.returncode}); the end of "
                            f"{folder / 'train.log'}:\n" + "\n".join(tail))
+
+
+def closed_loop_metrics(folder: Path, steps: int, episodes: int) -> dict[str, float]:
+    """Runs the closed-loop evaluation of a run's step `steps` (`pi0_armfix.evaluate
+    --closed_loop`) and returns its rates as `closed_loop/<name>` metrics."""
+    _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
+             f"--step={steps}", "--closed_loop", f"--episodes={episodes}"], folder,
+            f"the closed-loop evaluation of {folder}")
+    saved = json.loads((folder / "eval" / f"step_{steps}" / "closed_loop.json").read_text())
+    return {CLOSED_LOOP + k: v for k, v in saved.items()
+            if k.startswith(("success/", "phase_success/", "seconds_to")) or k == "episodes"}
+
+
+def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequence[str],
+            closed_loop_episodes: int = 0) -> dict[str, Any]:
+    """Trains (or resumes) one run, evaluates it in closed loop when asked, and writes its
+    `result.json`; returns the result."""
+    folder = run_folder(workdir, config, seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    _logged(train_command(config, seed, steps, folder, overrides), folder,
+            f"{config} seed {seed}")
     evaluation = final_evaluation(folder)
     if evaluation["step"] != steps:
         raise RuntimeError(f"{folder}: the last evaluation is of step {evaluation['step']}, "
@@ -105,6 +131,18 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
     layout = json.loads((folder / "config.json").read_text())["layout"]
     result = {"config": config, "seed": seed, "steps": steps, "layout": layout,
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
+    stats_lib.write_json_atomic(folder / RESULT_FILE, result)
+    return add_closed_loop(result, folder, closed_loop_episodes)
+
+
+def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict[str, Any]:
+    """The result with the closed-loop metrics of `episodes` episodes (measured now when it has
+    none of that many; `result.json` rewritten)."""
+    if episodes <= 0 or result["metrics"].get(CLOSED_LOOP + "episodes") == episodes:
+        return result
+    result = {**result, "metrics": {
+        **{k: v for k, v in result["metrics"].items() if not k.startswith(CLOSED_LOOP)},
+        **closed_loop_metrics(folder, result["steps"], episodes)}}
     stats_lib.write_json_atomic(folder / RESULT_FILE, result)
     return result
 
@@ -115,14 +153,17 @@ def load_result(folder: Path) -> dict[str, Any] | None:
 
 
 def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir: Path,
-              overrides: Sequence[str] = (), parallel: int = 1) -> list[dict[str, Any]]:
-    """Every (config, seed) run, the finished ones read back, the others trained."""
+              overrides: Sequence[str] = (), parallel: int = 1, closed_loop_episodes: int = 0
+              ) -> list[dict[str, Any]]:
+    """Every (config, seed) run, the finished ones read back (and evaluated in closed loop when
+    they were not), the others trained."""
     results, todo = {}, []
     for seed in seeds:  # seed-major: an interrupted study has every config's first seeds
         for config in configs:
             result = load_result(run_folder(workdir, config, seed))
             if result is not None and result["steps"] == steps:
-                results[config, seed] = result
+                results[config, seed] = add_closed_loop(
+                    result, run_folder(workdir, config, seed), closed_loop_episodes)
             elif result is not None:
                 raise ValueError(f"{run_folder(workdir, config, seed)} finished {result['steps']} "
                                  f"steps, not --steps={steps}: use another --workdir")
@@ -133,7 +174,8 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
               f"{len(todo)} ({parallel} at a time), logs in {workdir}/<config>/seed_<s>/train.log",
               flush=True)
     with concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool:
-        futures = {pool.submit(run_one, c, s, steps, workdir, overrides): (c, s) for c, s in todo}
+        futures = {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes):
+                   (c, s) for c, s in todo}
         for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures),
                            desc="study runs", unit="run"):
             results[futures[future]] = future.result()
@@ -213,6 +255,13 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
                                            relative=True),
             "switch_f1": bootstrap_interval(values["switch_f1"], base_values["switch_f1"]),
         }
+        for kind in CLOSED_LOOP_KINDS:
+            key = f"{CLOSED_LOOP}success/{kind}"
+            runs = [r for r in results if r["config"] == config]
+            base_runs = [r for r in results if r["config"] == baseline]
+            if all(key in r["metrics"] for r in runs + base_runs):
+                entry["vs_baseline"][key] = bootstrap_interval(
+                    [r["metrics"][key] for r in runs], [r["metrics"][key] for r in base_runs])
         mean = entry["mean"]
         entry["targets"] = {
             "arm_gain": bool(mean["arm_gain"] >= targets.arm_gain),
@@ -287,14 +336,42 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         lines.append(f"| {name} | {_interval(vs['arm_gain'])} | "
                      f"{_interval(vs['base_err'], percent=True)} | {_interval(vs['switch_f1'])} | "
                      f"{'all' if all(met.values()) else ', '.join(met_names) or 'none'} |")
+    if any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values()):
+        lines += closed_loop_table(study)
     return "\n".join(lines) + "\n"
+
+
+def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
+    """study.md's closed-loop section: success per kind, mean ± std over seeds, vs the baseline."""
+    configs = study["configs"]
+    episodes = {c["mean"].get(CLOSED_LOOP + "episodes") for c in configs.values()}
+    lines = ["", "## Closed loop in the demo world (`pi0_armfix.sim`)", "",
+             f"{', '.join(str(int(e)) for e in sorted(e for e in episodes if e))} episodes per "
+             "seed (world seed 1000, never trained on); an episode succeeds at navigation "
+             "(manipulation) when every navigation (manipulation) phase of its task does. Success "
+             "rate, mean ± std over seeds; then the difference to the baseline [95 % bootstrap].",
+             "", "| config | navigation | manipulation | task | manipulation phases | "
+             "vs baseline: navigation | manipulation | task |", "|---" * 8 + "|"]
+    for name, c in configs.items():
+        vs = c["vs_baseline"]
+        diffs = [_interval(vs[f"{CLOSED_LOOP}success/{k}"]) if f"{CLOSED_LOOP}success/{k}" in vs
+                 else "n/a" for k in CLOSED_LOOP_KINDS]
+        lines.append(f"| {name} | " + " | ".join(
+            _cell(c, f"{CLOSED_LOOP}success/{k}") for k in CLOSED_LOOP_KINDS)
+            + f" | {_cell(c, CLOSED_LOOP + 'phase_success/manipulation')} | "
+            + " | ".join(diffs) + " |")
+    return lines
 
 
 def plot_study(study: Mapping[str, Any], path: Path) -> None:
     """`study.png`: per-group motion gain, one bar per config, std over seeds as error bars."""
     groups, configs = study["groups"], study["configs"]
     width = 0.8 / len(configs)
-    fig, ax = plt.subplots(figsize=(max(8, 1.6 * len(groups) + 0.25 * len(configs)), 4.8))
+    closed = any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values())
+    fig, axes = plt.subplots(1, 2 if closed else 1, squeeze=False, gridspec_kw={
+        "width_ratios": [len(groups), len(CLOSED_LOOP_KINDS)] if closed else [1]},
+        figsize=(max(8, 1.6 * len(groups) + 0.25 * len(configs)) + (4 if closed else 0), 4.8))
+    ax = axes[0, 0]
     x = np.arange(len(groups))
     for i, (name, c) in enumerate(configs.items()):
         means = [c["mean"].get(f"motion_gain/{g}") for g in groups]
@@ -308,6 +385,17 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
     ax.set(ylabel="held-out motion gain (1 = like the data)",
            title=f"motion gain per group, mean ± std over seeds (baseline: {study['baseline']})")
     ax.grid(axis="y", alpha=0.3)
+    if closed:
+        ax = axes[0, 1]
+        x = np.arange(len(CLOSED_LOOP_KINDS))
+        for i, (name, c) in enumerate(configs.items()):
+            keys = [f"{CLOSED_LOOP}success/{k}" for k in CLOSED_LOOP_KINDS]
+            ax.bar(x + (i - (len(configs) - 1) / 2) * width,
+                   [np.nan if c["mean"].get(k) is None else c["mean"][k] for k in keys], width,
+                   yerr=[c["std"].get(k) or 0 for k in keys], capsize=2, label=name)
+        ax.set_xticks(x, CLOSED_LOOP_KINDS)
+        ax.set(ylim=(0, 1.05), ylabel="success rate", title="closed loop (demo world)")
+        ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -350,7 +438,7 @@ def main(argv: Sequence[str]) -> None:
     command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])
     try:
         results = run_study(configs, list(range(FLAGS.seeds)), FLAGS.steps, workdir,
-                            FLAGS.override, FLAGS.parallel)
+                            FLAGS.override, FLAGS.parallel, FLAGS.closed_loop_episodes)
     except (RuntimeError, ValueError) as err:
         raise SystemExit(f"pi0_armfix.study: {err}") from None
     write_reports(results, workdir, steps=FLAGS.steps, command=command)
@@ -373,6 +461,8 @@ def cli() -> None:
     flags.DEFINE_string("workdir", "runs/study", "study folder (one run folder per config/seed)")
     flags.DEFINE_integer("parallel", 1, "runs trained at the same time")
     flags.DEFINE_multi_string("override", [], "key=value passed to every run as --config.key")
+    flags.DEFINE_integer("closed_loop_episodes", 50, "episodes of the demo world each run's "
+                         "final checkpoint drives (0: no closed-loop evaluation)")
     app.run(main)
 
 

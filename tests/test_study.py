@@ -53,11 +53,29 @@ def test_reports_are_written_and_name_every_config(tmp_path):
     assert (tmp_path / "study.png").stat().st_size > 10_000
 
 
+def test_closed_loop_success_gets_its_own_table_with_the_difference_to_the_baseline(tmp_path):
+    results = []
+    for config, manipulation in (("uniform", (0.1, 0.2)), ("arm_focused", (0.5, 0.6))):
+        for seed, rate in enumerate(manipulation):
+            result = _result(config, seed, 0.1)
+            result["metrics"] |= {"closed_loop/episodes": 50, "closed_loop/success/task": rate / 2,
+                                  "closed_loop/success/navigation": 0.9,
+                                  "closed_loop/success/manipulation": rate,
+                                  "closed_loop/phase_success/manipulation": rate}
+            results.append(result)
+    agg = study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    diff = agg["configs"]["arm_focused"]["vs_baseline"]["closed_loop/success/manipulation"]
+    assert diff[0] == pytest.approx(0.4)
+    text = (tmp_path / "study.md").read_text()
+    assert "## Closed loop in the demo world" in text and "50 episodes per seed" in text
+    assert "| arm_focused | 0.900 ± 0.000 | 0.550 ± 0.071 |" in text
+
+
 def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir, demo_root):
     overrides = {k: v for k, v in tf.tiny_overrides(demo_root).items()
                  if not k.startswith("train.total_steps") and k != "eval.every"}
     command = [sys.executable, "-m", "pi0_armfix.study", "--configs=uniform", "--seeds=2",
-               "--steps=2", f"--workdir={tmp_path}",
+               "--steps=2", f"--workdir={tmp_path}", "--closed_loop_episodes=1",
                *[f"--override={k}={v}" for k, v in overrides.items()]]
     first = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
                            cwd=tf.REPO_ROOT)
@@ -66,6 +84,9 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     results = json.loads((tmp_path / "study.json").read_text())["runs"]
     assert [r["seed"] for r in results] == [0, 1]
     assert results[0]["metrics"] != results[1]["metrics"]  # the seed reaches the run
+    assert results[0]["metrics"]["closed_loop/episodes"] == 1
+    assert "## Closed loop in the demo world" in first.stdout
     again = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
                            cwd=tf.REPO_ROOT)
     assert again.returncode == 0 and "training" not in again.stdout
+    assert again.stdout.count("| uniform |") == first.stdout.count("| uniform |")
