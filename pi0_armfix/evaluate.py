@@ -392,12 +392,35 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     return step, metrics, layout
 
 
+class ReplanningPolicy:
+    """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
+    `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
+    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting)."""
+
+    def __init__(self, policy: inference.RunPolicy, n_exec: int, follow_tail: bool):
+        self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
+
+    def start(self, envs):
+        self._tails: dict[int, np.ndarray] = {}
+
+    def __call__(self, active, observations):
+        follow = None
+        if self.follow_tail and all(i in self._tails for i in active):
+            follow = np.stack([self._tails[i] for i in active])
+        chunks = self.policy.infer(observations, follow=follow)
+        for i, chunk in zip(active, chunks):
+            self._tails[i] = chunk[self.n_exec:]
+        return chunks
+
+
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
-                episodes: int = 50, n_exec: int = 0, sim_seed: int = env_lib.EVAL_SEED,
-                progress: bool = True) -> tuple[int, dict[str, Any]]:
+                episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
+                sim_seed: int = env_lib.EVAL_SEED, progress: bool = True
+                ) -> tuple[int, dict[str, Any]]:
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
-    world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon);
-    writes `closed_loop.json` and `rollouts.png` (against the scripted expert) into
+    world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
+    each chunk following the last one's unexecuted tail when `follow_tail`; writes
+    `closed_loop[_rtc].json` and `rollouts[_rtc].png` (against the scripted expert) into
     `<workdir>/eval/step_<N>/`. Returns `(step, summary)` (`sim.rollout.summarize`)."""
     policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
     run = policy_.run
@@ -405,18 +428,15 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
                          "takes the 23-D B1K action (layout b1k_r1pro)")
     n_exec = n_exec or max(policy_.horizon // 2, 1)
+    if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
+        raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
+                         "with --rtc: the tail to follow)")
     spec = DemoSpec(seed=sim_seed)
-
-    class _Learned:
-        def start(self, envs):
-            pass
-
-        def __call__(self, active, observations):
-            return policy_.infer(observations)
-
-    records = rollout_lib.rollout(_Learned(), range(episodes), spec=spec, n_exec=n_exec,
+    records = rollout_lib.rollout(ReplanningPolicy(policy_, n_exec, follow_tail), range(episodes),
+                                  spec=spec, n_exec=n_exec,
                                   progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
+               "follow_tail": follow_tail,
                "sim_seed": sim_seed, **rollout_lib.summarize(records),
                "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
                                     "seconds": r.seconds,
@@ -424,13 +444,20 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                    for r in records]}
     out = run.workdir / "eval" / f"step_{run.step}"
     out.mkdir(parents=True, exist_ok=True)
-    (out / CLOSED_LOOP_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+    suffix = "_rtc" if follow_tail else ""
+    (out / closed_loop_file(follow_tail)).write_text(json.dumps(summary, indent=2) + "\n")
     shown = records[:ROLLOUT_ROWS]
     expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
                                  spec=spec, progress=False)
-    rollout_lib.plot_rollouts(shown, expert, out / "rollouts.png",
-                              f"step {run.step}: closed loop, n_exec {n_exec}")
+    rollout_lib.plot_rollouts(shown, expert, out / f"rollouts{suffix}.png",
+                              f"step {run.step}: closed loop, n_exec {n_exec}"
+                              + (", following the unexecuted tail" if follow_tail else ""))
     return run.step, summary
+
+
+def closed_loop_file(follow_tail: bool) -> str:
+    """`closed_loop.json`, or `closed_loop_rtc.json` for the variant that follows the tail."""
+    return CLOSED_LOOP_FILE.replace(".json", "_rtc.json" if follow_tail else ".json")
 
 
 def main(argv: Sequence[str]) -> None:
@@ -442,13 +469,15 @@ def main(argv: Sequence[str]) -> None:
         try:
             step, summary = closed_loop(FLAGS.workdir, FLAGS.step, FLAGS.params,
                                         episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
-                                        sim_seed=FLAGS.sim_seed)
+                                        follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed)
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
         print(rollout_lib.format_summary(summary))
         out = epath.Path(FLAGS.workdir) / "eval" / f"step_{step}"
-        print(f"results in {out / CLOSED_LOOP_FILE}; rollouts in {out / 'rollouts.png'}")
+        suffix = "_rtc" if FLAGS.rtc else ""
+        print(f"results in {out / closed_loop_file(FLAGS.rtc)}; rollouts in "
+              f"{out / f'rollouts{suffix}.png'}")
         return
     try:
         step, metrics, layout = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params)
@@ -471,6 +500,8 @@ def cli() -> None:
     flags.DEFINE_integer("episodes", 50, "closed loop: episodes of the demo world")
     flags.DEFINE_integer("n_exec", 0, "closed loop: actions executed per sampled chunk before "
                          "replanning (0: half the action horizon)")
+    flags.DEFINE_bool("rtc", False, "closed loop: each new chunk softly follows the unexecuted "
+                      "tail of the previous one (real-time chunking's soft inpainting)")
     flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
                          "episodes (the demo dataset is seed 0)")
     app.run(main)

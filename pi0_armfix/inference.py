@@ -134,6 +134,17 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
                        "ema_params" if use_ema else "params", norm_stats_from_json(norm_stats))
 
 
+def soft_mask(horizon: int, overlap: int, delay: int = 0) -> np.ndarray:
+    """Real-time chunking's soft mask `[horizon]` (Black et al., 2025): 1 on the first `delay`
+    steps (executed while the new chunk is computed), then c (e^c - 1) / (e - 1) with
+    c = (overlap - i) / (overlap - delay + 1) decaying over the rest of the `overlap` steps that
+    the previous chunk still covers, 0 after."""
+    i = np.arange(horizon)
+    c = (overlap - i) / (overlap - delay + 1)
+    decay = c * np.expm1(c) / np.expm1(1.0)
+    return np.where(i < delay, 1.0, np.where(i < overlap, decay, 0.0))
+
+
 class RunPolicy:
     """Observations -> absolute action chunks `[B, H, real_dim]` in the dataset's units.
 
@@ -189,16 +200,37 @@ class RunPolicy:
                                      self.keys.state: "state", self.keys.prompt: "prompt"},
                 "actions": "absolute, in the dataset's units"}
 
-    def infer(self, observations: Sequence[Mapping[str, Any]]) -> np.ndarray:
+    def infer(self, observations: Sequence[Mapping[str, Any]],
+              follow: np.ndarray | None = None) -> np.ndarray:
         """`observations` (one dict per robot) -> actions float32 `[B, H, real_dim]`.
 
+        Args:
+          follow: `[B, k, real_dim]` absolute actions (dataset units) the new chunks should start
+            with, softly (`soft_mask`: real-time chunking's weights, no inference delay), e.g. the
+            unexecuted tail of the previous chunks; None samples freely.
         Raises:
           ValueError naming the key and what it should be, for a malformed observation.
         """
         observation, state = self.model_inputs(observations)
         rng = jax.random.fold_in(self._key, self._draws)
         self._draws += 1
-        return self.absolute(np.asarray(self._sample(self.run.params, rng, observation)), state)
+        kwargs = {}
+        if follow is not None:
+            kwargs = self._inpaint(np.asarray(follow, np.float32), state)
+        return self.absolute(np.asarray(self._sample(self.run.params, rng, observation,
+                                                     **kwargs)), state)
+
+    def _inpaint(self, follow: np.ndarray, state: np.ndarray) -> dict[str, np.ndarray]:
+        batch, overlap = follow.shape[:2]
+        if not 0 < overlap < self.horizon or follow.shape[2] != self.layout.real_dim:
+            raise ValueError(f"follow must be [B, k, {self.layout.real_dim}] with 0 < k < "
+                             f"H = {self.horizon}, got {follow.shape}")
+        chunk = np.concatenate([follow, np.repeat(follow[:, -1:], self.horizon - overlap, 1)], 1)
+        if self.delta_mask is not None:
+            chunk = transforms.to_delta(chunk, state, self.delta_mask)
+        weights = np.broadcast_to(soft_mask(self.horizon, overlap), (batch, self.horizon))
+        return {"inpaint": transforms.pad_last(self.action_norm(chunk), self.layout.action_dim),
+                "inpaint_weights": weights.astype(np.float32)}
 
     def model_inputs(self, observations: Sequence[Mapping[str, Any]]
                      ) -> tuple[dict[str, Any], np.ndarray]:

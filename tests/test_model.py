@@ -212,6 +212,21 @@ def test_sampling_integrates_the_velocity_with_euler_steps(params):
     np.testing.assert_allclose(sampled, x, atol=1e-5)
 
 
+def test_soft_inpainting_pins_full_weight_steps_and_leaves_zero_weight_steps_free(params):
+    noise, _ = _noise_and_time()
+    obs = _observation()
+    target = np.random.default_rng(3).standard_normal(noise.shape).astype(np.float32)
+    weights = np.zeros((BATCH, TINY.action_horizon), np.float32)
+    weights[:, :2] = 1.0
+    free = policy.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise)
+    guided = policy.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise,
+                                   inpaint=target, inpaint_weights=weights)
+    np.testing.assert_allclose(guided[:, :2], target[:, :2], atol=1e-5)
+    unguided = policy.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise,
+                                     inpaint=target, inpaint_weights=np.zeros_like(weights))
+    np.testing.assert_allclose(unguided, free, atol=1e-6)
+
+
 def test_sampling_is_deterministic_given_the_rng(params):
     a = policy.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
     b = policy.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)

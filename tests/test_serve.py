@@ -141,6 +141,24 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
     assert (out / "rollouts.png").stat().st_size > 10_000
 
 
+def test_real_time_chunking_weights_decay_over_the_overlap_to_zero():
+    weights = inference.soft_mask(horizon=8, overlap=4)
+    assert weights[4:].tolist() == [0.0] * 4
+    assert np.all(np.diff(weights[:5]) < 0) and 0.5 < weights[0] < 1.0
+    assert inference.soft_mask(8, 4, delay=2)[:2].tolist() == [1.0, 1.0]
+
+
+def test_closed_loop_with_real_time_chunking_follows_the_tail(run, cache_dir):  # noqa: F811
+    result = subprocess.run(
+        [sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={run}", "--closed_loop",
+         "--episodes=1", "--rtc"], env=tf.env(cache_dir), cwd=tf.REPO_ROOT,
+        capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    saved = json.loads((run / "eval" / "step_2" / "closed_loop_rtc.json").read_text())
+    assert saved["follow_tail"] is True and saved["n_exec"] == 2
+    assert (run / "eval" / "step_2" / "rollouts_rtc.png").exists()
+
+
 def test_server_latency_benchmark_prints_percentiles(run, cache_dir):  # noqa: F811
     result = subprocess.run(
         [sys.executable, "-m", "pi0_armfix.bench", "serve", f"--workdir={run}", "--requests=4",

@@ -5,7 +5,7 @@
   velocity(params, observation, x_t, t, *, config) -> v [B, H, A]
   compute_loss(params, rng, batch, *, config, layout, train, **loss_kwargs) -> (loss, aux)
   sample_actions(params, rng, observation, *, config, num_steps=10, noise=None,
-                 use_kv_cache=True) -> actions [B, H, A]
+                 use_kv_cache=True, inpaint=None, inpaint_weights=None) -> actions [B, H, A]
 
 `observation` / `batch` are the dicts of CONTRACT.md (raw uint8 cameras at any resolution; the
 model converts, resizes and, for training, augments them). Parameters are float32; activations
@@ -115,7 +115,9 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache"))
 def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any], *,
                    config: Pi0Config, num_steps: int = 10, noise: jax.Array | None = None,
-                   use_kv_cache: bool = True, noise_factor: jax.Array | None = None) -> jax.Array:
+                   use_kv_cache: bool = True, noise_factor: jax.Array | None = None,
+                   inpaint: jax.Array | None = None, inpaint_weights: jax.Array | None = None
+                   ) -> jax.Array:
     """Integrates the flow from t = 1 (noise) to t = 0 with `num_steps` Euler steps.
 
     Args:
@@ -125,6 +127,10 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
       use_kv_cache: run the prefix once and reuse its keys / values at every step; False
         recomputes the full prefix + suffix forward each step (same result, for checking).
       noise_factor: the correlated noise's Cholesky factor the policy was trained with, or None.
+      inpaint, inpaint_weights: soft inpainting (the real-time-chunking family): after every
+        Euler step to time t, x_t <- w * (t * noise + (1 - t) * inpaint) + (1 - w) * x_t, so the
+        chunk follows the actions `inpaint` [B, H, A] (normalized) with weight w [B, H] in [0, 1]
+        (1: exactly, 0: free), e.g. the unexecuted tail of the previous chunk.
     Returns:
       actions [B, H, A] float32 (normalized, padded like the training targets).
     """
@@ -147,7 +153,13 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
     def step(_, carry):
         x_t, t = carry
         v = flow(x_t, jnp.broadcast_to(t, (batch_size,)))
-        return x_t + dt * v, t + dt
+        x_next, t_next = x_t + dt * v, t + dt
+        if inpaint is not None:
+            t_next = jnp.maximum(t_next, 0.0)
+            known = t_next * noise + (1.0 - t_next) * inpaint
+            w = inpaint_weights[..., None]
+            x_next = w * known + (1.0 - w) * x_next
+        return x_next, t_next
 
     actions, _ = jax.lax.fori_loop(0, num_steps, step, (noise.astype(jnp.float32), jnp.float32(1.0)))
     return actions
