@@ -113,7 +113,8 @@ def closed_loop_metrics(folder: Path, steps: int, episodes: int) -> dict[str, fl
             f"the closed-loop evaluation of {folder}")
     saved = json.loads((folder / "eval" / f"step_{steps}" / "closed_loop.json").read_text())
     return {CLOSED_LOOP + k: v for k, v in saved.items()
-            if k.startswith(("success/", "phase_success/", "seconds_to")) or k == "episodes"}
+            if k.startswith(("success/", "phase_success/", "progress/", "seconds_to"))
+            or k == "episodes"}
 
 
 def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequence[str],
@@ -350,16 +351,19 @@ def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
              "seed (world seed 1000, never trained on); an episode succeeds at navigation "
              "(manipulation) when every navigation (manipulation) phase of its task does. Success "
              "rate, mean ± std over seeds; then the difference to the baseline [95 % bootstrap].",
-             "", "| config | navigation | manipulation | task | manipulation phases | "
-             "vs baseline: navigation | manipulation | task |", "|---" * 8 + "|"]
+             " Progress: how far a phase got, 1 - closest approach / start distance (base to "
+             "target, hand to its target offset), mean over phases.", "",
+             "| config | navigation | manipulation | task | navigation progress | manipulation "
+             "progress | vs baseline: navigation | manipulation | task |", "|---" * 9 + "|"]
     for name, c in configs.items():
         vs = c["vs_baseline"]
         diffs = [_interval(vs[f"{CLOSED_LOOP}success/{k}"]) if f"{CLOSED_LOOP}success/{k}" in vs
                  else "n/a" for k in CLOSED_LOOP_KINDS]
         lines.append(f"| {name} | " + " | ".join(
             _cell(c, f"{CLOSED_LOOP}success/{k}") for k in CLOSED_LOOP_KINDS)
-            + f" | {_cell(c, CLOSED_LOOP + 'phase_success/manipulation')} | "
-            + " | ".join(diffs) + " |")
+            + " | " + " | ".join(_cell(c, f"{CLOSED_LOOP}progress/{k}")
+                                 for k in CLOSED_LOOP_KINDS[:2])
+            + " | " + " | ".join(diffs) + " |")
     return lines
 
 

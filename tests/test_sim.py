@@ -83,7 +83,9 @@ def test_a_manipulation_phase_that_runs_out_of_time_fails_and_the_world_moves_on
     expert = _to_manipulation(world)
     phase = world.phase
     _hold(world, expert.act(), SPEC.fps + 1)
-    assert world.results[-1] == world_lib.PhaseResult("manipulation", False, SPEC.fps)
+    result = world.results[-1]
+    assert (result.kind, result.success, result.frames) == ("manipulation", False, SPEC.fps)
+    assert result.progress < 0.2  # the hand stood still
     assert world.phase == phase + 1 and world.phase_step[0] == "nav"
 
 
@@ -132,4 +134,4 @@ def test_a_demo_episode_is_the_expert_recorded_in_the_world():
         np.testing.assert_allclose(episode["actions"][t], action, atol=1e-6)
         world.step(action)
     assert expert.act() is not None and expert.finished
-    assert all(r.success for r in episode["results"])
+    assert all(r.success and r.progress > 0.8 for r in episode["results"])

@@ -68,7 +68,7 @@ def test_closed_loop_success_gets_its_own_table_with_the_difference_to_the_basel
     assert diff[0] == pytest.approx(0.4)
     text = (tmp_path / "study.md").read_text()
     assert "## Closed loop in the demo world" in text and "50 episodes per seed" in text
-    assert "| arm_focused | 0.900 ± 0.000 | 0.550 ± 0.071 |" in text
+    assert "| arm_focused | 0.900 ± 0.000 | 0.550 ± 0.071 | 0.275 ± 0.035 | n/a |" in text
 
 
 def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir, demo_root):

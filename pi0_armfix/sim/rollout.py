@@ -142,24 +142,29 @@ def rollout(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec, n_e
 
 def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
     """Success rates over episodes (`success/<kind>`: every phase of that kind succeeded), over
-    phases (`phase_success/<kind>`), and the mean seconds to a successful task."""
+    phases (`phase_success/<kind>`), the phases' mean progress (`progress/<kind>`, see
+    `PhaseResult`) and the mean seconds to a successful task."""
     summary: dict[str, Any] = {"episodes": len(records)}
     for kind in KINDS:
         summary[f"success/{kind}"] = float(np.mean([r.success[kind] for r in records]))
     for kind in KINDS[:2]:
-        phases = [p.success for r in records for p in r.results if p.kind == kind]
-        summary[f"phase_success/{kind}"] = float(np.mean(phases)) if phases else float("nan")
+        phases = [p for r in records for p in r.results if p.kind == kind]
+        for name, value in (("phase_success", lambda p: p.success), ("progress",
+                                                                    lambda p: p.progress)):
+            summary[f"{name}/{kind}"] = (float(np.mean([value(p) for p in phases])) if phases
+                                         else float("nan"))
     done = [r.seconds for r in records if r.success["task"]]
     summary["seconds_to_success"] = float(np.mean(done)) if done else float("nan")
     return summary
 
 
 def format_summary(summary: dict[str, Any]) -> str:
-    lines = [f"{'':<14}{'episodes':>10}{'phases':>10}"]
+    """Success over episodes and over phases, and the phases' mean progress, per kind."""
+    lines = [f"{'':<14}{'episodes':>10}{'phases':>10}{'progress':>10}"]
     for kind in KINDS:
-        phase = summary.get(f"phase_success/{kind}")
+        cells = [summary.get(f"{name}/{kind}") for name in ("phase_success", "progress")]
         lines.append(f"{kind:<14}{summary[f'success/{kind}']:>10.3f}"
-                     + (f"{phase:>10.3f}" if phase is not None else f"{'':>10}"))
+                     + "".join(f"{c:>10.3f}" if c is not None else f"{'':>10}" for c in cells))
     lines.append(f"{summary['episodes']} episodes; mean time to task success "
                  f"{summary['seconds_to_success']:.1f} s")
     return "\n".join(lines)
@@ -184,10 +189,11 @@ def plot_rollouts(records: Sequence[EpisodeRecord], expert: Sequence[EpisodeReco
                                              start=1):
             ax = axes[row, col]
             for j, colour in zip(joints, ("C1", "C2")):
-                ax.plot(np.arange(len(theirs.arms)) / 30, theirs.arms[:, j], "--", color=colour,
-                        alpha=0.6)
-                ax.plot(np.arange(len(mine.arms)) / 30, mine.arms[:, j], "-", color=colour,
-                        label=f"joint {j % 7}")
+                for record, style in ((theirs, "--"), (mine, "-")):
+                    seconds = np.linspace(0, record.seconds, len(record.arms))
+                    ax.plot(seconds, record.arms[:, j], style, color=colour,
+                            alpha=0.6 if style == "--" else 1.0,
+                            label=f"joint {j % 7}" if style == "-" else None)
             ax.set_title(f"{name} (policy solid, expert dashed)", fontsize=9)
             ax.set_xlabel("s")
             ax.legend(fontsize=7, loc="upper right")

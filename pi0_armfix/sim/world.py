@@ -238,9 +238,14 @@ def wrap_angle(angle: float) -> float:
 
 @dataclasses.dataclass
 class PhaseResult:
+    """`progress`: how far the robot got, 1 - the closest approach over the start distance
+    (navigation: to the target; manipulation: the hand to its target offset, mean over the
+    phase's arms), in [0, 1]: a graded view of phases that mostly fail."""
+
     kind: str  # "navigation" | "manipulation"
     success: bool
     frames: int  # frames the phase took (to success or to its time limit)
+    progress: float = 0.0
 
 
 class World:
@@ -376,6 +381,7 @@ class World:
             self.target = np.array([x + distance * math.cos(heading + bearing),
                                     y + distance * math.sin(heading + bearing)])
             self._approach = heading + bearing
+            self._start_gap = {"base": distance}
         else:
             if self.results[-1].kind == "navigation":  # the first phase is a navigation
                 self.target = np.array([x + OBJECT_AHEAD * math.cos(heading),
@@ -384,11 +390,14 @@ class World:
             self._width = draws["width"]
             self._home = {arm: self._state[STATE_ARM[arm]].copy() for arm in ARMS}
             self._outcome = {arm: None for arm in step[1]}  # True done, False failed
+            self._start_gap = {arm: float(np.linalg.norm(self._offsets[arm])) for arm in step[1]}
+        self._closest = dict(self._start_gap)
 
     def _check_phase(self) -> None:
         step, spec = self.phase_step, self.spec
         if step[0] == "nav":
             distance = float(np.linalg.norm(self.relative_target()))
+            self._closest["base"] = min(self._closest["base"], distance)
             heading_error = abs(wrap_angle(2 * (self.pose[2] - self._approach))) / 2
             stopped = np.abs(self.command[BASE]).max() < spec.stop_speed
             if distance < spec.arrive_radius and heading_error < spec.heading_tolerance \
@@ -398,6 +407,9 @@ class World:
         else:
             arms = step[1]
             for arm in arms:
+                if self._outcome[arm] is None:
+                    remaining = float(np.linalg.norm(self._offsets[arm] - self.hand(arm)))
+                    self._closest[arm] = min(self._closest[arm], remaining)
                 if step[2] == "press" and self._outcome[arm] is None and self._at_target(arm):
                     self._outcome[arm] = True
             home = all(np.linalg.norm(self.hand(arm)) < spec.reach_tolerance for arm in arms)
@@ -410,5 +422,8 @@ class World:
             self._finish(False)
 
     def _finish(self, success: bool) -> None:
-        self.results.append(PhaseResult(phase_kind(self.phase_step), success, self._phase_frames))
+        progress = np.mean([max(0.0, 1.0 - self._closest[k] / self._start_gap[k])
+                            for k in self._start_gap])
+        self.results.append(PhaseResult(phase_kind(self.phase_step), success, self._phase_frames,
+                                        float(progress)))
         self._start_phase(self.phase + 1)
