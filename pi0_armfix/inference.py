@@ -196,8 +196,8 @@ class RunPolicy:
                 "action_dim": self.layout.real_dim,
                 "action_groups": {g: list(map(int, v)) for g, v in self.layout.groups.items()},
                 "state_width": self.stored_state_width,
-                "observation_keys": {**{k: v for k, v in self.keys.cameras.items()},
-                                     self.keys.state: "state", self.keys.prompt: "prompt"},
+                "observation_keys": {**self.keys.cameras, self.keys.state: "state",
+                                     self.keys.prompt: "prompt"},
                 "actions": "absolute, in the dataset's units"}
 
     def infer(self, observations: Sequence[Mapping[str, Any]],
