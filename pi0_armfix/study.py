@@ -350,8 +350,8 @@ def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
              f"{', '.join(str(int(e)) for e in sorted(e for e in episodes if e))} episodes per "
              "seed (world seed 1000, never trained on); an episode succeeds at navigation "
              "(manipulation) when every navigation (manipulation) phase of its task does. Success "
-             "rate, mean ± std over seeds; then the difference to the baseline [95 % bootstrap].",
-             " Progress: how far a phase got, 1 - closest approach / start distance (base to "
+             "rate, mean ± std over seeds; then the difference to the baseline [95 % bootstrap]. "
+             "Progress: how far a phase got, 1 - closest approach / start distance (base to "
              "target, hand to its target offset), mean over phases.", "",
              "| config | navigation | manipulation | task | navigation progress | manipulation "
              "progress | vs baseline: navigation | manipulation | task |", "|---" * 9 + "|"]
