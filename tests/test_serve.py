@@ -17,7 +17,7 @@ from websockets.sync.client import connect
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import inference, serve
+from pi0_armfix import evaluate, inference, serve
 from pi0_armfix.data import batching, sources
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.sim.env import DemoWorldEnv
@@ -148,14 +148,20 @@ def test_real_time_chunking_weights_decay_over_the_overlap_to_zero():
     assert inference.soft_mask(8, 4, delay=2)[:2].tolist() == [1.0, 1.0]
 
 
-def test_closed_loop_with_real_time_chunking_follows_the_tail(run, cache_dir):  # noqa: F811
-    result = subprocess.run(
-        [sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={run}", "--closed_loop",
-         "--episodes=1", "--rtc"], env=tf.env(cache_dir), cwd=tf.REPO_ROOT,
-        capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-3000:]
+def test_closed_loop_with_real_time_chunking_follows_the_tail(run, monkeypatch):
+    asked = []
+    infer = inference.RunPolicy.infer
+
+    def recording_infer(self, observations, follow=None):
+        asked.append(follow)
+        return infer(self, observations, follow=follow)
+
+    monkeypatch.setattr(inference.RunPolicy, "infer", recording_infer)
+    _, summary = evaluate.closed_loop(run, episodes=1, follow_tail=True, progress=False)
+    assert summary["follow_tail"] is True and summary["n_exec"] == 2
+    assert asked[0] is None and all(f.shape == (1, 2, 23) for f in asked[1:])
     saved = json.loads((run / "eval" / "step_2" / "closed_loop_rtc.json").read_text())
-    assert saved["follow_tail"] is True and saved["n_exec"] == 2
+    assert saved["follow_tail"] is True
     assert (run / "eval" / "step_2" / "rollouts_rtc.png").exists()
 
 
