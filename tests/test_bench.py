@@ -53,3 +53,9 @@ def test_model_benchmark_runs_every_part_and_k_flow_samples_cost_less_per_sample
     flops = {line.split()[0]: float(line.split()[-2].rstrip("x"))
              for line in out.splitlines() if "GFLOP per sample" in line}
     assert flops["K=1"] == 1.0 and flops["K=4"] < 0.6  # one prefix pass for four samples
+
+
+def test_sim_benchmark_prints_the_expert_bound_and_the_step_rate(tmp_path):
+    out = _bench(tmp_path, "sim", "--episodes=3", "--policies=expert")
+    assert "== expert: 3 episodes" in out and "env steps/s" in out
+    assert "task               1.000" in out

@@ -3,7 +3,7 @@
 import importlib
 import sys
 
-BENCHMARKS = ("data", "faults", "model", "serve", "train", "video")
+BENCHMARKS = ("data", "faults", "model", "serve", "sim", "train", "video")
 
 
 def main(argv: list[str]) -> None:
