@@ -175,7 +175,7 @@ class RunPolicy:
                                                       self.horizon)
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
         self.tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
-        self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.tokens = batching.PromptTokens(self.tokenize)
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
         self._sample = functools.partial(
             policy.sample_actions, config=run.model_config,
@@ -241,11 +241,7 @@ class RunPolicy:
         stored = np.stack([self._state(o) for o in observations])
         state = self.selection(stored) if self.selection is not None else stored
         normalized = self.state_norm(state)
-        prompts = [self._prompt(o) for o in observations]
-        if getattr(self.tokenize, "state_in_prompt", False):
-            tokens, masks = zip(*map(self.tokenize, prompts, normalized))
-        else:
-            tokens, masks = zip(*map(self._tokenized, prompts))
+        tokens, masks = self.tokens([self._prompt(o) for o in observations], normalized)
         batch_size = len(observations)
         images = {camera: np.stack([self._image(o, key) for o in observations])
                   for key, camera in self.keys.cameras.items()}
@@ -253,8 +249,8 @@ class RunPolicy:
             "image": images,
             "image_mask": {camera: np.ones(batch_size, bool) for camera in images},
             "state": transforms.pad_last(normalized, self.layout.action_dim),
-            "tokenized_prompt": np.stack(tokens).astype(np.int32),
-            "tokenized_prompt_mask": np.stack(masks).astype(bool),
+            "tokenized_prompt": tokens,
+            "tokenized_prompt_mask": masks,
         }, state
 
     def absolute(self, actions: np.ndarray, state: np.ndarray) -> np.ndarray:
@@ -297,8 +293,3 @@ class RunPolicy:
             raise ValueError(f"observation[{key!r}] must be a uint8 image [h, w, 3], got "
                              f"{image.dtype} {image.shape}")
         return image
-
-    def _tokenized(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
-        if prompt not in self._tokens:
-            self._tokens[prompt] = self.tokenize(prompt)
-        return self._tokens[prompt]

@@ -11,19 +11,15 @@ from pi0_armfix.data import demo
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout
 from pi0_armfix.sim import world as world_lib
-from pi0_armfix.sim.expert import ScriptedTeleoperator
+from pi0_armfix.sim.expert import ScriptedTeleoperator, demonstration
 
 SPEC = world_lib.DemoSpec(seed=env_lib.EVAL_SEED)
 GRASP_TASK = 0  # soda can: nav, right grasp, nav, right release
 
 
-def _run_expert(world: world_lib.World, max_frames: int = 20_000) -> None:
-    expert = ScriptedTeleoperator(world)
-    for _ in range(max_frames):
-        action = expert.act()
-        if expert.finished:
-            return
-        world.step(action)
+def _run_expert(world: world_lib.World) -> None:
+    for _ in demonstration(world):
+        pass
 
 
 def _to_manipulation(world: world_lib.World) -> ScriptedTeleoperator:

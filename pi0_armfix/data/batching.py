@@ -7,7 +7,7 @@ batch needs), the chunk gather, delta actions, normalization and padding; then t
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -45,6 +45,29 @@ def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: 
     return transforms.pad_last(normalizer((actions.q01 + actions.q99) / 2), layout.action_dim)
 
 
+class PromptTokens:
+    """Prompts -> `(tokens int32 [B, L], masks bool [B, L])` with a run's tokenizer: once per
+    distinct prompt (cached), or, for a `state_in_prompt` tokenizer (pi0.5), per sample as
+    `tokenize(prompt, state)` with the sample's normalized state (real dims, before padding)."""
+
+    def __init__(self, tokenize: Tokenize):
+        self.tokenize = tokenize
+        self._cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, prompts: Sequence[str], state: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        if getattr(self.tokenize, "state_in_prompt", False):
+            tokens, masks = zip(*map(self.tokenize, prompts, state))
+        else:
+            tokens, masks = zip(*map(self._cached, prompts))
+        return np.stack(tokens).astype(np.int32), np.stack(masks).astype(bool)
+
+    def _cached(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
+        if prompt not in self._cache:
+            self._cache[prompt] = self.tokenize(prompt)
+        return self._cache[prompt]
+
+
 class BatchTransform:
     """Frame indices of a table -> a numpy batch of the contract.
 
@@ -57,9 +80,7 @@ class BatchTransform:
       action_horizon: H.
       delta_mask: `[A]` bool relative action dims, or None.
       tokenize: `tokenize(prompt) -> (tokens int32 [L], mask bool [L])`; required unless
-        `actions_only`. Called once per distinct prompt (cached); a tokenizer with
-        `state_in_prompt` (pi0.5) is called per sample as `tokenize(prompt, state)` with the
-        sample's normalized state (real dims, before padding).
+        `actions_only`; called as `PromptTokens` says.
       actions_only: only `state`, `actions`, `action_is_pad` (no images, no prompt).
       image_size: (height, width) of the zero images of the cameras no stored camera feeds when
         the dataset has none at all (they are masked out; the model resizes them anyway).
@@ -84,13 +105,12 @@ class BatchTransform:
         self.action_dim = layout.action_dim
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
-        self.tokenize = tokenize
+        self.tokens = None if actions_only else PromptTokens(tokenize)
         self.actions_only = actions_only
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
         self.action_norm = action_normalizer(norm_stats, layout.real_dim, norm_mode,
                                              self.horizon)
         self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)
-        self._tokens: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, frames: np.ndarray) -> dict[str, Any]:
         """frames: `[b]` frame indices of the table -> batch (see the team contract)."""
@@ -108,12 +128,7 @@ class BatchTransform:
         }
         if not self.actions_only:
             prompts = [self.table.tasks[e] for e in self.table.episode_of_frame(frames)]
-            if getattr(self.tokenize, "state_in_prompt", False):
-                tokens, masks = zip(*map(self.tokenize, prompts, state))
-            else:
-                tokens, masks = zip(*map(self._tokenized, prompts))
-            batch["tokenized_prompt"] = np.stack(tokens).astype(np.int32)
-            batch["tokenized_prompt_mask"] = np.stack(masks).astype(bool)
+            batch["tokenized_prompt"], batch["tokenized_prompt_mask"] = self.tokens(prompts, state)
             batch["image"], batch["image_mask"] = self._images(frames)
         return batch
 
@@ -126,11 +141,6 @@ class BatchTransform:
             actions = transforms.from_delta(actions, self.table.state[np.asarray(frames)],
                                             self.delta_mask)
         return actions
-
-    def _tokenized(self, prompt: str) -> tuple[np.ndarray, np.ndarray]:
-        if prompt not in self._tokens:
-            self._tokens[prompt] = self.tokenize(prompt)
-        return self._tokens[prompt]
 
     def _images(self, frames: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Every batch camera: the stored one, or zeros masked out where none feeds it."""

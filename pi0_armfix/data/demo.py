@@ -41,7 +41,7 @@ from tqdm import tqdm
 from pi0_armfix.cache import build_lock, cache_root, digest
 from pi0_armfix.data.lerobot_writer import LeRobotWriter
 from pi0_armfix.sim import render
-from pi0_armfix.sim.expert import ScriptedTeleoperator
+from pi0_armfix.sim.expert import demonstration
 from pi0_armfix.sim.world import TASKS, DemoSpec, World  # noqa: F401 (TASKS: the demo's tasks)
 
 DEMO_VERSION = "demo-v2"  # v2: recorded from the world of pi0_armfix.sim
@@ -56,16 +56,11 @@ def generate_episode(spec: DemoSpec, index: int) -> dict:
     "task": prompt, "images": {camera name: uint8 [n, S, S, 3]}, "results": [PhaseResult]}.
     Depends only on (spec, index)."""
     world = World(spec, index)
-    operator = ScriptedTeleoperator(world)
     scenes, states, actions = [], [], []
-    while True:
-        action = operator.act()
-        if operator.finished:
-            break
+    for action in demonstration(world):
         scenes.append(world.scene())
         states.append(world.state())
         actions.append(action)
-        world.step(action)
     images = render.render(scenes, world.task.colour, spec.image_size)
     return {"actions": np.asarray(actions, np.float32), "state": np.asarray(states, np.float32),
             "task": world.task.prompt, "results": world.results,

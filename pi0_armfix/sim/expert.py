@@ -137,3 +137,15 @@ class ScriptedTeleoperator:
                 self.arm[arm] = start[arm] + (1 - s) * moves[arm]
             self.torso = torso + (1 - s) * bend
             yield self._action()
+
+
+def demonstration(world: World) -> Iterator[np.ndarray]:
+    """The expert's actions in `world` until its script ends, the world stepped after each: when
+    an action is yielded the world is still as the expert saw it (a recorder reads it then)."""
+    expert = ScriptedTeleoperator(world)
+    while True:
+        action = expert.act()
+        if expert.finished:
+            return
+        yield action
+        world.step(action)

@@ -25,7 +25,8 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from pi0_armfix.sim import env as env_lib  # noqa: E402
-from pi0_armfix.sim.world import ACTION_DIM, STATE_ARM, DemoSpec, PhaseResult  # noqa: E402
+from pi0_armfix.sim.expert import demonstration  # noqa: E402
+from pi0_armfix.sim.world import ACTION_DIM, STATE_ARM, DemoSpec, PhaseResult, World  # noqa: E402
 
 KINDS = ("navigation", "manipulation", "task")
 
@@ -59,14 +60,14 @@ class ZeroPolicy:
 
 
 class RecordedChunkPolicy:
-    """Replays a random chunk of `horizon` recorded actions of the demo dataset (seed 0), whatever
-    the observation: motion of the right kind and size, at the wrong time and place."""
+    """Replays a random chunk of `horizon` recorded actions of the demo dataset (seed 0, its
+    first `episodes` episodes), whatever the observation: motion of the right kind and size, at
+    the wrong time and place."""
 
     def __init__(self, horizon: int, seed: int = 0, episodes: int = 10):
-        from pi0_armfix.data import demo  # the generator records the expert in the world
-
-        spec = DemoSpec(num_episodes=episodes)
-        self.actions = [demo.generate_episode(spec, i)["actions"] for i in range(episodes)]
+        # The demo dataset's actions are the expert's demonstrations in the world of seed 0.
+        self.actions = [np.asarray(list(demonstration(World(DemoSpec(), i))), np.float32)
+                        for i in range(episodes)]
         self.horizon, self.rng = horizon, np.random.default_rng(seed)
 
     def start(self, envs):
