@@ -45,11 +45,10 @@ from absl import app, flags
 from etils import epath
 from tqdm import tqdm
 
-from pi0_armfix import console
+from pi0_armfix import console, inference
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import batching, sources, transforms
-from pi0_armfix import inference
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy
@@ -442,22 +441,24 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                     "seconds": r.seconds,
                                     "phases": [dataclasses.asdict(p) for p in r.results]}
                                    for r in records]}
-    out = run.workdir / "eval" / f"step_{run.step}"
-    out.mkdir(parents=True, exist_ok=True)
-    suffix = "_rtc" if follow_tail else ""
-    (out / closed_loop_file(follow_tail)).write_text(json.dumps(summary, indent=2) + "\n")
+    results_path, figure_path = closed_loop_paths(run.workdir, run.step, follow_tail)
+    results_path.parent.mkdir(parents=True, exist_ok=True)
+    results_path.write_text(json.dumps(summary, indent=2) + "\n")
     shown = records[:ROLLOUT_ROWS]
     expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
                                  spec=spec, progress=False)
-    rollout_lib.plot_rollouts(shown, expert, out / f"rollouts{suffix}.png",
+    rollout_lib.plot_rollouts(shown, expert, figure_path,
                               f"step {run.step}: closed loop, n_exec {n_exec}"
                               + (", following the unexecuted tail" if follow_tail else ""))
     return run.step, summary
 
 
-def closed_loop_file(follow_tail: bool) -> str:
-    """`closed_loop.json`, or `closed_loop_rtc.json` for the variant that follows the tail."""
-    return CLOSED_LOOP_FILE.replace(".json", "_rtc.json" if follow_tail else ".json")
+def closed_loop_paths(workdir: epath.PathLike, step: int, follow_tail: bool
+                      ) -> tuple[epath.Path, epath.Path]:
+    """`eval/step_<N>/closed_loop.json` and `rollouts.png` of a run (`_rtc` before the suffix
+    for the variant that follows the tail)."""
+    out, tag = epath.Path(workdir) / "eval" / f"step_{step}", "_rtc" if follow_tail else ""
+    return out / CLOSED_LOOP_FILE.replace(".json", f"{tag}.json"), out / f"rollouts{tag}.png"
 
 
 def main(argv: Sequence[str]) -> None:
@@ -474,10 +475,8 @@ def main(argv: Sequence[str]) -> None:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
         print(rollout_lib.format_summary(summary))
-        out = epath.Path(FLAGS.workdir) / "eval" / f"step_{step}"
-        suffix = "_rtc" if FLAGS.rtc else ""
-        print(f"results in {out / closed_loop_file(FLAGS.rtc)}; rollouts in "
-              f"{out / f'rollouts{suffix}.png'}")
+        results_path, figure_path = closed_loop_paths(FLAGS.workdir, step, FLAGS.rtc)
+        print(f"results in {results_path}; rollouts in {figure_path}")
         return
     try:
         step, metrics, layout = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params)

@@ -256,10 +256,8 @@ class RunPolicy:
     def absolute(self, actions: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Normalized chunks `[B, H, >= real_dim]` sampled at the selected `state` `[B, S]` ->
         absolute actions float32 `[B, H, real_dim]` in the dataset's units."""
-        actions = self.action_norm.inverse(actions)
-        if self.delta_mask is not None:
-            actions = transforms.from_delta(actions, state, self.delta_mask)
-        return actions.astype(np.float32)
+        return batching.absolute_actions(actions, state, action_norm=self.action_norm,
+                                         delta_mask=self.delta_mask).astype(np.float32)
 
     # ------------------------------------------------------------------ checks
 

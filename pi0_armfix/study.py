@@ -256,10 +256,10 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
                                            relative=True),
             "switch_f1": bootstrap_interval(values["switch_f1"], base_values["switch_f1"]),
         }
+        runs = [r for r in results if r["config"] == config]
+        base_runs = [r for r in results if r["config"] == baseline]
         for kind in CLOSED_LOOP_KINDS:
             key = f"{CLOSED_LOOP}success/{kind}"
-            runs = [r for r in results if r["config"] == config]
-            base_runs = [r for r in results if r["config"] == baseline]
             if all(key in r["metrics"] for r in runs + base_runs):
                 entry["vs_baseline"][key] = bootstrap_interval(
                     [r["metrics"][key] for r in runs], [r["metrics"][key] for r in base_runs])
@@ -337,9 +337,14 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         lines.append(f"| {name} | {_interval(vs['arm_gain'])} | "
                      f"{_interval(vs['base_err'], percent=True)} | {_interval(vs['switch_f1'])} | "
                      f"{'all' if all(met.values()) else ', '.join(met_names) or 'none'} |")
-    if any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values()):
+    if has_closed_loop(configs):
         lines += closed_loop_table(study)
     return "\n".join(lines) + "\n"
+
+
+def has_closed_loop(configs: Mapping[str, Any]) -> bool:
+    """Whether any config of an aggregate has closed-loop metrics."""
+    return any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values())
 
 
 def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
@@ -371,7 +376,7 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
     """`study.png`: per-group motion gain, one bar per config, std over seeds as error bars."""
     groups, configs = study["groups"], study["configs"]
     width = 0.8 / len(configs)
-    closed = any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values())
+    closed = has_closed_loop(configs)
     fig, axes = plt.subplots(1, 2 if closed else 1, squeeze=False, gridspec_kw={
         "width_ratios": [len(groups), len(CLOSED_LOOP_KINDS)] if closed else [1]},
         figsize=(max(8, 1.6 * len(groups) + 0.25 * len(configs)) + (4 if closed else 0), 4.8))

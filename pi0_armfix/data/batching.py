@@ -45,6 +45,18 @@ def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: 
     return transforms.pad_last(normalizer((actions.q01 + actions.q99) / 2), layout.action_dim)
 
 
+def absolute_actions(actions: np.ndarray, state: np.ndarray, *,
+                     action_norm: transforms.Normalizer, delta_mask: np.ndarray | None
+                     ) -> np.ndarray:
+    """Normalized chunks `[b, H, >= A]` sampled at `state` `[b, S]` (the selected state, data
+    units) -> absolute actions `[b, H, A]` in the data's units: normalization undone, then each
+    relative dim of `delta_mask` gets the state back."""
+    actions = action_norm.inverse(actions)
+    if delta_mask is not None:
+        actions = transforms.from_delta(actions, state, delta_mask)
+    return actions
+
+
 class PromptTokens:
     """Prompts -> `(tokens int32 [B, L], masks bool [B, L])` with a run's tokenizer: once per
     distinct prompt (cached), or, for a `state_in_prompt` tokenizer (pi0.5), per sample as
@@ -136,11 +148,8 @@ class BatchTransform:
         """Normalized chunks `[b, H, >= A]` of the chunks starting at `frames` -> absolute actions
         in the data's units `[b, H, A]` (normalization undone, then delta actions: each relative
         dim gets the frame's state back). The inverse of the action part of `__call__`."""
-        actions = self.action_norm.inverse(actions)
-        if self.delta_mask is not None:
-            actions = transforms.from_delta(actions, self.table.state[np.asarray(frames)],
-                                            self.delta_mask)
-        return actions
+        return absolute_actions(actions, self.table.state[np.asarray(frames)],
+                                action_norm=self.action_norm, delta_mask=self.delta_mask)
 
     def _images(self, frames: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Every batch camera: the stored one, or zeros masked out where none feeds it."""
