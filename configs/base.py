@@ -37,12 +37,10 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
 
 def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Torso and arm joints as targets relative to the current state; base velocity and grippers
-    stay absolute (B1K 2025's winners' representation). The state must be in the action order:
-    B1K's `b1k_r1pro` preset at the b1k scale, the demo's 23-D baseline-order state reordered by
-    `b1k_baseline23` at the demo scale."""
+    stay absolute (B1K 2025's winners' representation). The state must be in the action order,
+    as both scales' state presets put it (`b1k_r1pro` at the b1k scale, `b1k_baseline23` for the
+    demo)."""
     config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
-    if not config.data.state_preset:
-        config.data.state_preset = "b1k_baseline23"
     return config
 
 
@@ -65,6 +63,16 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Padded action/state width of the model; 0 = the preset's (32, pi0's). Must equal
     # layout.action_dim; only for actions wider than 32 (pretrained pi0 params need 32).
     config.model.action_dim = 0
+    # Levers against copying the state (pi0 only; pi0.5 writes the state into its prompt):
+    config.model.use_state = True  # False: the no-state ablation (a zero state, train and sample)
+    config.model.state_dropout = 0.0  # P(a training sample's state is zeroed)
+    config.model.state_noise = 0.0  # std of noise on the normalized state in training (DART-style)
+    # Train-time image augmentation (openpi's semantics; crop and rotate touch the head camera
+    # only). The demo's 32 px cameras carry metric cues in pixel positions (1 px of the head
+    # camera is ~5 cm of target distance), so the demo default is colour-only; b1k uses openpi's.
+    config.model.augment = ml_collections.ConfigDict(dict(
+        crop_scale=1.0, rotate_degrees=0.0, brightness=0.3, contrast=0.4, saturation=0.5,
+        hue=0.1, jitter_p=0.5))
 
     config.loss = ml_collections.ConfigDict()
     # uniform | original | per_group | per_dimension | loss_balanced | uncertainty
@@ -102,7 +110,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.state_key = "observation.state"  # LeRobot: the stored state feature
     # LeRobot: a named selection of the stored state into the action order (pi0_armfix.data.
     # selection: 'b1k_r1pro' for B1K's 256-D state, 'b1k_baseline23'); '' = data.state_indices.
-    config.data.state_preset = ""
+    # The demo stores the baseline's 23-D state (grippers last); the preset puts it in the action
+    # order, which delta actions and the state-copy baseline need (the same information).
+    config.data.state_preset = "b1k_baseline23"
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
@@ -151,16 +161,20 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
     config.eval = ml_collections.ConfigDict()
     config.eval.every = 500  # 0 = no evaluation during training
-    config.eval.episodes = 4  # held out: the dataset's last N episodes, never trained on
+    # Held out: the dataset's last N episodes, never trained on. The demo's 20 are 4 of each of
+    # its 5 tasks (episode i runs task i % 5).
+    config.eval.episodes = 20
     config.eval.num_steps = 10  # Euler steps of sample_actions
     config.eval.batch_size = 32
-    config.eval.max_chunks = 256  # chunks drawn from the held-out episodes per evaluation
+    config.eval.max_chunks = 512  # chunks tiling the held-out episodes (each step once), at most
     config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role
     config.eval.switch_tolerance = 2  # steps by which a predicted gripper switch may miss
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
     if scale == "b1k":
         config.model.preset = "pi0"
+        config.model.augment.crop_scale = 0.95  # openpi's train-time augmentation
+        config.model.augment.rotate_degrees = 5.0
         config.model.tokenizer = config_dict.placeholder(str)  # PaliGemma's sentencepiece model
         config.data.root = config_dict.placeholder(str)  # required: a LeRobot B1K root
         config.data.state_preset = "b1k_r1pro"  # B1K 2025's 256-D state -> 23-D, action order

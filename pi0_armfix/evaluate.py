@@ -1,33 +1,22 @@
-"""Held-out evaluation with actions sampled by the policy: is an arm stagnating? (DESIGN §7)
+"""Held-out evaluation with actions sampled by the policy: is an arm stagnating, and does the
+policy do better than doing nothing? (docs/evaluation.md)
 
 During training (every `eval.every` steps) and offline on a checkpoint:
 
     python -m pi0_armfix.evaluate --workdir=runs/arm_focused [--step=N] [--params=ema|params]
 
-The held-out set is the dataset's last `eval.episodes` episodes (never trained on); up to
-`eval.max_chunks` chunks start at evenly spaced frames of them, the same chunks at every
-evaluation, and the policy samples each chunk from the same noise (`eval.num_steps` Euler steps),
-so two evaluations differ only by the params. The sampled chunks are turned back into absolute
-actions in the data's units (normalization and delta actions undone) and every dim is divided by
-its std over the held-out chunks (`evaluation_units`): runs with different normalizations or
-action representations are measured in the same units. Per group g:
-
-  err/<g>                MSE of the sampled chunk against the true chunk.
-  motion_gain/<g>        least-squares slope of predicted on true displacement; 1 = moves as far
-                         as the data, 0 = stagnation (the headline stagnation measure).
-  motion_ratio/<g>       ratio of displacement magnitudes (inflated by sampling noise).
-  gripper_switch/{precision,recall,f1}
-                         gripper open/close switch events of the policy against the data's: a
-                         predicted switch matches a true one of the same direction within
-                         `eval.switch_tolerance` steps, each used once. Recall alone rewards a
-                         gripper that flickers; precision does not.
-
-A displacement is the chunk's last valid action minus its first (the current one); for a velocity
-group of the layout (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean command,
-measured from the zero command (a standing base is 0). A gripper switch is a crossing of the
-midpoint of the dim's held-out 1%/99% quantiles between two consecutive valid steps. Figures:
-predicted vs true trajectories (data units) of the chunks that move the `eval.plot_groups` most,
-and the per-group loss curves of `metrics.jsonl`.
+The held-out set is the dataset's last `eval.episodes` episodes (never trained on). Its chunks
+tile each episode's timeline (`tiled_chunk_starts`: every switch event once), at most
+`eval.max_chunks` of them, the same chunks at every evaluation; the policy samples each from the
+same noise (`eval.num_steps` Euler steps), so two evaluations differ only by the params. The
+sampled chunks are turned back into absolute actions in the data's units (normalization and
+delta actions undone) and every dim is divided by the training split's std of the absolute
+actions (`evaluation_scale`): runs with different normalizations or action representations are
+measured in the same units. The metrics are `pi0_armfix.evaluation.metrics`'s, for the policy
+and for the do-nothing predictors of `pi0_armfix.evaluation.baselines` scored on the same chunks
+(keys `persistence/...`, `state_copy/...`); `skill/<g>` is the policy's error against holding the
+previous action. Figures: predicted vs true trajectories (data units) of the chunks that move the
+`eval.plot_groups` most, and the per-group loss curves of `metrics.jsonl`.
 """
 
 from __future__ import annotations
@@ -49,7 +38,10 @@ from pi0_armfix import console, inference
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import batching, sources, transforms
+from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.evaluation import baselines as baselines_lib
+from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy
 from pi0_armfix.model import tokenizer as tokenizer_lib
@@ -66,146 +58,39 @@ CLOSED_LOOP_FILE = "closed_loop.json"  # of a closed-loop evaluation, in eval/st
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
 
-# ---------------------------------------------------------------------- metrics
+# ---------------------------------------------------------------------- the held-out chunks
 
-def _last_valid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """`x[n, last valid h]` -> `[N, D]` (the tail of a chunk at an episode end is padding)."""
-    last = np.maximum(valid.sum(axis=1) - 1, 0)
-    return x[np.arange(len(x)), last]
+def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int,
+                       batch_size: int) -> np.ndarray:
+    """`[N]` chunk start frames that tile the held-out episodes' timeline without overlap.
 
-
-def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-    """How far a chunk moves, `[N, D]`: last valid action minus the first (the current one) on
-    position dims; the mean over the valid steps on velocity dims, measured from the zero command
-    (a velocity is a motion already; a standing base is 0).
-
-    Args:
-      chunk: `[N, H, D]` in units whose 0 is the zero command (data units, or data units over a
-        scale: see `evaluation_units`); valid: `[N, H]` bool; velocity: `[D]` bool.
+    Chunks start every `H - 1` frames of each episode, so consecutive chunks share one step and
+    every step-to-step transition (where a gripper switch happens) lies in exactly one chunk: each
+    switch event of the data is counted once. When that gives more than `max_chunks`, an evenly
+    spaced subset of the tiles is kept (still without overlap). N is a multiple of `batch_size`.
     """
-    position = _last_valid(chunk, valid) - chunk[:, 0]
-    w = valid[..., None].astype(chunk.dtype)
-    mean = (chunk * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
-    return np.where(velocity, mean, position)
+    stride = max(horizon - 1, 1)
+    tiles = np.concatenate([np.arange(start, stop, stride) for start, stop
+                            in zip(episode_starts[:-1], episode_starts[1:])])
+    num = min(max_chunks, len(tiles)) // batch_size * batch_size
+    keep = np.linspace(0, len(tiles) - 1, num).round().astype(np.int64) if num else []
+    return tiles[keep].astype(np.int64)
 
 
-def switch_events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The gripper switches of chunks: crossings of `threshold` between two consecutive valid steps.
-
-    Args:
-      chunk: `[N, H, D]`; valid: `[N, H]` bool; threshold: `[D]` the open/close boundary.
-    Returns:
-      `(up, down)`, each `[N, D, H]` bool: True at step h when the dim crosses upwards (opens) /
-      downwards (closes) between steps h - 1 and h (h = 0 is always False).
-    """
-    above = chunk > threshold
-    both_valid = (valid[:, 1:] & valid[:, :-1])[..., None]
-    up = ~above[:, :-1] & above[:, 1:] & both_valid
-    down = above[:, :-1] & ~above[:, 1:] & both_valid
-    start = np.zeros_like(up[:, :1])
-    return tuple(np.concatenate([start, x], axis=1).transpose(0, 2, 1) for x in (up, down))
-
-
-def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> int:
-    """Number of true switch events matched one-to-one by a predicted event of the same kind
-    within `tolerance` steps (greedy in time order, each predicted event used once).
-
-    Args:
-      predicted, true: `[..., H]` bool events (one row per chunk, dim and direction).
-    """
-    pred_rows = predicted.reshape(-1, predicted.shape[-1])
-    matched = 0
-    for row, true_row in enumerate(true.reshape(-1, true.shape[-1])):
-        candidates = list(np.flatnonzero(pred_rows[row]))
-        for h in np.flatnonzero(true_row):
-            near = [p for p in candidates if abs(p - h) <= tolerance]
-            if near:
-                candidates.remove(min(near, key=lambda p: abs(p - h)))
-                matched += 1
-    return matched
-
-
-def switch_scores(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
-                  threshold: np.ndarray, tolerance: int) -> dict[str, float]:
-    """Precision, recall and F1 of the predicted gripper switches against the true ones.
-
-    A predicted switch counts when it goes the same way (open / close) as an unmatched true switch
-    of the same chunk and dim within `tolerance` steps. Precision is NaN without any predicted
-    switch, recall without any true switch, F1 (`2 TP / (2 TP + FP + FN)`) without either.
-
-    Args:
-      predicted, true: `[N, H, D]` gripper dims; valid: `[N, H]`; threshold: `[D]`.
-    """
-    pred_events = np.stack(switch_events(predicted, valid, threshold))
-    true_events = np.stack(switch_events(true, valid, threshold))
-    tp = matched_switches(pred_events, true_events, tolerance)
-    num_pred, num_true = int(pred_events.sum()), int(true_events.sum())
-
-    def ratio(num, den):
-        return float(num / den) if den else float("nan")
-
-    return {"gripper_switch/precision": ratio(tp, num_pred),
-            "gripper_switch/recall": ratio(tp, num_true),
-            "gripper_switch/f1": ratio(2 * tp, num_pred + num_true)}
-
-
-def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
-                  layout: ActionLayout, gripper_groups: Sequence[str],
-                  gripper_threshold: np.ndarray, switch_tolerance: int = 2) -> dict[str, float]:
-    """Stagnation metrics of sampled chunks against the true ones (see the module docstring).
-
-    Args:
-      predicted, true: `[N, H, D]` absolute action chunks in evaluation units (D >= real_dim).
-      valid: `[N, H]` bool, False on the padded tail of a chunk at an episode end.
-      gripper_groups: groups whose dims are open/close commands.
-      gripper_threshold: `[D]` the open/close boundary of each dim, same units.
-      switch_tolerance: steps by which a predicted gripper switch may miss the true one.
-    Returns:
-      `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group,
-      `gripper_switch/{precision,recall,f1}`; NaN where the data gives nothing to measure.
-    """
-    velocity = transforms.pad_last(layout.velocity_mask()[:layout.real_dim], true.shape[-1])
-    dp = displacement(predicted, valid, velocity)
-    dt = displacement(true, valid, velocity)
-    sq_err = np.square(predicted - true)
-    w = valid[..., None].astype(np.float64)
-    metrics = {}
-    for g in layout.group_names:
-        dims = layout.group_dims(g)
-        metrics[f"err/{g}"] = float((sq_err[..., dims] * w).sum() / max(w.sum() * len(dims), 1.0))
-        true_motion = float(np.sum(dt[:, dims] ** 2))
-        metrics[f"motion_gain/{g}"] = (float(np.sum(dp[:, dims] * dt[:, dims]) / true_motion)
-                                       if true_motion > 0 else float("nan"))
-        true_norm = float(np.linalg.norm(dt[:, dims], axis=-1).sum())
-        metrics[f"motion_ratio/{g}"] = (
-            float(np.linalg.norm(dp[:, dims], axis=-1).sum() / true_norm)
-            if true_norm > 0 else float("nan"))
-    dims = np.concatenate([layout.group_dims(g) for g in gripper_groups] + [np.zeros(0, int)])
-    metrics.update(switch_scores(predicted[..., dims], true[..., dims], valid,
-                                 gripper_threshold[dims], switch_tolerance))
-    return metrics
-
-
-def evaluation_units(true: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The common units of every run's metrics, from the held-out true chunks in data units.
-
-    Runs differ in normalization (z-score, quantile, balanced, per timestep) and in action
-    representation (absolute or delta), so their normalized units cannot be compared. Metrics are
-    taken on absolute actions in data units divided by each dim's std over the held-out chunks'
-    valid steps (1 for a constant dim): not centred, so a zero velocity command stays 0.
-
-    Args:
-      true: `[N, H, D]` absolute data units; valid: `[N, H]`.
-    Returns:
-      `(scale [D], gripper threshold [D])`: divide by `scale`; the threshold (the midpoint of each
-      dim's 1 % and 99 % quantiles) is in the divided units.
-    """
-    steps = true[valid]
-    std = steps.std(axis=0)
-    scale = np.where(std < transforms.DEGENERATE, 1.0, std)
+def evaluation_scale(norm_stats: Mapping[str, stats_lib.NormStats], true: np.ndarray,
+                     valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`eval_metrics.evaluation_units` from the run's absolute-action statistics of the training
+    split (`actions_absolute` of its norm stats: the same for every run on the same data, whatever
+    its normalization or action representation), or, for stats computed elsewhere that lack
+    them, from the held-out true chunks `[N, H, A]` (data units, `valid` `[N, H]`)."""
+    reference = norm_stats.get("actions_absolute")
+    width = true.shape[-1]
+    if reference is not None:
+        reference = stats_lib.fit_width(reference, width, "norm stats 'actions_absolute'")
+        return eval_metrics.evaluation_units(reference.std, reference.q01, reference.q99)
+    steps = np.asarray(true[valid], np.float64)
     q01, q99 = np.quantile(steps, [0.01, 0.99], axis=0)
-    return scale, (q01 + q99) / 2 / scale
+    return eval_metrics.evaluation_units(steps.std(axis=0), q01, q99)
 
 
 def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
@@ -280,21 +165,30 @@ class Evaluator:
             delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
             tokenize=tokenize, image_size=model_config.image_resolution)
         batch_size = eval_cfg.batch_size
-        num_chunks = min(eval_cfg.max_chunks, table.num_frames) // batch_size * batch_size
-        if num_chunks == 0:
-            raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) have "
-                             f"{table.num_frames} frames, fewer than eval.batch_size = "
-                             f"{batch_size}")
-        frames = np.linspace(0, table.num_frames - 1, num_chunks).round().astype(np.int64)
+        frames = tiled_chunk_starts(table.episode_starts, model_config.action_horizon,
+                                    eval_cfg.max_chunks, batch_size)
+        if len(frames) == 0:
+            raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) hold "
+                             f"fewer than eval.batch_size = {batch_size} chunks of "
+                             f"H = {model_config.action_horizon}")
         self.transform = transform
         self.frames = frames
         self.batches = [transform(frames[i:i + batch_size])
-                        for i in range(0, num_chunks, batch_size)]
+                        for i in range(0, len(frames), batch_size)]
         self.valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
         true = transform.absolute_actions(np.concatenate([b["actions"] for b in self.batches]),
                                           frames)
-        self.scale, self.gripper_threshold = evaluation_units(true, self.valid)
+        self.scale, self.gripper_threshold = evaluation_scale(norm_stats, true, self.valid)
         self.true = true / self.scale
+        baselines = baselines_lib.baseline_chunks(
+            table, frames, model_config.action_horizon, layout,
+            selection_lib.state_groups(config.data))
+        self.baseline_metrics = {}
+        for name, chunks in baselines.items():
+            self.baseline_metrics[name] = self._measure(chunks[..., :layout.real_dim] / self.scale)
+        persistence = self.baseline_metrics["persistence"]
+        for name, measured in self.baseline_metrics.items():
+            measured.update(eval_metrics.skill_scores(measured, persistence, layout))
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
         self.seed = int(config.seed)
         self._sample = jax.jit(
@@ -321,15 +215,25 @@ class Evaluator:
             predicted.append(np.asarray(self._sample(params, rng, observation)))
         return np.concatenate(predicted)
 
-    def __call__(self, params: Any) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-        """Returns the metrics, and the predicted and true absolute chunks `[N, H, A]` in
-        evaluation units (`evaluation_units`)."""
-        predicted = self.transform.absolute_actions(self.sample(params), self.frames) / self.scale
-        metrics = chunk_metrics(
+    def _measure(self, predicted: np.ndarray) -> dict[str, float]:
+        """`chunk_metrics` of chunks `[N, H, A]` in evaluation units against the true ones."""
+        return eval_metrics.chunk_metrics(
             predicted, self.true, self.valid, layout=self.layout,
             gripper_groups=self.groups["gripper_groups"],
             gripper_threshold=self.gripper_threshold,
             switch_tolerance=self.eval_cfg.get("switch_tolerance", 2))
+
+    def __call__(self, params: Any) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+        """Returns the metrics (the policy's, with `skill/<g>`, and each baseline's under
+        `<baseline>/...`), and the predicted and true absolute chunks `[N, H, A]` in evaluation
+        units."""
+        predicted = self.transform.absolute_actions(self.sample(params), self.frames) / self.scale
+        metrics = self._measure(predicted)
+        metrics.update(eval_metrics.skill_scores(
+            metrics, self.baseline_metrics["persistence"], self.layout))
+        for name, measured in self.baseline_metrics.items():
+            metrics.update({f"{name}/{k}": v for k, v in measured.items()})
+        metrics["chunks"] = float(len(self.frames))
         return metrics, predicted, self.true
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
@@ -341,20 +245,30 @@ class Evaluator:
         shown = [g for g in self.layout.groups_with_role("base", "torso") if g not in plot_groups]
         shown += list(plot_groups)
         motion = np.linalg.norm(
-            displacement(true, self.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
+            eval_metrics.displacement(true, self.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
         rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
         plots.plot_trajectories(predicted[rows] * self.scale, true[rows] * self.scale, self.layout,
                                 shown, path, title)
 
 
 def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
-    """A table: one row per group (err, motion gain, motion ratio), then the gripper recall."""
-    lines = [f"{'group':<16}{'err':>10}{'motion_gain':>13}{'motion_ratio':>14}"]
+    """A table: per group the policy's error, skill over persistence, motion gain and ratio, and
+    the error and gain of the do-nothing predictors on the same chunks; then gripper switches."""
+    lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action); "
+             "gain: 1 = moves like the data, 0 = still or unrelated",
+             f"{'group':<15}{'err':>9}{'skill':>8}{'gain':>8}{'ratio':>7} |"
+             f"{'persist err':>12}{'gain':>7} |{'state-copy err':>15}{'gain':>7}"]
     for g in layout.group_names:
-        lines.append(f"{g:<16}{metrics[f'err/{g}']:>10.4f}{metrics[f'motion_gain/{g}']:>13.3f}"
-                     f"{metrics[f'motion_ratio/{g}']:>14.3f}")
-    lines.append("gripper switches: " + ", ".join(
-        f"{name} {metrics[f'gripper_switch/{name}']:.3f}" for name in ("precision", "recall", "f1")))
+        lines.append(
+            f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>8.3f}"
+            f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>7.3f} |"
+            f"{metrics[f'persistence/err/{g}']:>12.4f}{metrics[f'persistence/motion_gain/{g}']:>7.3f}"
+            f" |{metrics[f'state_copy/err/{g}']:>15.4f}"
+            f"{metrics[f'state_copy/motion_gain/{g}']:>7.3f}")
+    counts = "/".join(str(int(metrics[f"gripper_switch/{k}"])) for k in ("tp", "fp", "fn"))
+    lines.append("gripper switches (each event once): " + ", ".join(
+        f"{name} {metrics[f'gripper_switch/{name}']:.3f}" for name in ("precision", "recall", "f1"))
+        + f", TP/FP/FN {counts}")
     return "\n".join(lines)
 
 

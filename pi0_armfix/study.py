@@ -1,20 +1,24 @@
-"""Every config x every seed -> one table with the spread over seeds: which lever fixes the arms?
+"""Every config x every seed -> tables with intervals over seeds, every number beside doing
+nothing: which lever fixes the arms, and by how much? (docs/evaluation.md)
 
-    python -m pi0_armfix.study --configs=uniform,arm_focused,arm_delta --seeds=3 \
-        [--steps=1500] [--workdir=runs/study] [--parallel=1] [--override=data.root=/data/b1k] \
-        [--closed_loop_episodes=50]
+    python -m pi0_armfix.study --configs=uniform,arm_focused,arm_delta [--seeds=5] \
+        [--primary=arm_focused] [--steps=1500] [--workdir=runs/study] [--parallel=1] \
+        [--override=data.root=/data/b1k] [--closed_loop_episodes=50]
 
 Each (config, seed) trains in its own run folder `<workdir>/<config>/seed_<s>` through
 `python -m pi0_armfix.train` (`--config.seed=s`, `--config.train.total_steps=steps`, one
 held-out evaluation at the end), its console output in `train.log` there. A run whose
 `result.json` exists is finished and skipped; an interrupted one resumes from its checkpoints, so
-rerunning the same command finishes a study. The results of all finished runs are gathered into:
+rerunning the same command finishes a study (seed-major: an interrupted study has every config's
+first seeds). The results of all finished runs are gathered into:
 
-  study.md    per group: held-out error and motion gain, gripper switch precision/recall/F1,
-              mean ± std over seeds; then each config's difference to the first config (the
-              baseline) with a 95 % bootstrap interval over seeds, and the targets it meets.
-  study.json  every run's metrics and every aggregate.
-  study.png   per-group motion gain, mean with the seeds' spread as error bars.
+  study.md    per group: skill over persistence, motion gain and ratio, error, each with the
+              do-nothing rows (and the ceiling on the demo); gripper switch precision / recall /
+              F1 with the event counts; each config's difference to the first config (the
+              baseline) with a Welch t interval over seeds (`study_stats`), and the targets.
+  study.json  every run's metrics, the per-seed headline values and every aggregate.
+  study.png   per-group skill and motion gain, mean with the seeds' spread as error bars, the
+              do-nothing predictors as markers.
 
 Closed loop (`--closed_loop_episodes=N`, default 50; 0 = off): every run's final checkpoint also
 drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N`, the same N
@@ -24,8 +28,8 @@ the difference to the baseline. A finished run without them gets them on the nex
 
 A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1k`); every
 `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
-`pi0_armfix.evaluate` (evaluation units: absolute actions over the held-out std, so configs with
-other normalizations or delta actions compare).
+`pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
+configs with other normalizations or delta actions compare).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -48,23 +53,27 @@ import numpy as np  # noqa: E402
 from absl import app, flags  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from pi0_armfix import study_stats  # noqa: E402
 from pi0_armfix.action_space import ActionLayout  # noqa: E402
+from pi0_armfix.evaluation import baselines as baselines_lib  # noqa: E402
 from pi0_armfix.data import stats as stats_lib  # noqa: E402
 from pi0_armfix.training import metrics as metrics_lib  # noqa: E402
 
 RESULT_FILE = "result.json"
-BOOTSTRAP_RESAMPLES = 2000
 SWITCH_METRICS = ("precision", "recall", "f1")
+SWITCH_COUNTS = ("tp", "fp", "fn")
 CLOSED_LOOP = "closed_loop/"  # prefix of the closed-loop metrics of a run
 CLOSED_LOOP_KINDS = ("navigation", "manipulation", "task")
 
 
 @dataclasses.dataclass(frozen=True)
 class Targets:
-    """The issue's bar for a config that fixes stagnation (reported, never tuned to)."""
+    """The bar for a config that fixes stagnation (reported, never tuned to)."""
 
-    arm_gain: float = 0.5  # mean held-out motion gain of the arm groups, over seeds
-    base_err_increase: float = 0.10  # base error at most +10 % over the baseline
+    arm_gain: float = 0.5  # each arm's mean held-out motion gain over seeds ...
+    ceiling_share: float = 0.7  # ... or this share of the ceiling's gain ...
+    ceiling_below: float = 0.7  # ... where the ceiling's gain is below this
+    base_skill_drop: float = 0.10  # base skill at most 10 % below the baseline config's
     switch_f1: float = 0.6
 
 
@@ -190,47 +199,49 @@ def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
     return layout.groups_with_role("arm")
 
 
-def run_summary(metrics: Mapping[str, float], layout: ActionLayout) -> dict[str, float]:
-    """The headline numbers of one run: the arms' mean motion gain, the base error, switch F1."""
+def run_summary(metrics: Mapping[str, Any], layout: ActionLayout, prefix: str = ""
+                ) -> dict[str, float]:
+    """The headline numbers of one run (or, with `prefix` "persistence/" or "state_copy/", of a
+    do-nothing predictor scored beside it): the arms' mean skill over persistence and motion
+    gain, the base's skill and error, gripper switch F1."""
     arms = arm_groups(layout)
     base = layout.groups_with_role("base")
-    return {
-        "arm_gain": float(np.mean([_number(metrics.get(f"motion_gain/{g}")) for g in arms]))
-        if arms else float("nan"),
-        "base_err": _number(metrics.get(f"err/{base[0]}")) if base else float("nan"),
-        "switch_f1": _number(metrics.get("gripper_switch/f1")),
-    }
+
+    def get(key):
+        return _number(metrics.get(prefix + key))
+
+    def arms_mean(name):
+        return float(np.mean([get(f"{name}/{g}") for g in arms])) if arms else math.nan
+
+    return {"arm_skill": arms_mean("skill"), "arm_gain": arms_mean("motion_gain"),
+            "base_skill": get(f"skill/{base[0]}") if base else math.nan,
+            "base_err": get(f"err/{base[0]}") if base else math.nan,
+            "switch_f1": get("gripper_switch/f1")}
 
 
 def _number(value: Any) -> float:
-    return float("nan") if value is None else float(value)
+    return math.nan if value is None else float(value)
 
 
-def bootstrap_interval(values: np.ndarray, baseline: np.ndarray, *, relative: bool = False,
-                       seed: int = 0, resamples: int = BOOTSTRAP_RESAMPLES
-                       ) -> tuple[float, float, float]:
-    """Difference of means `mean(values) - mean(baseline)` (relative to the baseline's mean when
-    `relative`) and its 95 % percentile bootstrap interval, seeds resampled with replacement
-    within each config independently. Deterministic (`seed`)."""
-    values, baseline = np.asarray(values, float), np.asarray(baseline, float)
-
-    def diff(v, b):
-        d = v.mean(-1) - b.mean(-1)
-        return d / b.mean(-1) if relative else d
-
-    rng = np.random.default_rng(seed)
-    draws = diff(values[rng.integers(0, len(values), (resamples, len(values)))],
-                 baseline[rng.integers(0, len(baseline), (resamples, len(baseline)))])
-    low, high = np.percentile(draws, [2.5, 97.5])
-    return float(diff(values, baseline)), float(low), float(high)
+COMPARED = ("arm_skill", "arm_gain", "base_skill", "switch_f1")  # vs the baseline config
 
 
-def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
+def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets(),
+              primary: str | None = None, ceiling: Mapping[str, float] | None = None
               ) -> dict[str, Any]:
-    """Mean and std over seeds of every metric per config, the headline numbers, and each
-    config's difference to the first config with bootstrap intervals."""
+    """Mean and std over seeds of every metric per config, the headline numbers with their
+    per-seed values, each config's difference to the first config (the baseline) with Welch t
+    intervals (95 % for the `primary` config, Bonferroni-corrected for the others), the
+    do-nothing rows, and the targets each config meets. `ceiling`: metrics of a perfect sampler
+    on the same chunks (`evaluation.ceiling`), where known."""
     configs = list(dict.fromkeys(r["config"] for r in results))
     layout = ActionLayout.from_config(results[0]["layout"])
+    baseline = configs[0]
+    if primary is None:
+        primary = configs[1] if len(configs) > 1 else baseline
+    if primary not in configs:
+        raise ValueError(f"--primary={primary!r} is not one of the study's configs {configs}")
+    secondary = [c for c in configs if c not in (baseline, primary)]
     per_config: dict[str, Any] = {}
     for config in configs:
         runs = [r for r in results if r["config"] == config]
@@ -244,33 +255,62 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
             "mean": {k: _nanmean(v) for k, v in {**values, **headline}.items()},
             "std": {k: _nanstd(v) for k, v in {**values, **headline}.items()},
             "headline": {k: v.tolist() for k, v in headline.items()},
+            "arm_skill_interval": study_stats.mean_interval(headline["arm_skill"]),
         }
-    baseline = configs[0]
     base_values = per_config[baseline]["headline"]
+    base_runs = [r for r in results if r["config"] == baseline]
     for config in configs:
         entry = per_config[config]
-        values = entry["headline"]
-        entry["vs_baseline"] = {
-            "arm_gain": bootstrap_interval(values["arm_gain"], base_values["arm_gain"]),
-            "base_err": bootstrap_interval(values["base_err"], base_values["base_err"],
-                                           relative=True),
-            "switch_f1": bootstrap_interval(values["switch_f1"], base_values["switch_f1"]),
-        }
+        confidence = study_stats.comparison_confidence(config == primary, len(secondary))
+        entry["comparison"] = ("baseline" if config == baseline else
+                               "primary" if config == primary else "secondary")
+        entry["confidence"] = confidence
+        entry["vs_baseline"] = {k: study_stats.welch_interval(entry["headline"][k],
+                                                              base_values[k], confidence)
+                                for k in COMPARED}
         runs = [r for r in results if r["config"] == config]
-        base_runs = [r for r in results if r["config"] == baseline]
         for kind in CLOSED_LOOP_KINDS:
             key = f"{CLOSED_LOOP}success/{kind}"
             if all(key in r["metrics"] for r in runs + base_runs):
-                entry["vs_baseline"][key] = bootstrap_interval(
-                    [r["metrics"][key] for r in runs], [r["metrics"][key] for r in base_runs])
-        mean = entry["mean"]
-        entry["targets"] = {
-            "arm_gain": bool(mean["arm_gain"] >= targets.arm_gain),
-            "base_err": bool(entry["vs_baseline"]["base_err"][0] <= targets.base_err_increase),
-            "switch_f1": bool(mean["switch_f1"] >= targets.switch_f1),
-        }
-    return {"baseline": baseline, "configs": per_config, "groups": list(layout.group_names),
-            "arm_groups": list(arm_groups(layout)), "targets": dataclasses.asdict(targets)}
+                entry["vs_baseline"][key] = study_stats.welch_interval(
+                    [r["metrics"][key] for r in runs], [r["metrics"][key] for r in base_runs],
+                    confidence)
+        entry["targets"] = meets_targets(entry, per_config[baseline], layout, targets, ceiling)
+    reference = results[0]["metrics"]
+    do_nothing = {name: {k[len(name) + 1:]: v for k, v in reference.items()
+                         if k.startswith(name + "/")} for name in baselines_lib.BASELINES}
+    seeds = min(len(c["seeds"]) for c in per_config.values())
+    return {"baseline": baseline, "primary": primary, "configs": per_config,
+            "groups": list(layout.group_names), "arm_groups": list(arm_groups(layout)),
+            "do_nothing": {name: {**m, **run_summary(m, layout)} for name, m in do_nothing.items()
+                           if m},
+            "ceiling": dict(ceiling) if ceiling else None,
+            "min_seeds": seeds, "anecdotal": seeds < study_stats.MIN_SEEDS,
+            "targets": dataclasses.asdict(targets)}
+
+
+def meets_targets(entry: Mapping[str, Any], baseline: Mapping[str, Any], layout: ActionLayout,
+                  targets: Targets, ceiling: Mapping[str, float] | None) -> dict[str, bool]:
+    """Which of `Targets` a config meets (means over seeds; the arm skill by its interval)."""
+    mean = entry["mean"]
+    _, low, _ = entry["arm_skill_interval"]
+    gains = []
+    for g in arm_groups(layout):
+        bar = targets.arm_gain
+        top = (ceiling or {}).get(f"motion_gain/{g}")
+        if top is not None and top < targets.ceiling_below:
+            bar = targets.ceiling_share * top
+        gains.append(mean.get(f"motion_gain/{g}") is not None
+                     and mean[f"motion_gain/{g}"] >= bar)
+    base, own = baseline["mean"].get("base_skill"), mean.get("base_skill")
+    return {
+        "arm_skill": bool(np.isfinite(low) and low > 0),
+        "arm_gain": bool(gains) and all(gains),
+        "base_skill": bool(base is not None and own is not None
+                           and own >= base - targets.base_skill_drop * abs(base)),
+        "switch_f1": bool(mean.get("switch_f1") is not None
+                          and mean["switch_f1"] >= targets.switch_f1),
+    }
 
 
 def _nanmean(v: np.ndarray) -> float | None:
@@ -293,50 +333,109 @@ def _cell(summary: Mapping[str, Any], key: str, digits: int = 3) -> str:
     return f"{mean:.{digits}f} ± {std:.{digits}f}"
 
 
-def _interval(d: Sequence[float], percent: bool = False) -> str:
-    """`+0.123 [+0.010, +0.200]` (a percentage for a relative difference)."""
-    scale, unit, digits = (100.0, " %", 1) if percent else (1.0, "", 3)
-    mean, low, high = (f"{v * scale:+.{digits}f}" for v in d)
-    return f"{mean}{unit} [{low}, {high}]"
+def _value(metrics: Mapping[str, Any] | None, key: str, digits: int = 3) -> str:
+    value = None if metrics is None else metrics.get(key)
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _interval(d: Sequence[float]) -> str:
+    """`+0.123 [+0.010, +0.200]`."""
+    if not np.isfinite(d[0]):
+        return "n/a"
+    if not np.isfinite(d[1]):
+        return f"{d[0]:+.3f} [n/a: 1 seed]"
+    return f"{d[0]:+.3f} [{d[1]:+.3f}, {d[2]:+.3f}]"
+
+
+def _reference_rows(study: Mapping[str, Any], key_of_group, digits: int = 3) -> list[str]:
+    """The do-nothing rows (and the ceiling, where known) of a per-group table, in italics."""
+    rows = []
+    named = [(f"*{name.replace('_', ' ')} (do nothing)*", m)
+             for name, m in study["do_nothing"].items()]
+    if study.get("ceiling"):
+        named.append(("*ceiling: the expert re-run (perfect sampler)*", study["ceiling"]))
+    for label, m in named:
+        cells = [_value(m, key_of_group(g), digits) for g in study["groups"]]
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    return rows
 
 
 def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
-    """`study.md`: the tables of `aggregate`."""
+    """`study.md`: the tables of `aggregate`, every one with the do-nothing rows."""
     groups, configs = study["groups"], study["configs"]
-    seeds = max(len(c["seeds"]) for c in configs.values())
+    seeds = study["min_seeds"]
     targets = study["targets"]
+    header = "| config | " + " | ".join(groups) + " |"
+    rule = "|---" * (len(groups) + 1) + "|"
     lines = [f"# Study: {len(configs)} configs x {seeds} seeds, {steps} steps", "",
-             f"`{command}`", "",
-             "Held-out chunks sampled by the policy, mean ± std over seeds (evaluation units: "
-             "absolute actions over each dim's held-out std).", "",
-             "## Motion gain (1 = moves like the data, 0 = stagnation)", "",
-             "| config | " + " | ".join(groups) + " | arms (mean) |",
-             "|---" * (len(groups) + 2) + "|"]
+             f"`{command}`", ""]
+    if study["anecdotal"]:
+        lines += [f"**{seeds} seed(s) per config, fewer than {study_stats.MIN_SEEDS}: the "
+                  "intervals below are anecdotes, not results.**", ""]
+    lines += ["Held-out chunks sampled by the policy, mean ± std over seeds, every seed on the "
+              "same chunks (evaluation units: absolute actions over each dim's training std). "
+              "Rows in italics are the do-nothing predictors on the same chunks: *persistence* "
+              "holds the previous action, *state copy* repeats the current state where it maps "
+              "to the actions (see docs/evaluation.md).", "",
+              "## Skill over persistence (1 - err / persistence err; > 0: better than holding "
+              "the previous action, 1: perfect)", "", header, rule]
+    for name, c in configs.items():
+        lines.append(f"| {name} | " + " | ".join(_cell(c, f"skill/{g}") for g in groups) + " |")
+    lines += _reference_rows(study, lambda g: f"skill/{g}")
+    lines += ["", "## Motion gain (1 = moves like the data, 0 = still, or moving in unrelated "
+              "directions)", "", header, rule]
     for name, c in configs.items():
         lines.append(f"| {name} | " + " | ".join(_cell(c, f"motion_gain/{g}") for g in groups)
-                     + f" | {_cell(c, 'arm_gain')} |")
-    lines += ["", "## Error (MSE of the sampled chunk)", "",
-              "| config | " + " | ".join(groups) + " |", "|---" * (len(groups) + 1) + "|"]
+                     + " |")
+    lines += _reference_rows(study, lambda g: f"motion_gain/{g}")
+    lines += ["", "## Motion ratio (magnitude only: 1 = moves as much as the data, in any "
+              "direction)", "", header, rule]
+    for name, c in configs.items():
+        lines.append(f"| {name} | " + " | ".join(_cell(c, f"motion_ratio/{g}") for g in groups)
+                     + " |")
+    lines += _reference_rows(study, lambda g: f"motion_ratio/{g}")
+    lines += ["", "## Error (MSE of the sampled chunk)", "", header, rule]
     for name, c in configs.items():
         lines.append(f"| {name} | " + " | ".join(_cell(c, f"err/{g}", 4) for g in groups) + " |")
-    lines += ["", "## Gripper switches (events matched within the tolerance)", "",
-              "| config | precision | recall | F1 |", "|---|---|---|---|"]
-    for name, c in configs.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(c, f"gripper_switch/{k}")
-                                                 for k in SWITCH_METRICS) + " |")
-    lines += ["", f"## Against `{study['baseline']}` (difference of means, 95 % bootstrap "
-              "interval over seeds)", "",
-              f"Targets: arms' mean gain >= {targets['arm_gain']}, base error <= "
-              f"+{targets['base_err_increase']:.0%} over the baseline, gripper switch F1 >= "
-              f"{targets['switch_f1']}.", "",
-              "| config | arms' gain | base error | switch F1 | targets met |",
+    lines += _reference_rows(study, lambda g: f"err/{g}", 4)
+    lines += ["", "## Gripper switches (each event of the held-out timeline once, matched within "
+              "the tolerance)", "",
+              "| config | precision | recall | F1 | TP / FP / FN (mean over seeds) |",
               "|---|---|---|---|---|"]
     for name, c in configs.items():
-        vs, met = c["vs_baseline"], c["targets"]
-        met_names = [k for k, v in met.items() if v]
-        lines.append(f"| {name} | {_interval(vs['arm_gain'])} | "
-                     f"{_interval(vs['base_err'], percent=True)} | {_interval(vs['switch_f1'])} | "
-                     f"{'all' if all(met.values()) else ', '.join(met_names) or 'none'} |")
+        counts = " / ".join(_value(c["mean"], f"gripper_switch/{k}", 1) for k in SWITCH_COUNTS)
+        lines.append(f"| {name} | " + " | ".join(_cell(c, f"gripper_switch/{k}")
+                                                 for k in SWITCH_METRICS) + f" | {counts} |")
+    for label, m in [(f"*{n.replace('_', ' ')} (do nothing)*", m)
+                     for n, m in study["do_nothing"].items()]:
+        counts = " / ".join(_value(m, f"gripper_switch/{k}", 0) for k in SWITCH_COUNTS)
+        lines.append(f"| {label} | " + " | ".join(_value(m, f"gripper_switch/{k}")
+                                                 for k in SWITCH_METRICS) + f" | {counts} |")
+    lines += ["", f"## Against `{study['baseline']}` (difference of means over seeds, Welch t "
+              "interval)", "",
+              f"Primary comparison: `{study['primary']}` (95 % interval); the others are "
+              "secondary, their intervals Bonferroni-corrected so that together they hold at "
+              "95 %. An interval that excludes 0 is a difference these seeds can tell.", "",
+              "| config | comparison | arms' skill | arms' gain | base skill | switch F1 |",
+              "|---|---|---|---|---|---|"]
+    for name, c in configs.items():
+        vs = c["vs_baseline"]
+        level = f"{c['comparison']} ({c['confidence']:.1%})"
+        lines.append(f"| {name} | {level} | " + " | ".join(_interval(vs[k]) for k in COMPARED)
+                     + " |")
+    lines += ["", "## Targets", "",
+              f"Arms' skill over persistence > 0 with its 95 % interval above 0; each arm's "
+              f"motion gain >= {targets['arm_gain']} (or >= {targets['ceiling_share']:.0%} of the "
+              f"ceiling where that is below {targets['ceiling_below']}); base skill at most "
+              f"{targets['base_skill_drop']:.0%} below `{study['baseline']}`'s; gripper switch "
+              f"F1 >= {targets['switch_f1']}.", "",
+              "| config | arms' skill [95 %] | arm skill | arm gain | base skill | switch F1 |",
+              "|---|---|---|---|---|---|"]
+    for name, c in configs.items():
+        met = c["targets"]
+        lines.append(f"| {name} | {_interval(c['arm_skill_interval'])} | "
+                     + " | ".join("met" if met[k] else "missed" for k in
+                                  ("arm_skill", "arm_gain", "base_skill", "switch_f1")) + " |")
     if has_closed_loop(configs):
         lines += closed_loop_table(study)
     return "\n".join(lines) + "\n"
@@ -355,7 +454,8 @@ def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
              f"{', '.join(str(int(e)) for e in sorted(e for e in episodes if e))} episodes per "
              "seed (world seed 1000, never trained on); an episode succeeds at navigation "
              "(manipulation) when every navigation (manipulation) phase of its task does. Success "
-             "rate, mean ± std over seeds; then the difference to the baseline [95 % bootstrap]. "
+             "rate, mean ± std over seeds; then the difference to the baseline [Welch t "
+             "interval, as above]. "
              "Progress: how far a phase got, 1 - closest approach / start distance (base to "
              "target, hand to its target offset), mean over phases.", "",
              "| config | navigation | manipulation | task | navigation progress | manipulation "
@@ -373,29 +473,43 @@ def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
 
 
 def plot_study(study: Mapping[str, Any], path: Path) -> None:
-    """`study.png`: per-group motion gain, one bar per config, std over seeds as error bars."""
+    """`study.png`: per group, each config's skill over persistence and motion gain (mean, std
+    over seeds as error bars), the do-nothing predictors as black markers (and the ceiling, where
+    known, as grey ones); closed-loop success beside them when the runs have it."""
     groups, configs = study["groups"], study["configs"]
     width = 0.8 / len(configs)
     closed = has_closed_loop(configs)
-    fig, axes = plt.subplots(1, 2 if closed else 1, squeeze=False, gridspec_kw={
-        "width_ratios": [len(groups), len(CLOSED_LOOP_KINDS)] if closed else [1]},
-        figsize=(max(8, 1.6 * len(groups) + 0.25 * len(configs)) + (4 if closed else 0), 4.8))
-    ax = axes[0, 0]
+    panels = [("skill", "skill over persistence (> 0: better than doing nothing)"),
+              ("motion_gain", "motion gain (1 = moves like the data)")]
+    fig, axes = plt.subplots(1, len(panels) + closed, squeeze=False, gridspec_kw={
+        "width_ratios": [len(groups)] * len(panels) + ([len(CLOSED_LOOP_KINDS)] if closed else [])},
+        figsize=(2 * max(7, 1.4 * len(groups) + 0.25 * len(configs)) + (4 if closed else 0), 5))
     x = np.arange(len(groups))
-    for i, (name, c) in enumerate(configs.items()):
-        means = [c["mean"].get(f"motion_gain/{g}") for g in groups]
-        stds = [c["std"].get(f"motion_gain/{g}") for g in groups]
-        ax.bar(x + (i - (len(configs) - 1) / 2) * width,
-               [np.nan if m is None else m for m in means], width,
-               yerr=[0 if s is None else s for s in stds], capsize=2, label=name)
-    ax.axhline(1.0, color="gray", lw=0.8)
-    ax.axhline(0.0, color="black", lw=0.8)
-    ax.set_xticks(x, groups)
-    ax.set(ylabel="held-out motion gain (1 = like the data)",
-           title=f"motion gain per group, mean ± std over seeds (baseline: {study['baseline']})")
-    ax.grid(axis="y", alpha=0.3)
+    references = [(name, m, "k", marker) for (name, m), marker
+                  in zip(study["do_nothing"].items(), ("_", "x"))]
+    if study.get("ceiling"):
+        references.append(("ceiling (expert re-run)", study["ceiling"], "gray", "*"))
+    for ax, (metric, title) in zip(axes[0], panels):
+        for i, (name, c) in enumerate(configs.items()):
+            means = [c["mean"].get(f"{metric}/{g}") for g in groups]
+            stds = [c["std"].get(f"{metric}/{g}") for g in groups]
+            ax.bar(x + (i - (len(configs) - 1) / 2) * width,
+                   [np.nan if m is None else m for m in means], width,
+                   yerr=[0 if s is None else s for s in stds], capsize=2, label=name)
+        for name, m, color, marker in references:
+            ax.scatter(x, [m.get(f"{metric}/{g}", np.nan) for g in groups], color=color,
+                       marker=marker, s=160 if marker == "_" else 50, zorder=3, label=name)
+        ax.axhline(0.0, color="black", lw=0.8)
+        if metric == "motion_gain":
+            ax.axhline(1.0, color="gray", lw=0.8)
+        else:
+            low, high = ax.get_ylim()
+            ax.set_ylim(max(low, -3.0), max(high, 0.5))
+        ax.set_xticks(x, groups, rotation=20)
+        ax.set(title=title)
+        ax.grid(axis="y", alpha=0.3)
     if closed:
-        ax = axes[0, 1]
+        ax = axes[0, -1]
         x = np.arange(len(CLOSED_LOOP_KINDS))
         for i, (name, c) in enumerate(configs.items()):
             keys = [f"{CLOSED_LOOP}success/{k}" for k in CLOSED_LOOP_KINDS]
@@ -405,16 +519,21 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
         ax.set_xticks(x, CLOSED_LOOP_KINDS)
         ax.set(ylim=(0, 1.05), ylabel="success rate", title="closed loop (demo world)")
         ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    axes[0, -1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    seeds = study["min_seeds"]
+    fig.suptitle(f"held-out evaluation, mean ± std over {seeds} seed(s) per config "
+                 f"(baseline: {study['baseline']})"
+                 + (" - fewer than 5 seeds: an anecdote" if study["anecdotal"] else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
 def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps: int,
-                  command: str) -> dict[str, Any]:
+                  command: str, primary: str | None = None,
+                  ceiling: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Writes `study.md`, `study.json` and `study.png` into `workdir`; returns the aggregate."""
-    study = aggregate(results)
+    study = aggregate(results, primary=primary, ceiling=ceiling)
     (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
     stats_lib.write_json_atomic(workdir / "study.json",
                                 {"command": command, "steps": steps, "runs": list(results),
@@ -443,6 +562,16 @@ def main(argv: Sequence[str]) -> None:
     if bad:
         raise SystemExit(f"pi0_armfix.study: --override {bad} must be key=value "
                          "(e.g. data.root=/data/b1k)")
+    if FLAGS.primary and FLAGS.primary not in configs:
+        raise SystemExit(f"pi0_armfix.study: --primary={FLAGS.primary} is not one of --configs "
+                         f"{configs}")
+    if FLAGS.seeds < study_stats.MIN_SEEDS:
+        print(f"study: {FLAGS.seeds} seed(s) per config: the intervals will be anecdotes "
+              f"(use --seeds={study_stats.MIN_SEEDS} or more for results)", flush=True)
+    if FLAGS.closed_loop_episodes:
+        print(f"study: every run also drives {FLAGS.closed_loop_episodes} closed-loop episodes "
+              "of the demo world after training (more than half of a demo run's time; "
+              "--closed_loop_episodes=0 skips them)", flush=True)
     workdir = Path(FLAGS.workdir).absolute()
     command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])
     try:
@@ -450,7 +579,8 @@ def main(argv: Sequence[str]) -> None:
                             FLAGS.override, FLAGS.parallel, FLAGS.closed_loop_episodes)
     except (RuntimeError, ValueError) as err:
         raise SystemExit(f"pi0_armfix.study: {err}") from None
-    write_reports(results, workdir, steps=FLAGS.steps, command=command)
+    write_reports(results, workdir, steps=FLAGS.steps, command=command,
+                  primary=FLAGS.primary or None)
     print((workdir / "study.md").read_text())
     print(f"study.md, study.json and study.png in {workdir}")
 
@@ -465,7 +595,11 @@ def cli() -> None:
     """The `pi0-armfix-study` console script (also `python -m pi0_armfix.study`)."""
     flags.DEFINE_list("configs", ["uniform", "arm_focused"],
                       "config names of configs/ (the first is the baseline)")
-    flags.DEFINE_integer("seeds", 3, "seeds per config (0 .. seeds-1)")
+    flags.DEFINE_integer("seeds", study_stats.MIN_SEEDS, "seeds per config (0 .. seeds-1); "
+                         f"fewer than {study_stats.MIN_SEEDS} give anecdotes, not intervals")
+    flags.DEFINE_string("primary", "", "the config whose comparison with the baseline is the "
+                        "study's question (95 % interval; the others are Bonferroni-corrected); "
+                        "default: the second config")
     flags.DEFINE_integer("steps", 1500, "training steps of every run")
     flags.DEFINE_string("workdir", "runs/study", "study folder (one run folder per config/seed)")
     flags.DEFINE_integer("parallel", 1, "runs trained at the same time")

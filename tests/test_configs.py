@@ -1,4 +1,4 @@
-"""The experiment configs (DESIGN §6): one shared base, two scales, each trains at tiny scale."""
+"""The experiment configs: one shared base, two scales, each trains at tiny scale."""
 
 import importlib.util
 import json
@@ -20,12 +20,13 @@ from pi0_armfix.training import checkpoint, sharding
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",
            "arm_delta_focused", "arm_delta_per_timestep", "arm_delta_correlated_noise",
-           "arm_delta_flow_samples", "gripper_switch", "arm_recipe")
+           "arm_delta_flow_samples", "gripper_switch", "arm_recipe", "arm_weights_3x",
+           "state_dropout", "state_noise", "no_state")
 # Trained at tiny scale: every strategy, and every lever (arm_recipe holds delta actions,
 # per-timestep stats, correlated noise and switch emphasis; K flow samples on its own).
 TRAINED = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty",
-           "arm_delta_flow_samples", "arm_recipe")
+           "arm_delta_flow_samples", "arm_recipe", "state_dropout", "no_state")
 B1K = ActionLayout.preset("b1k_r1pro")
 
 
@@ -59,12 +60,14 @@ def test_config_has_exactly_the_keys_of_the_base(name, scale):
 
 
 @pytest.mark.parametrize("name, strategy, arm_weight", [
-    ("arm_focused", "per_group", 3.0), ("very_arm_focused", "per_group", 5.0),
+    ("arm_weights_3x", "per_group", 3.0), ("very_arm_focused", "per_group", 5.0),
     ("arm_focused_balanced", "per_group", 3.0), ("arm_curriculum", "per_group", 3.0),
     ("uniform", "uniform", None), ("original", "original", None),
     ("loss_balanced", "loss_balanced", 1.0), ("uncertainty", "uncertainty", 1.0),
     ("arm_delta", "uniform", None), ("arm_delta_focused", "per_group", 3.0),
     ("gripper_switch", "per_group", 3.0), ("arm_recipe", "per_group", 3.0),
+    ("arm_focused", "uniform", None), ("state_dropout", "uniform", None),
+    ("state_noise", "uniform", None), ("no_state", "uniform", None),
 ])
 def test_config_selects_its_strategy_and_arm_weight(name, strategy, arm_weight):
     config = load(name)
@@ -85,7 +88,31 @@ def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
 
 
 DELTA_CONFIGS = {"arm_delta", "arm_delta_focused", "arm_delta_per_timestep",
-                 "arm_delta_correlated_noise", "arm_delta_flow_samples", "arm_recipe"}
+                 "arm_delta_correlated_noise", "arm_delta_flow_samples", "arm_recipe",
+                 "arm_focused"}
+STATE_LEVERS = {"state_dropout": ("state_dropout", 0.5), "state_noise": ("state_noise", 0.3),
+                "no_state": ("use_state", False)}
+
+
+def test_the_main_job_is_the_delta_recipe_and_the_seeds_3x_keeps_its_own_name():
+    assert load("arm_focused").loss.flow_samples == 4
+    assert load("arm_weights_3x").data == base.get_config().data
+
+
+@pytest.mark.parametrize("name", sorted(STATE_LEVERS))
+def test_state_lever_configs_change_one_model_key_of_uniform(name):
+    key, value = STATE_LEVERS[name]
+    config, plain = load(name), load("uniform")
+    assert config.model[key] == value
+    config.model[key] = plain.model[key]
+    assert config == plain
+
+
+def test_demo_augmentation_is_colour_only_and_b1k_uses_openpis():
+    demo, b1k = (model_config_lib.from_model_config(base.get_config(s).model).augment
+                 for s in (None, "b1k"))
+    assert (demo.crop_scale, demo.rotate_degrees) == (1.0, 0.0) and demo.jitter_p > 0
+    assert (b1k.crop_scale, b1k.rotate_degrees) == (0.95, 5.0)
 
 
 def test_only_the_balanced_curriculum_and_delta_configs_change_the_data():

@@ -1,4 +1,5 @@
-"""Held-out stagnation metrics (DESIGN §7) and the offline evaluation of a checkpoint."""
+"""Held-out stagnation metrics, the do-nothing baselines and the offline evaluation of a
+checkpoint (docs/evaluation.md)."""
 
 import json
 import subprocess
@@ -10,6 +11,9 @@ import pytest
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import evaluate
+from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.evaluation import baselines
+from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.action_space import ActionLayout
 
 LAYOUT = ActionLayout(groups={"base": (0, 2), "arm": (2, 5), "gripper": (5, 6)}, real_dim=6,
@@ -19,7 +23,7 @@ H = 6
 
 def _metrics(predicted, true, valid=None):
     valid = np.ones(true.shape[:2], bool) if valid is None else valid
-    return evaluate.chunk_metrics(predicted, true, valid, layout=LAYOUT,
+    return eval_metrics.chunk_metrics(predicted, true, valid, layout=LAYOUT,
                                   gripper_groups=("gripper",),
                                   gripper_threshold=np.zeros(LAYOUT.action_dim))
 
@@ -100,16 +104,24 @@ def test_a_switch_within_the_tolerance_matches_and_one_outside_does_not():
     valid = np.ones((1, 12), bool)
     kwargs = dict(layout=LAYOUT, gripper_groups=("gripper",),
                   gripper_threshold=np.zeros(LAYOUT.action_dim))
-    within = evaluate.chunk_metrics(late, true, valid, switch_tolerance=2, **kwargs)
-    outside = evaluate.chunk_metrics(late, true, valid, switch_tolerance=1, **kwargs)
+    within = eval_metrics.chunk_metrics(late, true, valid, switch_tolerance=2, **kwargs)
+    outside = eval_metrics.chunk_metrics(late, true, valid, switch_tolerance=1, **kwargs)
     assert within["gripper_switch/f1"] == 1.0 and outside["gripper_switch/f1"] == 0.0
 
 
-def test_evaluation_units_keep_the_zero_command_and_scale_by_the_std():
+def test_evaluation_units_scale_by_the_std_and_measure_a_near_constant_dim_in_data_units():
+    std = np.array([2.0, 0.0, 1e-9])  # a moving dim, a constant one, an idle gripper
+    scale, threshold = eval_metrics.evaluation_units(std, np.array([-1.0, 5.0, 0.0]),
+                                                     np.array([3.0, 5.0, 0.0]))
+    assert scale.tolist() == [2.0, 1.0, 1.0]
+    assert threshold.tolist() == [0.5, 5.0, 0.0]
+
+
+def test_evaluation_scale_without_absolute_stats_falls_back_to_the_held_out_chunks():
     rng = np.random.default_rng(0)
     true = rng.normal(3.0, 2.0, size=(200, H, 2))
-    true[..., 1] = 5.0  # a constant dim keeps scale 1
-    scale, threshold = evaluate.evaluation_units(true, np.ones((200, H), bool))
+    true[..., 1] = 5.0
+    scale, threshold = evaluate.evaluation_scale({}, true, np.ones((200, H), bool))
     assert scale[0] == pytest.approx(true[..., 0].std()) and scale[1] == 1.0
     assert threshold[1] == pytest.approx(5.0)
 
@@ -194,3 +206,91 @@ def test_offline_evaluation_without_checkpoints_is_a_clear_error(tmp_path):
                             text=True, timeout=300)
     assert result.returncode != 0
     assert f"{tmp_path / 'checkpoints'} has no checkpoint" in result.stderr
+
+
+# ---------------------------------------------------------------------- baselines
+
+
+def _tiny_table():
+    """Two episodes of 4 frames; actions [base vx, arm q, gripper] and a state whose arm is at
+    index 0 and whose base velocity is at index 1 (another order than the actions)."""
+    actions = np.array([[0.1, 1.0, 1.0], [0.2, 1.5, 1.0], [0.3, 2.0, -1.0], [0.3, 2.5, -1.0],
+                        [0.0, -1.0, 1.0], [0.0, -0.5, 1.0], [0.5, 0.0, 1.0], [0.5, 0.5, -1.0]])
+    state = np.array([[0.9, 0.05], [1.2, 0.1], [1.7, 0.2], [2.2, 0.3],
+                      [-1.1, 0.0], [-0.8, 0.0], [-0.3, 0.4], [0.2, 0.5]])
+    return EpisodeTable(actions=actions, state=state, episode_starts=np.array([0, 4, 8]),
+                        episode_index=np.array([0, 1]), tasks=["a", "b"])
+
+
+TINY = ActionLayout(groups={"base": (0, 1), "arm": (1, 2), "gripper": (2, 3)}, real_dim=3,
+                    action_dim=4, velocity_groups=("base",),
+                    roles={"base": "base", "arm": "arm", "gripper": "gripper"})
+
+
+def test_persistence_holds_the_previous_action_and_the_first_action_at_an_episode_start():
+    chunks = baselines.persistence(_tiny_table(), np.array([0, 2, 4, 7]), horizon=3)
+    assert chunks.shape == (4, 3, 3)
+    # frame 0: no previous action (its own); frame 2: frame 1's; frame 4: a new episode's first
+    assert chunks[:, 0].tolist() == [[0.1, 1.0, 1.0], [0.2, 1.5, 1.0], [0.0, -1.0, 1.0],
+                                     [0.5, 0.0, 1.0]]
+    assert (chunks == chunks[:, :1]).all()
+
+
+def test_state_copy_maps_groups_by_name_and_holds_the_gripper():
+    state_groups = {"arm": (0, 1), "base": (1, 2), "gripper": (1, 2)}
+    chunks = baselines.state_copy(_tiny_table(), np.array([2, 5]), 2, TINY, state_groups)
+    # base <- state[1], arm <- state[0]; the gripper (a width in the state) holds the command
+    assert chunks[:, 0].tolist() == [[0.2, 1.7, 1.0], [0.0, -0.8, 1.0]]
+
+
+def test_state_copy_without_state_groups_is_persistence():
+    table, frames = _tiny_table(), np.array([1, 6])
+    assert np.array_equal(baselines.state_copy(table, frames, 2, TINY, None),
+                          baselines.persistence(table, frames, 2))
+
+
+def test_persistence_metrics_equal_the_hand_computed_values():
+    """Chunks of H = 2 at frames 1 and 5 of the tiny table, scored in data units."""
+    table, frames = _tiny_table(), np.array([1, 5])
+    true = table.actions[np.array([[1, 2], [5, 6]])]
+    held = baselines.persistence(table, frames, 2)  # [[0.1, 1, 1] x2], [[0, -1, 1] x2]
+    metrics = eval_metrics.chunk_metrics(held, true, np.ones((2, 2), bool), layout=TINY,
+                                         gripper_groups=("gripper",),
+                                         gripper_threshold=np.zeros(3))
+    # base errors (0.1, 0.2; 0, 0.5)^2 / 4; arm (0.5, 1.0; 0.5, 1.0)^2 / 4
+    assert metrics["err/base"] == pytest.approx((0.01 + 0.04 + 0 + 0.25) / 4)
+    assert metrics["err/arm"] == pytest.approx((0.25 + 1.0 + 0.25 + 1.0) / 4)
+    assert metrics["err/gripper"] == pytest.approx((0 + 4.0 + 0 + 0) / 4)
+    # base gain: held means (0.1, 0) on true means (0.25, 0.25) -> 0.025 / 0.125
+    assert metrics["motion_gain/base"] == pytest.approx(0.2)
+    assert metrics["motion_gain/arm"] == 0.0
+    # the true gripper closes once (frame 1 -> 2); persistence never switches
+    assert [metrics[f"gripper_switch/{k}"] for k in ("tp", "fp", "fn")] == [0, 0, 1]
+    assert eval_metrics.skill_scores(metrics, metrics, TINY) == {
+        "skill/base": 0.0, "skill/arm": 0.0, "skill/gripper": 0.0}
+
+
+def test_skill_is_one_for_a_perfect_policy_and_negative_for_one_worse_than_doing_nothing():
+    persistence = {"err/base": 0.5, "err/arm": 0.1, "err/gripper": 0.0}
+    policy = {"err/base": 0.0, "err/arm": 0.3, "err/gripper": 0.2}
+    skill = eval_metrics.skill_scores(policy, persistence, TINY)
+    assert skill["skill/base"] == 1.0 and skill["skill/arm"] == pytest.approx(-2.0)
+    assert np.isnan(skill["skill/gripper"])
+
+
+def test_held_out_chunks_tile_each_episode_so_every_transition_is_in_one_chunk():
+    starts = np.array([0, 100, 130, 400])
+    frames = evaluate.tiled_chunk_starts(starts, horizon=10, max_chunks=1000, batch_size=1)
+    covered = np.zeros(400, int)  # transitions f -> f + 1 inside each chunk's 10 steps
+    for f in frames:
+        episode_end = starts[np.searchsorted(starts, f, side="right")]
+        covered[f:min(f + 9, episode_end - 1)] += 1
+    ends = starts[1:] - 1  # the last frame of an episode has no transition inside it
+    assert (np.delete(covered, ends) == 1).all() and (covered[ends] == 0).all()
+
+
+def test_held_out_chunks_beyond_max_chunks_are_an_even_subset_without_overlap():
+    frames = evaluate.tiled_chunk_starts(np.array([0, 1000]), horizon=10, max_chunks=40,
+                                         batch_size=8)
+    assert len(frames) == 40 and (np.diff(frames) >= 9).all()
+    assert frames[0] == 0 and frames[-1] > 900

@@ -211,3 +211,40 @@ def test_pi05_tokenizer_encodes_the_state_prompt_with_bos(tmp_path):
     assert tokens[0] == 2  # BOS
     assert tokenizer.decode(tokens, mask) == text.rstrip()
     assert 3 not in tokens[mask]  # no unknown piece: the numbers are in the vocabulary
+
+
+# ------------------------------------------------------------------------------ state levers
+
+
+def _state_after(config, train, batch=4000, seed=0):
+    obs = fake_observation(config, batch)
+    obs["state"] = np.ones((batch, config.action_dim), np.float32)
+    rng = jax.random.key(seed) if train else None
+    return np.asarray(preprocess_observation(rng, obs, config=config, train=train)["state"])
+
+
+def test_without_the_state_the_model_sees_zeros_in_training_and_sampling():
+    config = TINY.replace(use_state=False)
+    assert not _state_after(config, train=True, batch=8).any()
+    assert not _state_after(config, train=False, batch=8).any()
+
+
+def test_state_dropout_zeroes_whole_samples_at_its_rate_in_training_only():
+    config = TINY.replace(state_dropout=0.3)
+    state = _state_after(config, train=True)
+    dropped = ~state.any(axis=1)
+    assert abs(dropped.mean() - 0.3) < 0.03
+    assert (state[~dropped] == 1.0).all()  # a kept sample is untouched
+    assert (_state_after(config, train=False, batch=8) == 1.0).all()
+
+
+def test_state_noise_has_its_std_around_the_unchanged_state_in_training_only():
+    config = TINY.replace(state_noise=0.2)
+    state = _state_after(config, train=True)
+    assert abs(state.mean() - 1.0) < 0.01 and abs(state.std() - 0.2) < 0.01
+    assert (_state_after(config, train=False, batch=8) == 1.0).all()
+
+
+def test_state_levers_are_refused_for_pi05_whose_state_is_in_the_prompt():
+    with pytest.raises(ValueError, match="pi0.5 writes the state into the prompt"):
+        model_config.get_preset("pi05_tiny", state_dropout=0.5)

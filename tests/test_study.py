@@ -14,41 +14,69 @@ from pi0_armfix import study
 LAYOUT = {"preset": "b1k_r1pro", "action_dim": 32}
 
 
-def _result(config, seed, arm_gain, base_err=1.0, f1=0.5):
-    metrics = {f"motion_gain/{g}": arm_gain for g in ("left_arm", "right_arm")}
-    metrics |= {"motion_gain/base": 0.8, "err/base": base_err, "gripper_switch/f1": f1,
-                "gripper_switch/precision": None}
+def _result(config, seed, arm_gain, base_skill=0.2, f1=0.5, arm_skill=None):
+    arm_skill = arm_gain - 0.4 if arm_skill is None else arm_skill
+    metrics = {}
+    for g in ("left_arm", "right_arm"):
+        metrics |= {f"motion_gain/{g}": arm_gain, f"skill/{g}": arm_skill,
+                    f"persistence/motion_gain/{g}": 0.0, f"persistence/skill/{g}": 0.0}
+    metrics |= {"motion_gain/base": 0.8, "skill/base": base_skill, "err/base": 1.0,
+                "gripper_switch/f1": f1, "gripper_switch/precision": None,
+                "persistence/motion_gain/base": 0.95, "persistence/skill/base": 0.0,
+                "persistence/gripper_switch/f1": 0.0}
     return {"config": config, "seed": seed, "steps": 10, "layout": LAYOUT, "metrics": metrics}
 
 
 def test_aggregate_reports_mean_and_spread_over_seeds_and_the_difference_to_the_baseline():
     results = [_result("uniform", s, g) for s, g in enumerate((0.0, 0.1, 0.2))]
-    results += [_result("arm_delta", s, g, base_err=1.05, f1=0.7)
+    results += [_result("arm_delta", s, g, base_skill=0.19, f1=0.7, arm_skill=0.3 + 0.02 * s)
                 for s, g in enumerate((0.5, 0.6, 0.7))]
     agg = study.aggregate(results)
     delta = agg["configs"]["arm_delta"]
     assert delta["mean"]["arm_gain"] == pytest.approx(0.6)
     assert delta["std"]["arm_gain"] == pytest.approx(0.1)
+    assert delta["headline"]["arm_gain"] == pytest.approx([0.5, 0.6, 0.7])  # per seed
     diff, low, high = delta["vs_baseline"]["arm_gain"]
-    assert diff == pytest.approx(0.5) and low <= diff <= high
-    assert delta["vs_baseline"]["base_err"][0] == pytest.approx(0.05)
-    assert delta["targets"] == {"arm_gain": True, "base_err": True, "switch_f1": True}
+    assert diff == pytest.approx(0.5) and low < diff < high
+    assert delta["vs_baseline"]["base_skill"][0] == pytest.approx(-0.01)
+    assert delta["comparison"] == "primary" and agg["primary"] == "arm_delta"
+    assert delta["targets"] == {"arm_skill": True, "arm_gain": True, "base_skill": True,
+                                "switch_f1": True}
     assert agg["configs"]["uniform"]["targets"]["arm_gain"] is False
     assert delta["mean"]["gripper_switch/precision"] is None  # no measurement, not a zero
+    assert agg["anecdotal"] and agg["min_seeds"] == 3
 
 
-def test_bootstrap_interval_is_deterministic_and_collapses_without_spread():
-    a, b = np.array([0.4, 0.5, 0.6]), np.array([0.0, 0.1, 0.2])
-    assert study.bootstrap_interval(a, b) == study.bootstrap_interval(a, b)
-    assert study.bootstrap_interval(np.full(3, 2.0), np.full(3, 1.0), relative=True) == (
-        1.0, 1.0, 1.0)
+def test_do_nothing_rows_come_from_the_runs_baseline_metrics():
+    agg = study.aggregate([_result("uniform", s, 0.1) for s in range(2)])
+    persistence = agg["do_nothing"]["persistence"]
+    assert persistence["motion_gain/base"] == 0.95 and persistence["arm_gain"] == 0.0
+
+
+def test_arm_gain_target_follows_the_ceiling_where_the_ceiling_is_low():
+    results = [_result("uniform", s, 0.0) for s in range(3)]
+    results += [_result("fix", s, 0.4 + 0.01 * s) for s in range(3)]
+    assert not study.aggregate(results)["configs"]["fix"]["targets"]["arm_gain"]
+    ceiling = {"motion_gain/left_arm": 0.55, "motion_gain/right_arm": 0.55}
+    assert study.aggregate(results, ceiling=ceiling)["configs"]["fix"]["targets"]["arm_gain"]
+
+
+def test_secondary_comparisons_get_bonferroni_corrected_intervals():
+    results = [_result(c, s, g + 0.05 * s) for c, g in (("uniform", 0.0), ("a", 0.3), ("b", 0.3),
+                                                         ("c", 0.3)) for s in range(5)]
+    agg = study.aggregate(results, primary="a")
+    primary, secondary = agg["configs"]["a"], agg["configs"]["b"]
+    assert primary["confidence"] == 0.95 and secondary["confidence"] == pytest.approx(0.975)
+    width = lambda c: c["vs_baseline"]["arm_gain"][2] - c["vs_baseline"]["arm_gain"][1]  # noqa
+    assert width(secondary) > width(primary)
 
 
 def test_reports_are_written_and_name_every_config(tmp_path):
     results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
     study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     text = (tmp_path / "study.md").read_text()
-    assert "| uniform |" in text and "| arm_focused |" in text and "bootstrap" in text
+    assert "| uniform |" in text and "| arm_focused |" in text and "Welch t" in text
+    assert "*persistence (do nothing)*" in text and "anecdotes" in text
     assert json.loads((tmp_path / "study.json").read_text())["baseline"] == "uniform"
     assert (tmp_path / "study.png").stat().st_size > 10_000
 
@@ -69,6 +97,8 @@ def test_closed_loop_success_gets_its_own_table_with_the_difference_to_the_basel
     text = (tmp_path / "study.md").read_text()
     assert "## Closed loop in the demo world" in text and "50 episodes per seed" in text
     assert "| arm_focused | 0.900 ± 0.000 | 0.550 ± 0.071 | 0.275 ± 0.035 | n/a |" in text
+    assert agg["configs"]["arm_focused"]["vs_baseline"][
+        "closed_loop/success/manipulation"][1] > 0  # 2 seeds apart, no overlap
 
 
 def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir, demo_root):

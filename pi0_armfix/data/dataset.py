@@ -37,6 +37,10 @@ from pi0_armfix.data import transforms
 from pi0_armfix.data.episodes import EpisodeTable
 
 ConfigLike = Mapping[str, Any]
+# The per-frame statistics of the absolute actions, kept beside openpi's two entries: the
+# evaluation's units (`pi0_armfix.evaluate.evaluation_scale`) whatever the normalization (balanced
+# stats rescale "actions") or representation (delta dims hold chunk deltas in "actions").
+ABSOLUTE_ACTIONS = "actions_absolute"
 EPISODE_CHOICES = ("train", "all")
 
 
@@ -192,8 +196,9 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
 def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
                      layout: ActionLayout, *, action_horizon: int, total_frames: int | None = None,
                      progress: bool = True) -> dict[str, stats_lib.NormStats]:
-    """Statistics `{"actions", "state"}` of a stream of blocks (`Source.iter_blocks`), with the
-    actions in the model's action space.
+    """Statistics `{"actions", "state", "actions_absolute"}` of a stream of blocks
+    (`Source.iter_blocks`), with the actions in the model's action space, and the absolute actions
+    per frame beside them (the evaluation's common units, whatever the representation).
 
     Absolute action dims and the state: over frames, each frame once. The relative dims of
     `data.delta_action_mask`: over every step of every chunk, as openpi (which computes its stats
@@ -213,7 +218,8 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
     """
     mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
     if mask is None:
-        return stats_lib.compute_norm_stats(blocks, total_frames=total_frames, progress=progress)
+        stats = stats_lib.compute_norm_stats(blocks, total_frames=total_frames, progress=progress)
+        return {**stats, ABSOLUTE_ACTIONS: stats["actions"]}
     if action_horizon < 1:
         raise ValueError(f"action_horizon must be >= 1 for the delta action statistics, got "
                          f"{action_horizon}")
@@ -235,6 +241,7 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
         stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
         total_frames=total_frames, transform=chunk_steps, progress=progress)
     delta = stats.pop("delta_actions")
+    stats[ABSOLUTE_ACTIONS] = stats["actions"]
     fields = {}
     for field in stats_lib.FIELDS:
         fields[field] = getattr(stats["actions"], field).copy()
@@ -353,8 +360,9 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
     """
     data = config["data"]
     widths = {"actions": layout.real_dim, "state": None}
+    optional = {ABSOLUTE_ACTIONS: layout.real_dim}
     if data.get("norm_stats"):
-        return stats_lib.load_norm_stats(data["norm_stats"], widths)
+        return stats_lib.load_norm_stats(data["norm_stats"], widths, optional)
     source = _source(config, layout, source)
     key = norm_stats_key(config, layout, source, action_horizon=action_horizon)
     if episodes is not None and cache_path is not None:
@@ -363,18 +371,18 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
         cache_path = Path(cache_path)
         cached = read_key(_key_path(cache_path))
         if cached == key:
-            return stats_lib.load_norm_stats(cache_path, widths)
+            return stats_lib.load_norm_stats(cache_path, widths, optional)
         differing = differing_keys(cached, key)
         if keep_cached:
             logging.warning("%s: keeping the norm stats the run was trained with (differing: %s)",
                             cache_path, differing)
             stats_lib.write_json_atomic(_key_path(cache_path), key)
-            return stats_lib.load_norm_stats(cache_path, widths)
+            return stats_lib.load_norm_stats(cache_path, widths, optional)
         if resuming:
             if cached is None:  # a run from before the key existed: keep what it trained with
                 logging.warning("%s has no key file; reusing it for the resumed run", cache_path)
                 stats_lib.write_json_atomic(_key_path(cache_path), key)
-                return stats_lib.load_norm_stats(cache_path, widths)
+                return stats_lib.load_norm_stats(cache_path, widths, optional)
             raise ValueError(
                 f"{cache_path} was computed from other data or options than this config "
                 f"(differing: {differing}) and the run's checkpoints were trained with it: "

@@ -11,7 +11,7 @@ The world, its physics, its cameras and its task plans live in `pi0_armfix.sim.w
 source of truth, shared with the closed-loop environment `pi0_armfix.sim.env`); the operator is
 `pi0_armfix.sim.expert.ScriptedTeleoperator`. An episode is the operator acting in the world,
 recorded frame by frame: the cameras and the state before each action, and the action. Parameters
-are `DemoSpec`'s; the defaults give 100 episodes of 200-1000 frames, ~55k frames in all, at 30 fps
+are `DemoSpec`'s; the defaults give 120 episodes of 200-1000 frames, ~66k frames in all, at 30 fps
 (~20 s to generate on 2 cores, 27 MiB).
 
 Calibration: arm and torso postures are drawn around the published B1K means with

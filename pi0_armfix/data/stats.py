@@ -421,8 +421,8 @@ def write_json_atomic(path: str | Path, payload: Any) -> None:
     os.replace(tmp.name, path)
 
 
-def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None
-                    ) -> dict[str, NormStats]:
+def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None,
+                    optional: Mapping[str, int | None] | None = None) -> dict[str, NormStats]:
     """Reads openpi's `norm_stats.json`.
 
     Args:
@@ -430,6 +430,8 @@ def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None
       widths: `{key: real width or None}` of the keys to read (e.g. `{"actions": 23}`): a padded
         entry is cut to the width (see `fit_width`); None keeps the stored width. `widths=None`
         reads every key at its stored width.
+      optional: like `widths`, for keys read only when the file has them (`actions_absolute`,
+        which openpi's files lack).
 
     Raises:
       ValueError naming the file and key for a missing file, bad JSON, a missing key or field,
@@ -447,11 +449,13 @@ def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None
         raise ValueError(f"norm stats file {path} has no 'norm_stats' object (openpi format: "
                          '{"norm_stats": {"state": {...}, "actions": {...}}})')
     stats = {}
-    for key in (widths if widths is not None else entries):
+    wanted = dict(widths) if widths is not None else dict.fromkeys(entries)
+    wanted.update({k: w for k, w in (optional or {}).items() if k in entries})
+    for key, width in wanted.items():
         where = f"norm stats file {path}, norm_stats[{key!r}]"
         stats[key] = _parse_entry(entries.get(key), where, sorted(entries))
-        if widths is not None and widths[key] is not None:
-            stats[key] = fit_width(stats[key], widths[key], where)
+        if width is not None:
+            stats[key] = fit_width(stats[key], width, where)
     return stats
 
 

@@ -99,6 +99,13 @@ class Pi0Config:
       unroll_layers: unroll the layer scans in the compiled program (same params and results).
         XLA's cost analysis counts a loop body once, so FLOP counts need the unrolled program.
       augment: train-time augmentation.
+      use_state: False feeds the model a zero state, in training and sampling (the no-state
+        ablation: the policy must read everything from the cameras and the prompt).
+      state_dropout: probability, per training sample, that the state is replaced by zeros (the
+        normalized mean state), so the policy cannot rely on copying it.
+      state_noise: std of Gaussian noise added to the normalized state in training, targets
+        unchanged (DART-style: the policy learns to act from states a little off the
+        demonstrations, as its own mistakes put it in closed loop).
     """
 
     paligemma: GemmaConfig
@@ -115,6 +122,14 @@ class Pi0Config:
     pi05: bool = False
     unroll_layers: bool = False
     augment: AugmentConfig = AugmentConfig()
+    use_state: bool = True
+    state_dropout: float = 0.0
+    state_noise: float = 0.0
+
+    @property
+    def perturbs_state(self) -> bool:
+        """Whether the state the model sees differs from the batch's."""
+        return not self.use_state or self.state_dropout > 0.0 or self.state_noise > 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "image_resolution", tuple(int(s) for s in self.image_resolution))
@@ -147,6 +162,14 @@ class Pi0Config:
         for field in ("vocab_size", "action_dim", "action_horizon", "max_token_len"):
             if getattr(self, field) <= 0:
                 raise ValueError(f"{field}={getattr(self, field)} must be positive")
+        if not 0.0 <= self.state_dropout <= 1.0:
+            raise ValueError(f"state_dropout={self.state_dropout} must be a probability in [0, 1]")
+        if self.state_noise < 0.0:
+            raise ValueError(f"state_noise={self.state_noise} must be >= 0")
+        if self.pi05 and self.perturbs_state:
+            raise ValueError("use_state / state_dropout / state_noise act on pi0's state token; "
+                             "pi0.5 writes the state into the prompt instead: leave them at "
+                             "their defaults (True, 0, 0) with a pi05 preset")
         aug = self.augment
         if not 0.0 < aug.crop_scale <= 1.0:
             raise ValueError(f"augment.crop_scale={aug.crop_scale} must be in (0, 1]")
@@ -272,9 +295,15 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
     """Builds the model config from the training config's `model` section.
 
     Reads `preset`; `dtype`, `action_horizon` and `action_dim` override the preset when set
-    (non-empty / > 0).
+    (non-empty / > 0); `augment` (its fields), `use_state`, `state_dropout` and `state_noise`
+    when present.
     """
     changes = {}
+    if model_cfg.get("augment"):
+        changes["augment"] = AugmentConfig(**dict(model_cfg["augment"]))
+    for field in ("use_state", "state_dropout", "state_noise"):
+        if model_cfg.get(field) is not None:
+            changes[field] = model_cfg[field]
     if model_cfg.get("action_dim"):
         changes["action_dim"] = int(model_cfg["action_dim"])
     if model_cfg.get("dtype"):

@@ -163,7 +163,31 @@ def preprocess_observation(rng: jax.Array | None, observation: Mapping[str, Any]
         images[key] = image
         mask = observation.get("image_mask", {}).get(key)
         masks[key] = jnp.ones((batch_size,), bool) if mask is None else jnp.asarray(mask, bool)
-    return {**observation, "image": images, "image_mask": masks}
+    state = observation["state"]
+    if config.perturbs_state:
+        rng_state = jax.random.fold_in(rng, len(config.image_keys)) if train else None
+        state = perturb_state(rng_state, jnp.asarray(state, jnp.float32), config=config,
+                              train=train)
+    return {**observation, "state": state, "image": images, "image_mask": masks}
+
+
+def perturb_state(rng: jax.Array | None, state: jax.Array, *, config: Pi0Config, train: bool
+                  ) -> jax.Array:
+    """The state levers against copying the state (`Pi0Config.use_state`, `state_dropout`,
+    `state_noise`) on a normalized state `[B, S]`: zeros without the state; in training, each
+    sample's state dropped to zeros with probability `state_dropout`, else `state_noise` std of
+    Gaussian noise added (padding dims included: they carry nothing either way)."""
+    if not config.use_state:
+        return jnp.zeros_like(state)
+    if not train:
+        return state
+    rng_drop, rng_noise = jax.random.split(rng)
+    if config.state_noise > 0.0:
+        state = state + config.state_noise * jax.random.normal(rng_noise, state.shape, state.dtype)
+    if config.state_dropout > 0.0:
+        keep = jax.random.bernoulli(rng_drop, 1.0 - config.state_dropout, state.shape[:1])
+        state = jnp.where(keep[:, None], state, 0.0)
+    return state
 
 
 def fake_observation(config: Pi0Config, batch_size: int, *, image_size: tuple[int, int] | None = None,

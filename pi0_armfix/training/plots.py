@@ -48,31 +48,48 @@ def plot_group_losses(records: Sequence[Mapping], layout: ActionLayout,
 
 def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
                     path: epath.PathLike) -> bool:
-    """Held-out motion gain of every group over training: the "base moves, arms don't" picture.
+    """Held-out motion gain and skill of every group over training, beside doing nothing.
 
-    Motion gain is the least-squares slope of the policy's sampled displacement on the data's
-    (1 = moves as far as the demonstrations, 0 = stands still). Base-like groups (roles base,
-    torso) are drawn dashed beside the arms and grippers. Returns False (and writes nothing)
-    without evaluation records.
+    Left: motion gain, the least-squares slope of the policy's sampled displacement on the data's
+    (1 = moves as far as the demonstrations, 0 = still or unrelated), with each group's
+    persistence gain (hold the previous action) dotted in its colour: a base at ~0.95 there is the
+    data's slow command, not learning. Right: skill over persistence, `1 - err / persistence err`
+    (> 0: better than doing nothing). Base-like groups (roles base, torso) are dashed. Returns
+    False (and writes nothing) without evaluation records.
     """
     rows = [r for r in records if f"motion_gain/{layout.group_names[0]}" in r]
     if not rows:
         return False
     steps = [r["step"] for r in rows]
     body = set(layout.groups_with_role("base", "torso"))
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    for g in layout.group_names:
-        ax.plot(steps, [r[f"motion_gain/{g}"] for r in rows], marker="o", markersize=4,
-                ls="--" if g in body else "-", lw=1.2 if g in body else 2.0, label=g)
-    ax.set_ylim(min(-0.1, ax.get_ylim()[0]), max(1.15, ax.get_ylim()[1]))
-    ax.axhline(1.0, color="gray", lw=0.8)
-    ax.axhline(0.0, color="black", lw=0.8)
-    ax.text(steps[0], 1.02, "moves like the data", color="gray", fontsize=8, va="bottom")
-    ax.text(steps[0], 0.02, "still (stagnation)", color="black", fontsize=8, va="bottom")
-    ax.set(xlabel="training step", ylabel="motion gain (held-out, sampled actions)",
-           title="per-group motion gain over training (dashed: base and torso)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, (gain_ax, skill_ax) = plt.subplots(1, 2, figsize=(13, 4.5))
+    for i, g in enumerate(layout.group_names):
+        style = dict(color=colors[i % len(colors)], marker="o", markersize=4,
+                     ls="--" if g in body else "-", lw=1.2 if g in body else 2.0)
+        gain_ax.plot(steps, [r[f"motion_gain/{g}"] for r in rows], label=g, **style)
+        if f"persistence/motion_gain/{g}" in rows[-1]:
+            gain_ax.axhline(rows[-1][f"persistence/motion_gain/{g}"], color=style["color"],
+                            ls=":", lw=1.0)
+        if f"skill/{g}" in rows[-1]:
+            skill_ax.plot(steps, [r.get(f"skill/{g}", np.nan) for r in rows], label=g, **style)
+    gain_ax.set_ylim(min(-0.1, gain_ax.get_ylim()[0]), max(1.15, gain_ax.get_ylim()[1]))
+    gain_ax.axhline(1.0, color="gray", lw=0.8)
+    gain_ax.axhline(0.0, color="black", lw=0.8)
+    gain_ax.text(steps[0], 1.02, "moves like the data", color="gray", fontsize=8, va="bottom")
+    gain_ax.text(steps[0], 0.02, "still (stagnation)", color="black", fontsize=8, va="bottom")
+    gain_ax.set(xlabel="training step", ylabel="motion gain (held-out, sampled actions)",
+                title="motion gain (dotted: holding the previous action)")
+    skill_ax.axhline(0.0, color="black", lw=0.8)
+    skill_ax.text(steps[0], 0.02, "as good as doing nothing", fontsize=8, va="bottom")
+    low, high = skill_ax.get_ylim()
+    skill_ax.set_ylim(max(low, -3.0), max(high, 0.2))
+    skill_ax.set(xlabel="training step", ylabel="skill = 1 - err / persistence err",
+                 title="skill over holding the previous action (> 0: better)")
+    for ax in (gain_ax, skill_ax):
+        ax.grid(alpha=0.3)
+    skill_ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.suptitle("held-out evaluation per group (dashed: base and torso)")
     fig.tight_layout()
     fig.savefig(epath.Path(path), dpi=100)
     plt.close(fig)

@@ -1,0 +1,197 @@
+"""Stagnation metrics of sampled action chunks against the recorded ones (docs/evaluation.md).
+
+All functions take absolute action chunks in evaluation units (`evaluation_units`: data units
+over a per-dim scale, not centred, so a zero velocity command stays 0). Per group g:
+
+  err/<g>            MSE of the chunk against the true chunk.
+  skill/<g>          1 - err / err of holding the previous action (`baselines`); > 0: better than
+                     doing nothing, 0: as good as doing nothing, 1: perfect.
+  motion_gain/<g>    least-squares slope of predicted on true displacement; 1 = moves as far as
+                     the data in the data's direction, 0 = stagnation (or motion unrelated to the
+                     data's).
+  motion_ratio/<g>   ratio of displacement magnitudes (inflated by sampling noise: a policy that
+                     moves as much as the data in unrelated directions scores 1 here, 0 in gain).
+  gripper_switch/{precision,recall,f1,tp,fp,fn}
+                     open/close switch events: a predicted switch matches a true one of the same
+                     direction and dim within `switch_tolerance` steps, each used once.
+
+A displacement is the chunk's last valid action minus its first (the current one); for a velocity
+group (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean command measured from
+the zero command (a standing base is 0). A gripper switch is a crossing of the dim's open/close
+boundary (`gripper_boundary`) between two consecutive valid steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import transforms
+
+# A dim whose training spread is below this (data units: a millimetre, a milliradian) is measured
+# in data units; dividing by a near-zero spread makes any error astronomically large.
+UNIT_FLOOR = 1e-3
+
+
+def _last_valid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`x[n, last valid h]` -> `[N, D]` (the tail of a chunk at an episode end is padding)."""
+    last = np.maximum(valid.sum(axis=1) - 1, 0)
+    return x[np.arange(len(x)), last]
+
+
+def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """How far a chunk moves, `[N, D]`: last valid action minus the first (the current one) on
+    position dims; the mean over the valid steps on velocity dims, measured from the zero command.
+
+    Args:
+      chunk: `[N, H, D]` in units whose 0 is the zero command; valid: `[N, H]` bool;
+        velocity: `[D]` bool.
+    """
+    position = _last_valid(chunk, valid) - chunk[:, 0]
+    w = valid[..., None].astype(chunk.dtype)
+    mean = (chunk * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
+    return np.where(velocity, mean, position)
+
+
+def gripper_boundary(q01: np.ndarray, q99: np.ndarray) -> np.ndarray:
+    """The open/close boundary of each dim: the midpoint of its 1 % and 99 % quantiles (the one
+    definition shared by the evaluation, the loss's switch emphasis and the closed loop)."""
+    return (np.asarray(q01, np.float64) + np.asarray(q99, np.float64)) / 2
+
+
+def switch_events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The gripper switches of chunks: crossings of `threshold` between two consecutive valid steps.
+
+    Args:
+      chunk: `[N, H, D]`; valid: `[N, H]` bool; threshold: `[D]` the open/close boundary.
+    Returns:
+      `(up, down)`, each `[N, D, H]` bool: True at step h when the dim crosses upwards (opens) /
+      downwards (closes) between steps h - 1 and h (h = 0 is always False).
+    """
+    above = chunk > threshold
+    both_valid = (valid[:, 1:] & valid[:, :-1])[..., None]
+    up = ~above[:, :-1] & above[:, 1:] & both_valid
+    down = above[:, :-1] & ~above[:, 1:] & both_valid
+    start = np.zeros_like(up[:, :1])
+    return tuple(np.concatenate([start, x], axis=1).transpose(0, 2, 1) for x in (up, down))
+
+
+def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> int:
+    """Number of true switch events matched one-to-one by a predicted event of the same kind
+    within `tolerance` steps (greedy in time order, each predicted event used once).
+
+    Args:
+      predicted, true: `[..., H]` bool events (one row per chunk, dim and direction).
+    """
+    pred_rows = predicted.reshape(-1, predicted.shape[-1])
+    matched = 0
+    for row, true_row in enumerate(true.reshape(-1, true.shape[-1])):
+        candidates = list(np.flatnonzero(pred_rows[row]))
+        for h in np.flatnonzero(true_row):
+            near = [p for p in candidates if abs(p - h) <= tolerance]
+            if near:
+                candidates.remove(min(near, key=lambda p: abs(p - h)))
+                matched += 1
+    return matched
+
+
+def switch_scores(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
+                  threshold: np.ndarray, tolerance: int) -> dict[str, float]:
+    """Precision, recall and F1 of the predicted gripper switches against the true ones, and the
+    event counts behind them (`tp`, `fp`, `fn`).
+
+    Each event is counted once when the chunks do not overlap on the episode timeline (the
+    `Evaluator`'s chunks tile the held-out episodes). Precision is NaN without any predicted
+    switch, recall without any true switch, F1 (`2 TP / (2 TP + FP + FN)`) without either.
+
+    Args:
+      predicted, true: `[N, H, D]` gripper dims; valid: `[N, H]`; threshold: `[D]`.
+    """
+    pred_events = np.stack(switch_events(predicted, valid, threshold))
+    true_events = np.stack(switch_events(true, valid, threshold))
+    tp = matched_switches(pred_events, true_events, tolerance)
+    num_pred, num_true = int(pred_events.sum()), int(true_events.sum())
+
+    def ratio(num, den):
+        return float(num / den) if den else float("nan")
+
+    return {"gripper_switch/precision": ratio(tp, num_pred),
+            "gripper_switch/recall": ratio(tp, num_true),
+            "gripper_switch/f1": ratio(2 * tp, num_pred + num_true),
+            "gripper_switch/tp": float(tp), "gripper_switch/fp": float(num_pred - tp),
+            "gripper_switch/fn": float(num_true - tp)}
+
+
+def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
+                  layout: ActionLayout, gripper_groups: Sequence[str],
+                  gripper_threshold: np.ndarray, switch_tolerance: int = 2) -> dict[str, float]:
+    """Stagnation metrics of sampled chunks against the true ones (see the module docstring).
+
+    Args:
+      predicted, true: `[N, H, D]` absolute action chunks in evaluation units (D >= real_dim).
+      valid: `[N, H]` bool, False on the padded tail of a chunk at an episode end.
+      gripper_groups: groups whose dims are open/close commands.
+      gripper_threshold: `[D]` the open/close boundary of each dim, same units.
+      switch_tolerance: steps by which a predicted gripper switch may miss the true one.
+    Returns:
+      `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group,
+      `gripper_switch/{precision,recall,f1,tp,fp,fn}`; NaN where the data gives nothing to
+      measure. Computed in float64.
+    """
+    predicted, true = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
+    velocity = transforms.pad_last(layout.velocity_mask()[:layout.real_dim], true.shape[-1])
+    dp = displacement(predicted, valid, velocity)
+    dt = displacement(true, valid, velocity)
+    sq_err = np.square(predicted - true)
+    w = valid[..., None].astype(np.float64)
+    metrics = {}
+    for g in layout.group_names:
+        dims = layout.group_dims(g)
+        metrics[f"err/{g}"] = float((sq_err[..., dims] * w).sum() / max(w.sum() * len(dims), 1.0))
+        true_motion = float(np.sum(dt[:, dims] ** 2))
+        metrics[f"motion_gain/{g}"] = (float(np.sum(dp[:, dims] * dt[:, dims]) / true_motion)
+                                       if true_motion > 0 else float("nan"))
+        true_norm = float(np.linalg.norm(dt[:, dims], axis=-1).sum())
+        metrics[f"motion_ratio/{g}"] = (
+            float(np.linalg.norm(dp[:, dims], axis=-1).sum() / true_norm)
+            if true_norm > 0 else float("nan"))
+    dims = np.concatenate([layout.group_dims(g) for g in gripper_groups] + [np.zeros(0, int)])
+    metrics.update(switch_scores(predicted[..., dims], true[..., dims], valid,
+                                 np.asarray(gripper_threshold)[dims], switch_tolerance))
+    return metrics
+
+
+def skill_scores(metrics: dict[str, float], persistence: dict[str, float],
+                 layout: ActionLayout) -> dict[str, float]:
+    """`skill/<g> = 1 - err/<g> / persistence's err/<g>` (NaN where persistence is exact)."""
+    skills = {}
+    for g in layout.group_names:
+        reference = persistence[f"err/{g}"]
+        skills[f"skill/{g}"] = (1.0 - metrics[f"err/{g}"] / reference if reference > 0
+                                else float("nan"))
+    return skills
+
+
+def evaluation_units(std: np.ndarray, q01: np.ndarray, q99: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The common units of every run's metrics, from absolute-action statistics in data units
+    (the training split's, `norm_stats.json`'s `actions_absolute`).
+
+    Runs differ in normalization (z-score, quantile, balanced, per timestep) and in action
+    representation (absolute or delta), so their normalized units cannot be compared. Metrics are
+    taken on absolute actions in data units divided by each dim's std, floored at `UNIT_FLOOR`
+    (a dim that barely moves in training is measured in data units, never blown up); not centred,
+    so a zero velocity command stays 0. Float64.
+
+    Args:
+      std, q01, q99: `[D]` per-dim statistics of the absolute actions, data units.
+    Returns:
+      `(scale [D], gripper threshold [D])`: divide by `scale`; the threshold
+      (`gripper_boundary`) is in the divided units.
+    """
+    std = np.asarray(std, np.float64)
+    scale = np.where(std < UNIT_FLOOR, 1.0, std)
+    return scale, gripper_boundary(q01, q99) / scale
