@@ -36,11 +36,9 @@ from tqdm import tqdm
 
 from pi0_armfix import console, inference
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import batching, sources, transforms
-from pi0_armfix.data import selection as selection_lib
+from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.evaluation import baselines as baselines_lib
+from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy
@@ -56,41 +54,6 @@ TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
 METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
 CLOSED_LOOP_FILE = "closed_loop.json"  # of a closed-loop evaluation, in eval/step_<N>/
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
-
-
-# ---------------------------------------------------------------------- the held-out chunks
-
-def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int,
-                       batch_size: int) -> np.ndarray:
-    """`[N]` chunk start frames that tile the held-out episodes' timeline without overlap.
-
-    Chunks start every `H - 1` frames of each episode, so consecutive chunks share one step and
-    every step-to-step transition (where a gripper switch happens) lies in exactly one chunk: each
-    switch event of the data is counted once. When that gives more than `max_chunks`, an evenly
-    spaced subset of the tiles is kept (still without overlap). N is a multiple of `batch_size`.
-    """
-    stride = max(horizon - 1, 1)
-    tiles = np.concatenate([np.arange(start, stop, stride) for start, stop
-                            in zip(episode_starts[:-1], episode_starts[1:])])
-    num = min(max_chunks, len(tiles)) // batch_size * batch_size
-    keep = np.linspace(0, len(tiles) - 1, num).round().astype(np.int64) if num else []
-    return tiles[keep].astype(np.int64)
-
-
-def evaluation_scale(norm_stats: Mapping[str, stats_lib.NormStats], true: np.ndarray,
-                     valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`eval_metrics.evaluation_units` from the run's absolute-action statistics of the training
-    split (`actions_absolute` of its norm stats: the same for every run on the same data, whatever
-    its normalization or action representation), or, for stats computed elsewhere that lack
-    them, from the held-out true chunks `[N, H, A]` (data units, `valid` `[N, H]`)."""
-    reference = norm_stats.get("actions_absolute")
-    width = true.shape[-1]
-    if reference is not None:
-        reference = stats_lib.fit_width(reference, width, "norm stats 'actions_absolute'")
-        return eval_metrics.evaluation_units(reference.std, reference.q01, reference.q99)
-    steps = np.asarray(true[valid], np.float64)
-    q01, q99 = np.quantile(steps, [0.01, 0.99], axis=0)
-    return eval_metrics.evaluation_units(steps.std(axis=0), q01, q99)
 
 
 def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
@@ -158,37 +121,12 @@ class Evaluator:
         self.layout = layout
         self.eval_cfg = eval_cfg
         self.groups = eval_groups(eval_cfg, layout)
-        table = dataset_lib.heldout_table(config, layout, source=source)
-        transform = batching.BatchTransform(
-            table, layout, norm_stats=norm_stats, norm_mode=model_config_lib.norm_mode(config),
-            action_horizon=model_config.action_horizon,
-            delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
-            tokenize=tokenize, image_size=model_config.image_resolution)
-        batch_size = eval_cfg.batch_size
-        frames = tiled_chunk_starts(table.episode_starts, model_config.action_horizon,
-                                    eval_cfg.max_chunks, batch_size)
-        if len(frames) == 0:
-            raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) hold "
-                             f"fewer than eval.batch_size = {batch_size} chunks of "
-                             f"H = {model_config.action_horizon}")
-        self.transform = transform
-        self.frames = frames
-        self.batches = [transform(frames[i:i + batch_size])
-                        for i in range(0, len(frames), batch_size)]
-        self.valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
-        true = transform.absolute_actions(np.concatenate([b["actions"] for b in self.batches]),
-                                          frames)
-        self.scale, self.gripper_threshold = evaluation_scale(norm_stats, true, self.valid)
-        self.true = true / self.scale
-        baselines = baselines_lib.baseline_chunks(
-            table, frames, model_config.action_horizon, layout,
-            selection_lib.state_groups(config.data))
-        self.baseline_metrics = {}
-        for name, chunks in baselines.items():
-            self.baseline_metrics[name] = self._measure(chunks[..., :layout.real_dim] / self.scale)
-        persistence = self.baseline_metrics["persistence"]
-        for name, measured in self.baseline_metrics.items():
-            measured.update(eval_metrics.skill_scores(measured, persistence, layout))
+        self.chunks = heldout_lib.HeldOutChunks(
+            config, layout, norm_stats, horizon=model_config.action_horizon,
+            measure=functools.partial(eval_metrics.chunk_metrics, layout=layout,
+                                      gripper_groups=self.groups["gripper_groups"],
+                                      switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
+            tokenize=tokenize, image_size=model_config.image_resolution, source=source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
         self.seed = int(config.seed)
         self._sample = jax.jit(
@@ -207,7 +145,7 @@ class Evaluator:
     def sample(self, params: Any) -> np.ndarray:
         """Sampled chunks `[N, H, D]` of all held-out chunks (the same noise every call)."""
         predicted = []
-        for i, batch in enumerate(tqdm(self.batches, desc="eval", leave=False,
+        for i, batch in enumerate(tqdm(self.chunks.batches, desc="eval", leave=False,
                                        disable=jax.process_index() != 0)):
             observation = jax.tree.map(self._global, {k: v for k, v in batch.items()
                                                       if k not in ("actions", "action_is_pad")})
@@ -215,26 +153,14 @@ class Evaluator:
             predicted.append(np.asarray(self._sample(params, rng, observation)))
         return np.concatenate(predicted)
 
-    def _measure(self, predicted: np.ndarray) -> dict[str, float]:
-        """`chunk_metrics` of chunks `[N, H, A]` in evaluation units against the true ones."""
-        return eval_metrics.chunk_metrics(
-            predicted, self.true, self.valid, layout=self.layout,
-            gripper_groups=self.groups["gripper_groups"],
-            gripper_threshold=self.gripper_threshold,
-            switch_tolerance=self.eval_cfg.get("switch_tolerance", 2))
-
     def __call__(self, params: Any) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-        """Returns the metrics (the policy's, with `skill/<g>`, and each baseline's under
-        `<baseline>/...`), and the predicted and true absolute chunks `[N, H, A]` in evaluation
-        units."""
-        predicted = self.transform.absolute_actions(self.sample(params), self.frames) / self.scale
-        metrics = self._measure(predicted)
-        metrics.update(eval_metrics.skill_scores(
-            metrics, self.baseline_metrics["persistence"], self.layout))
-        for name, measured in self.baseline_metrics.items():
-            metrics.update({f"{name}/{k}": v for k, v in measured.items()})
-        metrics["chunks"] = float(len(self.frames))
-        return metrics, predicted, self.true
+        """Returns the metrics (`HeldOutChunks.metrics`: the policy's with its skill, and each
+        reference's under `<name>/...`), and the predicted and true absolute chunks `[N, H, A]`
+        in evaluation units."""
+        chunks = self.chunks
+        predicted = chunks.transform.absolute_actions(self.sample(params), chunks.frames)
+        predicted = predicted / chunks.scale
+        return chunks.metrics(predicted, self.layout), predicted, chunks.true
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
@@ -245,26 +171,30 @@ class Evaluator:
         shown = [g for g in self.layout.groups_with_role("base", "torso") if g not in plot_groups]
         shown += list(plot_groups)
         motion = np.linalg.norm(
-            eval_metrics.displacement(true, self.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
+            eval_metrics.displacement(true, self.chunks.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
         rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
-        plots.plot_trajectories(predicted[rows] * self.scale, true[rows] * self.scale, self.layout,
+        scale = self.chunks.scale
+        plots.plot_trajectories(predicted[rows] * scale, true[rows] * scale, self.layout,
                                 shown, path, title)
 
 
 def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
-    """A table: per group the policy's error, skill over persistence, motion gain and ratio, and
-    the error and gain of the do-nothing predictors on the same chunks; then gripper switches."""
+    """A table: per group the policy's error, skill over persistence, motion gain and ratio,
+    then the error and gain of each reference predictor on the same chunks (the do-nothing
+    baselines; the ceiling on the demo); then gripper switches."""
+    references = [name for name in ("persistence", "state_copy", heldout_lib.CEILING)
+                  if f"{name}/err/{layout.group_names[0]}" in metrics]
     lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action); "
              "gain: 1 = moves like the data, 0 = still or unrelated",
-             f"{'group':<15}{'err':>9}{'skill':>8}{'gain':>8}{'ratio':>7} |"
-             f"{'persist err':>12}{'gain':>7} |{'state-copy err':>15}{'gain':>7}"]
+             f"{'group':<15}{'err':>9}{'skill':>9}{'gain':>8}{'ratio':>8}"
+             + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'gain':>7}"
+                       for name in references)]
     for g in layout.group_names:
         lines.append(
-            f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>8.3f}"
-            f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>7.3f} |"
-            f"{metrics[f'persistence/err/{g}']:>12.4f}{metrics[f'persistence/motion_gain/{g}']:>7.3f}"
-            f" |{metrics[f'state_copy/err/{g}']:>15.4f}"
-            f"{metrics[f'state_copy/motion_gain/{g}']:>7.3f}")
+            f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>9.3f}"
+            f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>8.3f}"
+            + "".join(f" |{metrics[f'{name}/err/{g}']:>16.4f}"
+                      f"{metrics[f'{name}/motion_gain/{g}']:>7.3f}" for name in references))
     counts = "/".join(str(int(metrics[f"gripper_switch/{k}"])) for k in ("tp", "fp", "fn"))
     lines.append("gripper switches (each event once): " + ", ".join(
         f"{name} {metrics[f'gripper_switch/{name}']:.3f}" for name in ("precision", "recall", "f1"))

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -53,9 +54,11 @@ import numpy as np  # noqa: E402
 from absl import app, flags  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from pi0_armfix import study_stats  # noqa: E402
+from pi0_armfix import evaluate, inference, study_stats  # noqa: E402
 from pi0_armfix.action_space import ActionLayout  # noqa: E402
 from pi0_armfix.evaluation import baselines as baselines_lib  # noqa: E402
+from pi0_armfix.evaluation import heldout as heldout_lib  # noqa: E402
+from pi0_armfix.evaluation import metrics as eval_metrics  # noqa: E402
 from pi0_armfix.data import stats as stats_lib  # noqa: E402
 from pi0_armfix.training import metrics as metrics_lib  # noqa: E402
 
@@ -529,6 +532,29 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
+                    ) -> dict[str, float] | None:
+    """The ceiling's metrics (`evaluation.ceiling`, the embedded demo only): from the runs'
+    `ceiling/...` metrics, or, for runs evaluated before the ceiling existed, measured on the
+    first run's held-out chunks. None on other data."""
+    prefix = heldout_lib.CEILING + "/"
+    for result in results:
+        found = {k[len(prefix):]: v for k, v in result["metrics"].items() if k.startswith(prefix)}
+        if found:
+            return found
+    first = results[0]
+    run = inference.restore_run(run_folder(workdir, first["config"], first["seed"]))
+    if run.config.data.root:
+        return None
+    groups = evaluate.eval_groups(run.config.eval, run.layout)
+    chunks = heldout_lib.HeldOutChunks(
+        run.config, run.layout, run.norm_stats, horizon=run.model_config.action_horizon,
+        measure=functools.partial(eval_metrics.chunk_metrics, layout=run.layout,
+                                  gripper_groups=groups["gripper_groups"],
+                                  switch_tolerance=run.config.eval.switch_tolerance))
+    return chunks.reference[heldout_lib.CEILING]
+
+
 def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps: int,
                   command: str, primary: str | None = None,
                   ceiling: Mapping[str, float] | None = None) -> dict[str, Any]:
@@ -580,7 +606,7 @@ def main(argv: Sequence[str]) -> None:
     except (RuntimeError, ValueError) as err:
         raise SystemExit(f"pi0_armfix.study: {err}") from None
     write_reports(results, workdir, steps=FLAGS.steps, command=command,
-                  primary=FLAGS.primary or None)
+                  primary=FLAGS.primary or None, ceiling=ceiling_metrics(results, workdir))
     print((workdir / "study.md").read_text())
     print(f"study.md, study.json and study.png in {workdir}")
 

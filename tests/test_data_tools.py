@@ -241,7 +241,7 @@ def test_analysis_reports_groups_and_writes_a_png(config, tmp_path):
     assert json.loads((tmp_path / "report.json").read_text()) == report
     groups = report["groups"]
     assert set(groups) == set(LAYOUT.group_names)
-    assert sum(g["loss_share"] for g in groups.values()) == pytest.approx(1.0)
+    assert sum(g["motion_share"] for g in groups.values()) == pytest.approx(1.0)
     assert groups["base"]["suggested_weight"] == pytest.approx(1.0)
     assert groups["left_arm"]["suggested_weight"] > 1.0
     assert report["num_episodes"] == 10

@@ -12,7 +12,8 @@ import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import evaluate
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.evaluation import baselines
+from pi0_armfix.evaluation import baselines, ceiling
+from pi0_armfix.evaluation import heldout
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.action_space import ActionLayout
 
@@ -121,7 +122,7 @@ def test_evaluation_scale_without_absolute_stats_falls_back_to_the_held_out_chun
     rng = np.random.default_rng(0)
     true = rng.normal(3.0, 2.0, size=(200, H, 2))
     true[..., 1] = 5.0
-    scale, threshold = evaluate.evaluation_scale({}, true, np.ones((200, H), bool))
+    scale, threshold = heldout.evaluation_scale({}, true, np.ones((200, H), bool))
     assert scale[0] == pytest.approx(true[..., 0].std()) and scale[1] == 1.0
     assert threshold[1] == pytest.approx(5.0)
 
@@ -280,7 +281,7 @@ def test_skill_is_one_for_a_perfect_policy_and_negative_for_one_worse_than_doing
 
 def test_held_out_chunks_tile_each_episode_so_every_transition_is_in_one_chunk():
     starts = np.array([0, 100, 130, 400])
-    frames = evaluate.tiled_chunk_starts(starts, horizon=10, max_chunks=1000, batch_size=1)
+    frames = heldout.tiled_chunk_starts(starts, horizon=10, max_chunks=1000, batch_size=1)
     covered = np.zeros(400, int)  # transitions f -> f + 1 inside each chunk's 10 steps
     for f in frames:
         episode_end = starts[np.searchsorted(starts, f, side="right")]
@@ -290,7 +291,24 @@ def test_held_out_chunks_tile_each_episode_so_every_transition_is_in_one_chunk()
 
 
 def test_held_out_chunks_beyond_max_chunks_are_an_even_subset_without_overlap():
-    frames = evaluate.tiled_chunk_starts(np.array([0, 1000]), horizon=10, max_chunks=40,
+    frames = heldout.tiled_chunk_starts(np.array([0, 1000]), horizon=10, max_chunks=40,
                                          batch_size=8)
     assert len(frames) == 40 and (np.diff(frames) >= 9).all()
     assert frames[0] == 0 and frames[-1] > 900
+
+
+# ---------------------------------------------------------------------- the ceiling (demo)
+
+
+def test_the_expert_redraw_is_deterministic_and_differs_only_by_its_own_draws():
+    from pi0_armfix.sim.expert import demonstration
+    from pi0_armfix.sim.world import DemoSpec, World
+    spec = DemoSpec(num_episodes=3)
+    recorded = np.asarray(list(demonstration(World(spec, 1))))
+    first = ceiling.redraw_chunk(spec, 1, 60, 16)
+    assert np.array_equal(first, ceiling.redraw_chunk(spec, 1, 60, 16))
+    other = ceiling.redraw_chunk(spec, 1, 60, 16, draw=1)
+    assert not np.array_equal(first, other)
+    # the same world state: the arms differ by the teleoperator's tremor, not by a posture
+    arm = slice(7, 14)
+    assert np.abs(first[:, arm] - recorded[60:76, arm]).max() < 10 * spec.arm_jitter

@@ -10,13 +10,18 @@ does not name a file), per layout group:
 - motion: per frame pair within an episode, the RMS over the group's non-constant dims of the
   frame-to-frame change in the run's normalized units (`data.norm`, the run's norm stats) (mean,
   median, p95, RMS); medians and p95 from 1%-resolution log histograms;
-- loss_share: the group's share of the summed per-dim mean squared motion in normalized units.
-  Late in training the uniform loss's per-dim error tracks how much a dim moves inside a chunk,
-  so this is our proxy for each group's share of the uniform loss; compare it with `dim_share`
-  (its share of the dims, what it would get if errors were even);
+- motion_share: the group's share of the summed per-dim mean squared frame-to-frame motion in
+  normalized units (late in training a uniform loss's per-dim error tracks how much a dim moves,
+  so this says where that loss will sit); compare it with `dim_share` (its share of the dims);
 - suggested_weight: the inverse of the group's motion RMS, normalized to 1 for the base (or, with
   no moving base group, the median group): the static weights that even out the groups' motion,
   capped at 10 with a warning (a group that barely moves would get a weight of tens).
+
+The stagnation mechanism (`pi0_armfix.data.mechanism`, docs/mechanisms.md), per group: its share
+of the uniform loss (the magnitude mechanism), the part of its targets the current state
+explains and its share of what is left (the state-copy mechanism), the change within a chunk;
+then a verdict naming the mechanism(s) found and the lever to try first. One more streaming pass
+over actions and state.
 
 Layout warnings: a group that mixes gripper-like dims (>= 80% of the frames within 10% of the
 [q01, q99] range from either end, each end holding >= 2%) with joint-like dims — e.g. the widely
@@ -41,6 +46,7 @@ from ml_collections import config_flags
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
+from pi0_armfix.data import mechanism as mechanism_lib
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
@@ -115,7 +121,7 @@ def _quantiles(histograms: motion_lib.LogHistograms) -> dict[str, np.ndarray]:
 
 def group_report(layout: ActionLayout, summary: motion_lib.MotionSummary, unit: np.ndarray,
                  active: np.ndarray) -> dict[str, dict[str, Any]]:
-    """Per group: dims, magnitude, motion, loss_share, dim_share, suggested_weight."""
+    """Per group: dims, magnitude, motion, motion_share, dim_share, suggested_weight."""
     motion_rms = summary.group_motion_rms(layout, unit, active)
     per_dim_energy = np.where(active, summary.dim_sq_sum * unit**2, 0.0)
     total_energy = per_dim_energy.sum()
@@ -128,7 +134,7 @@ def group_report(layout: ActionLayout, summary: motion_lib.MotionSummary, unit: 
             "magnitude_raw": {k: float(v[g]) for k, v in magnitude.items()},
             "motion_normalized": {**{k: float(v[g]) for k, v in motion.items()},
                                   "rms": float(motion_rms[g])},
-            "loss_share": float(per_dim_energy[start:stop].sum() / total_energy)
+            "motion_share": float(per_dim_energy[start:stop].sum() / total_energy)
                           if total_energy > 0 else 0.0,
             "dim_share": (stop - start) / layout.real_dim,
             "suggested_weight": weights[name],
@@ -180,6 +186,10 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
     summary = dataset_lib.dataset_motion(config, layout, norm_stats["actions"], norm_mode,
                                          source=source)
     unit, active = motion_lib.normalized_units(norm_stats["actions"], norm_mode)
+    blocks, _ = dataset_lib.training_blocks(config, layout, ("actions", "state"), source=source)
+    sums = mechanism_lib.accumulate(stats_lib.whole_episode_blocks(blocks), actions.result(),
+                                    norm_stats["state"], horizon)
+    mechanism = mechanism_lib.group_mechanisms(sums, layout)
     report = {
         "normalization": norm_mode,
         "num_frames": int(summary.episode_frames.sum()),
@@ -187,6 +197,8 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
         "num_frame_pairs": summary.num_pairs,
         "groups": group_report(layout, summary, unit, active),
         "warnings": layout_warnings(layout, gripper_like_dims(actions), constant),
+        "mechanism": {"horizon": horizon, "groups": mechanism,
+                      **mechanism_lib.verdict(mechanism, layout)},
     }
     report["warnings"] += capped_weight_warnings(report["groups"])
     output = Path(output)
@@ -198,12 +210,23 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
 
 def format_report(report: dict[str, Any]) -> str:
     lines = [f"{'group':<16}{'|a| mean':>10}{'motion rms':>12}{'median':>10}{'p95':>10}"
-             f"{'loss %':>8}{'dims %':>8}{'weight':>8}"]
+             f"{'motion %':>10}{'dims %':>8}{'weight':>8}"]
     for name, g in report["groups"].items():
         m = g["motion_normalized"]
         lines.append(f"{name:<16}{g['magnitude_raw']['mean']:>10.3g}{m['rms']:>12.3g}"
-                     f"{m['median']:>10.3g}{m['p95']:>10.3g}{100 * g['loss_share']:>8.1f}"
+                     f"{m['median']:>10.3g}{m['p95']:>10.3g}{100 * g['motion_share']:>10.1f}"
                      f"{100 * g['dim_share']:>8.1f}{g['suggested_weight']:>8.2f}")
+    mechanism = report["mechanism"]
+    lines += ["", f"stagnation mechanism (z-scored absolute actions, chunks of "
+              f"H = {mechanism['horizon']}):",
+              f"{'group':<16}{'loss %':>8}{'dims %':>8}{'state R2':>10}{'after state %':>15}"
+              f"{'chunk change':>14}"]
+    for name, g in mechanism["groups"].items():
+        explained = "constant" if g["constant"] else f"{g['state_explained']:.3f}"
+        lines.append(f"{name:<16}{100 * g['loss_share']:>8.1f}{100 * g['dim_share']:>8.1f}"
+                     f"{explained:>10}{100 * g['share_after_state']:>15.1f}"
+                     f"{g['within_chunk_change']:>14.4f}")
+    lines += [f"VERDICT: {v}" for v in mechanism["verdict"]]
     lines += [f"WARNING: {w}" for w in report["warnings"]]
     return "\n".join(lines)
 

@@ -1,0 +1,130 @@
+"""The fixed held-out chunks of a run, in evaluation units, and the reference predictors scored on
+them: the do-nothing baselines (`baselines`) and, on the embedded demo, the ceiling (`ceiling`).
+
+The held-out set is the dataset's last `eval.episodes` episodes (never trained on). Its chunks
+tile each episode's timeline (`tiled_chunk_starts`: every switch event once), at most
+`eval.max_chunks` of them. Their true actions are absolute, in the data's units divided by the
+training split's std of the absolute actions (`evaluation_scale`): runs with different
+normalizations or action representations are measured in the same units.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import batching, transforms
+from pi0_armfix.data import dataset as dataset_lib
+from pi0_armfix.data import selection as selection_lib
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.evaluation import baselines as baselines_lib
+from pi0_armfix.evaluation import ceiling as ceiling_lib
+from pi0_armfix.evaluation import metrics as eval_metrics
+from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.sim.world import DemoSpec
+
+CEILING = "ceiling"  # the reference name of the expert's redraw (the demo only)
+
+
+def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int,
+                       batch_size: int) -> np.ndarray:
+    """`[N]` chunk start frames that tile the held-out episodes' timeline without overlap.
+
+    Chunks start every `H - 1` frames of each episode, so consecutive chunks share one step and
+    every step-to-step transition (where a gripper switch happens) lies in exactly one chunk: each
+    switch event of the data is counted once. When that gives more than `max_chunks`, an evenly
+    spaced subset of the tiles is kept (still without overlap). N is a multiple of `batch_size`.
+    """
+    stride = max(horizon - 1, 1)
+    tiles = np.concatenate([np.arange(start, stop, stride) for start, stop
+                            in zip(episode_starts[:-1], episode_starts[1:])])
+    num = min(max_chunks, len(tiles)) // batch_size * batch_size
+    keep = np.linspace(0, len(tiles) - 1, num).round().astype(np.int64) if num else []
+    return tiles[keep].astype(np.int64)
+
+
+def evaluation_scale(norm_stats: Mapping[str, stats_lib.NormStats], true: np.ndarray,
+                     valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`eval_metrics.evaluation_units` from the run's absolute-action statistics of the training
+    split (`actions_absolute` of its norm stats: the same for every run on the same data, whatever
+    its normalization or action representation), or, for stats computed elsewhere that lack
+    them, from the held-out true chunks `[N, H, A]` (data units, `valid` `[N, H]`)."""
+    reference = norm_stats.get(dataset_lib.ABSOLUTE_ACTIONS)
+    if reference is not None:
+        reference = stats_lib.fit_width(reference, true.shape[-1], "norm stats 'actions_absolute'")
+        return eval_metrics.evaluation_units(reference.std, reference.q01, reference.q99)
+    steps = np.asarray(true[valid], np.float64)
+    q01, q99 = np.quantile(steps, [0.01, 0.99], axis=0)
+    return eval_metrics.evaluation_units(steps.std(axis=0), q01, q99)
+
+
+class HeldOutChunks:
+    """The held-out chunks of a run and the reference predictors' metrics on them.
+
+    Args:
+      config: the run config (`data`, `eval`).
+      layout: the run's action layout.
+      norm_stats: the run's statistics.
+      horizon: H.
+      measure: `chunks [N, H, A] (evaluation units) -> metrics` against these chunks' truth; the
+        evaluation's `chunk_metrics` with its groups and tolerance.
+      tokenize, image_size: the run's tokenizer and image size for model batches; without
+        `tokenize` only actions are read (no images, no prompts).
+      source: the run's opened data source (None = open the one `config.data` names).
+
+    Attributes:
+      frames `[N]`, batches (model batches of `eval.batch_size`), valid `[N, H]`, true
+      `[N, H, A]` (evaluation units), scale `[A]`, gripper_threshold `[A]`, transform, and
+      reference: `{name: metrics}` of `persistence`, `state_copy` and, on the embedded demo,
+      `ceiling`, each with its `skill/<g>` over persistence.
+    """
+
+    def __init__(self, config: Any, layout: ActionLayout,
+                 norm_stats: Mapping[str, stats_lib.NormStats], *, horizon: int,
+                 measure: Callable[..., dict[str, float]], tokenize=None,
+                 image_size: tuple[int, int] = (224, 224), source=None):
+        eval_cfg = config.eval
+        table = dataset_lib.heldout_table(config, layout, source=source,
+                                          images=tokenize is not None)
+        self.transform = batching.BatchTransform(
+            table, layout, norm_stats=norm_stats, norm_mode=model_config_lib.norm_mode(config),
+            action_horizon=horizon,
+            delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
+            tokenize=tokenize, actions_only=tokenize is None, image_size=image_size)
+        batch_size = eval_cfg.batch_size
+        self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg.max_chunks,
+                                         batch_size)
+        if len(self.frames) == 0:
+            raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) hold "
+                             f"fewer than eval.batch_size = {batch_size} chunks of H = {horizon}")
+        self.batches = [self.transform(self.frames[i:i + batch_size])
+                        for i in range(0, len(self.frames), batch_size)]
+        self.valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
+        true = self.transform.absolute_actions(
+            np.concatenate([b["actions"] for b in self.batches]), self.frames)
+        self.scale, self.gripper_threshold = evaluation_scale(norm_stats, true, self.valid)
+        self.true = true / self.scale
+        self.measure = lambda chunks: measure(chunks, self.true, self.valid,
+                                              gripper_threshold=self.gripper_threshold)
+        chunks = baselines_lib.baseline_chunks(table, self.frames, horizon, layout,
+                                               selection_lib.state_groups(config.data))
+        if not config.data.root and config.data.get("format", "lerobot") == "lerobot":
+            chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
+        self.reference = {name: self.measure(c[..., :layout.real_dim] / self.scale)
+                          for name, c in chunks.items()}
+        for measured in self.reference.values():
+            measured.update(eval_metrics.skill_scores(measured, self.reference["persistence"],
+                                                      layout))
+
+    def metrics(self, predicted: np.ndarray, layout: ActionLayout) -> dict[str, float]:
+        """A policy's metrics (chunks `[N, H, A]` in evaluation units) with its skill over
+        persistence, every reference's under `<name>/...`, and the number of chunks."""
+        metrics = self.measure(predicted)
+        metrics.update(eval_metrics.skill_scores(metrics, self.reference["persistence"], layout))
+        for name, measured in self.reference.items():
+            metrics.update({f"{name}/{k}": v for k, v in measured.items()})
+        metrics["chunks"] = float(len(self.frames))
+        return metrics

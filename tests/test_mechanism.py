@@ -1,0 +1,88 @@
+"""The stagnation mechanism a dataset has (pi0_armfix.data.mechanism), on synthetic data built to
+have one, the other, or neither."""
+
+import numpy as np
+import pytest
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import mechanism, stats
+from pi0_armfix.data.stats import NormStats
+
+LAYOUT = ActionLayout(groups={"base": (0, 1), "arm": (1, 3)}, real_dim=3, action_dim=4,
+                      velocity_groups=("base",), roles={"base": "base", "arm": "arm"})
+H = 8
+
+
+def _episodes(arm_posture_spread: float, arm_motion: float, state_sees_arm: bool, seed=0):
+    """20 episodes of 100 frames: a base velocity that varies within the episode, arms at a
+    per-episode posture plus a within-episode drift; the state holds the arm joints (or noise)."""
+    rng = np.random.default_rng(seed)
+    blocks = []
+    for e in range(20):
+        t = np.arange(100)
+        base = np.sin(t / 10 + rng.uniform(0, 6))[:, None]
+        posture = rng.normal(0, arm_posture_spread, 2)
+        arm = posture + arm_motion * np.cumsum(rng.normal(size=(100, 2)), axis=0) / 10
+        actions = np.concatenate([base, arm], axis=1)
+        state = arm if state_sees_arm else rng.normal(size=(100, 2))
+        blocks.append({"actions": actions, "state": state, "episode_index": np.full(100, e)})
+    return blocks
+
+
+def _report(blocks):
+    frames = {k: np.concatenate([b[k] for b in blocks]) for k in ("actions", "state")}
+    norm = {k: NormStats(v.mean(0), v.std(0), v.min(0), v.max(0)) for k, v in frames.items()}
+    sums = mechanism.accumulate(stats.whole_episode_blocks(iter(blocks)), norm["actions"],
+                                norm["state"], H)
+    groups = mechanism.group_mechanisms(sums, LAYOUT)
+    return groups, mechanism.verdict(groups, LAYOUT)
+
+
+def test_a_state_that_explains_the_arm_targets_is_diagnosed_as_state_copy():
+    groups, verdict = _report(_episodes(arm_posture_spread=1.0, arm_motion=0.1,
+                                        state_sees_arm=True))
+    assert groups["arm"]["state_explained"] > 0.95
+    assert groups["arm"]["share_after_state"] < groups["arm"]["loss_share"] / 2
+    assert verdict["state_copy"] == ["arm"] and verdict["magnitude"] == []
+    assert "delta actions" in verdict["verdict"][0]
+
+
+def test_a_state_that_sees_nothing_leaves_the_arm_its_share():
+    groups, verdict = _report(_episodes(1.0, 0.1, state_sees_arm=False))
+    assert groups["arm"]["state_explained"] < 0.1
+    assert groups["arm"]["share_after_state"] == pytest.approx(groups["arm"]["loss_share"],
+                                                               abs=0.05)
+    assert verdict["state_copy"] == [] and verdict["magnitude"] == []
+    assert verdict["verdict"][0].startswith("neither mechanism")
+
+
+def test_loss_shares_sum_to_one_and_equal_the_dim_shares_under_zscoring():
+    groups, _ = _report(_episodes(1.0, 0.1, state_sees_arm=True))
+    assert sum(g["loss_share"] for g in groups.values()) == pytest.approx(1.0)
+    assert sum(g["share_after_state"] for g in groups.values()) == pytest.approx(1.0)
+    for g in groups.values():  # not exact: chunk steps repeat an episode's last frame
+        assert g["loss_share"] == pytest.approx(g["dim_share"], abs=0.01)
+
+
+def test_a_group_with_a_small_share_of_the_loss_is_diagnosed_as_magnitude():
+    groups = {"base": {"loss_share": 0.9, "dim_share": 1 / 3, "state_explained": 0.0,
+                       "share_after_state": 0.9, "within_chunk_change": 1.0, "constant": False},
+              "arm": {"loss_share": 0.1, "dim_share": 2 / 3, "state_explained": 0.0,
+                      "share_after_state": 0.1, "within_chunk_change": 0.01, "constant": False}}
+    verdict = mechanism.verdict(groups, LAYOUT)
+    assert verdict["magnitude"] == ["arm"] and "per-group weights" in verdict["verdict"][0]
+
+
+def test_within_chunk_change_grows_with_the_motion():
+    slow, _ = _report(_episodes(1.0, 0.05, True))
+    fast, _ = _report(_episodes(1.0, 0.5, True))
+    assert fast["arm"]["within_chunk_change"] > 10 * slow["arm"]["within_chunk_change"]
+
+
+def test_a_group_that_never_moves_is_constant_not_a_magnitude_imbalance():
+    blocks = _episodes(1.0, 0.1, state_sees_arm=True)
+    for block in blocks:
+        block["actions"][:, 1:] = 0.5  # the arm never moves
+    groups, verdict = _report(blocks)
+    assert groups["arm"]["constant"] and groups["arm"]["state_explained"] is None
+    assert verdict["magnitude"] == [] and verdict["constant"] == ["arm"]
