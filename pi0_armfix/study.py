@@ -166,22 +166,30 @@ def load_result(folder: Path) -> dict[str, Any] | None:
 
 
 def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir: Path,
-              overrides: Sequence[str] = (), parallel: int = 1, closed_loop_episodes: int = 0
-              ) -> list[dict[str, Any]]:
+              overrides: Sequence[str] = (), parallel: int = 1, closed_loop_episodes: int = 0,
+              train: bool = True) -> list[dict[str, Any]]:
     """Every (config, seed) run, the finished ones read back (and evaluated in closed loop when
-    they were not), the others trained."""
+    they were not), the others trained; with `train=False`, only the finished ones (a partial
+    study's tables, labelled by their seed counts)."""
     results, todo = {}, []
     for seed in seeds:  # seed-major: an interrupted study has every config's first seeds
         for config in configs:
             result = load_result(run_folder(workdir, config, seed))
             if result is not None and result["steps"] == steps:
                 results[config, seed] = add_closed_loop(
-                    result, run_folder(workdir, config, seed), closed_loop_episodes)
+                    result, run_folder(workdir, config, seed),
+                    closed_loop_episodes if train else 0)
             elif result is not None:
                 raise ValueError(f"{run_folder(workdir, config, seed)} finished {result['steps']} "
                                  f"steps, not --steps={steps}: use another --workdir")
             else:
                 todo.append((config, seed))
+    if not train:
+        if not results:
+            raise ValueError(f"{workdir} has no finished run of {list(configs)}")
+        print(f"study: reporting the {len(results)} finished runs of {len(results) + len(todo)}",
+              flush=True)
+        return [results[c, s] for c in configs for s in seeds if (c, s) in results]
     if todo:
         print(f"study: {len(results)} of {len(results) + len(todo)} runs finished; training "
               f"{len(todo)} ({parallel} at a time), logs in {workdir}/<config>/seed_<s>/train.log",
@@ -602,7 +610,8 @@ def main(argv: Sequence[str]) -> None:
     command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])
     try:
         results = run_study(configs, list(range(FLAGS.seeds)), FLAGS.steps, workdir,
-                            FLAGS.override, FLAGS.parallel, FLAGS.closed_loop_episodes)
+                            FLAGS.override, FLAGS.parallel, FLAGS.closed_loop_episodes,
+                            train=not FLAGS.report_only)
     except (RuntimeError, ValueError) as err:
         raise SystemExit(f"pi0_armfix.study: {err}") from None
     write_reports(results, workdir, steps=FLAGS.steps, command=command,
@@ -629,6 +638,8 @@ def cli() -> None:
     flags.DEFINE_integer("steps", 1500, "training steps of every run")
     flags.DEFINE_string("workdir", "runs/study", "study folder (one run folder per config/seed)")
     flags.DEFINE_integer("parallel", 1, "runs trained at the same time")
+    flags.DEFINE_bool("report_only", False, "write the tables of the finished runs and train "
+                      "nothing (a partial study, labelled with its seed counts)")
     flags.DEFINE_multi_string("override", [], "key=value passed to every run as --config.key")
     flags.DEFINE_integer("closed_loop_episodes", 50, "episodes of the demo world each run's "
                          "final checkpoint drives (0: no closed-loop evaluation)")

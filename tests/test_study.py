@@ -119,3 +119,14 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
                            cwd=tf.REPO_ROOT)
     assert again.returncode == 0 and "training" not in again.stdout
     assert again.stdout.count("| uniform |") == first.stdout.count("| uniform |")
+
+
+def test_report_only_tables_the_finished_runs_and_trains_nothing(tmp_path):
+    for seed in (0, 1):
+        folder = study.run_folder(tmp_path, "uniform", seed)
+        folder.mkdir(parents=True)
+        (folder / study.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
+    results = study.run_study(["uniform", "arm_focused"], [0, 1, 2], 10, tmp_path,
+                              closed_loop_episodes=50, train=False)
+    assert [(r["config"], r["seed"]) for r in results] == [("uniform", 0), ("uniform", 1)]
+    assert not study.run_folder(tmp_path, "arm_focused", 0).exists()
