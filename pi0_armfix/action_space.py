@@ -27,8 +27,9 @@ from typing import Any
 
 import numpy as np
 
-# B1K R1Pro action order (DESIGN §2). Not the *state* order of the official baseline, which puts
-# both grippers last: in the action vector dim 14 is the left gripper and 15:22 the right arm.
+# B1K R1Pro action order (docs/design.md §2). Not the *state* order of the official baseline,
+# which puts both grippers last: in the action vector dim 14 is the left gripper and 15:22 the
+# right arm.
 _PRESETS: dict[str, dict[str, Any]] = {
     "b1k_r1pro": dict(
         groups={

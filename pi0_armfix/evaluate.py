@@ -225,9 +225,11 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
         metrics, predicted, true = evaluator(params)
     out = workdir / "eval" / f"step_{step}"
     out.mkdir(parents=True, exist_ok=True)
+    # Strict JSON: a metric with nothing to measure (NaN) is null.
     (out / METRICS_FILE).write_text(json.dumps(
         {"step": step, "params": run.params_name,
-         **{k: float(v) for k, v in metrics.items()}}, indent=2) + "\n")
+         **{k: float(v) if np.isfinite(v) else None for k, v in metrics.items()}},
+        indent=2, allow_nan=False) + "\n")
     evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
                    "vs true (solid)")
     plots.plot_group_losses(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE), layout,

@@ -1,4 +1,4 @@
-"""Loss weighting strategies for flow matching on a grouped action space (DESIGN §3).
+"""Loss weighting strategies for flow matching on a grouped action space (docs/design.md §3).
 
 Everything here is a pure, jit-able function of arrays. `strategy`, `layout` and `delta_weighting`
 are static (Python values); weights may be Python numbers or traced arrays (adaptive weights and

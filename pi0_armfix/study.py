@@ -54,7 +54,7 @@ import numpy as np  # noqa: E402
 from absl import app, flags  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from pi0_armfix import evaluate, inference, study_stats  # noqa: E402
+from pi0_armfix import console, evaluate, inference, study_stats  # noqa: E402
 from pi0_armfix.action_space import ActionLayout  # noqa: E402
 from pi0_armfix.evaluation import baselines as baselines_lib  # noqa: E402
 from pi0_armfix.evaluation import heldout as heldout_lib  # noqa: E402
@@ -508,7 +508,7 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
                    [np.nan if m is None else m for m in means], width,
                    yerr=[0 if s is None else s for s in stds], capsize=2, label=name)
         for name, m, color, marker in references:
-            ax.scatter(x, [m.get(f"{metric}/{g}", np.nan) for g in groups], color=color,
+            ax.scatter(x, [_number(m.get(f"{metric}/{g}")) for g in groups], color=color,
                        marker=marker, s=160 if marker == "_" else 50, zorder=3, label=name)
         ax.axhline(0.0, color="black", lw=0.8)
         if metric == "motion_gain":
@@ -583,6 +583,7 @@ def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
+    console.quiet_library_logging()
     configs = [c for c in FLAGS.configs if c]
     if not configs:
         raise SystemExit("pi0_armfix.study: --configs names no config")
@@ -604,7 +605,7 @@ def main(argv: Sequence[str]) -> None:
               f"(use --seeds={study_stats.MIN_SEEDS} or more for results)", flush=True)
     if FLAGS.closed_loop_episodes:
         print(f"study: every run also drives {FLAGS.closed_loop_episodes} closed-loop episodes "
-              "of the demo world after training (more than half of a demo run's time; "
+              "of the demo world once trained (more than half of a demo run's time; "
               "--closed_loop_episodes=0 skips them)", flush=True)
     workdir = Path(FLAGS.workdir).absolute()
     command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])

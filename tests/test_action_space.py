@@ -1,4 +1,4 @@
-"""ActionLayout: the B1K preset and one clear error per bad input (DESIGN §2)."""
+"""ActionLayout: the B1K preset and one clear error per bad input (docs/design.md §2)."""
 
 import math
 

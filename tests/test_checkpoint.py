@@ -1,4 +1,4 @@
-"""Orbax checkpoints of a run (DESIGN §6): round trip, atomicity, clear errors."""
+"""Orbax checkpoints of a run (docs/design.md §6): round trip, atomicity, clear errors."""
 
 import os
 import shutil

@@ -1,4 +1,4 @@
-"""Exact resume (DESIGN §6): a run killed after a checkpoint and restarted ends where an
+"""Exact resume (docs/design.md §6): a run killed after a checkpoint and restarted ends where an
 uninterrupted run ends, bitwise, with the same logged losses and curriculum phases."""
 
 import json

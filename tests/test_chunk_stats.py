@@ -1,4 +1,5 @@
-"""Chunk statistics: per-timestep normalization stats and the chunk correlation (DESIGN §3)."""
+"""Chunk statistics: per-timestep normalization stats and the chunk correlation
+(docs/design.md §3)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,5 @@
-"""Orbax -> safetensors conversion (DESIGN §1 torch_mirror): CLI round trip, strict key check, errors."""
+"""Orbax -> safetensors conversion of the torch mirror (docs/design.md §1): CLI round trip, strict
+key check, errors."""
 
 import json
 import os

@@ -178,13 +178,16 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
                             text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "step 2" in result.stdout
-    for column in ("err", "motion_gain", "motion_ratio", "precision", "left_arm"):
+    for column in ("err", "skill", "gain", "ratio", "persistence err", "state copy err",
+                   "precision", "TP/FP/FN", "left_arm"):
         assert column in result.stdout
     for figure in ("trajectories.png", "group_losses.png"):
         assert (workdir / "eval" / "step_2" / figure).stat().st_size > 10_000
     saved = json.loads((workdir / "eval" / "step_2" / "metrics.json").read_text())
     assert saved["step"] == 2 and saved["params"] == "ema_params"
     assert f"{saved['motion_gain/left_arm']:.3f}" in result.stdout
+    assert saved["persistence/motion_gain/left_arm"] == 0.0  # holding never moves an arm
+    assert saved["persistence/skill/left_arm"] == 0.0 and "skill/left_arm" in saved
 
 
 def test_offline_evaluation_is_quiet_by_default(tmp_path, cache_dir, demo_root):

@@ -1,4 +1,4 @@
-"""The loss strategies of DESIGN §3, one behaviour per test."""
+"""The loss strategies of docs/design.md §3, one behaviour per test."""
 
 import functools
 

@@ -1,4 +1,5 @@
-"""JAX and PyTorch losses agree to 1e-6 relative in float32, values and gradients (DESIGN §3)."""
+"""JAX and PyTorch losses agree to 1e-6 relative in float32, values and gradients
+(docs/design.md §3)."""
 
 import jax
 import jax.numpy as jnp

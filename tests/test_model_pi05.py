@@ -1,5 +1,5 @@
-"""pi0.5 (DESIGN §5): openpi's tree, adaptive RMSNorm with gated residuals, the flow time as the
-action expert's condition, and the pi0 machinery (K samples, KV-cached sampling) on top."""
+"""pi0.5 (docs/design.md §5): openpi's tree, adaptive RMSNorm with gated residuals, the flow time as
+the action expert's condition, and the pi0 machinery (K samples, KV-cached sampling) on top."""
 
 import json
 from pathlib import Path

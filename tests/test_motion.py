@@ -1,5 +1,5 @@
 """The arm-heavy filter's episode motion: a velocity group (the B1K base) moves by its command,
-a position group by the change of its target (DESIGN §2, `pi0_armfix.data.motion`)."""
+a position group by the change of its target (docs/design.md §2, `pi0_armfix.data.motion`)."""
 
 import json
 

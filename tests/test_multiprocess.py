@@ -1,4 +1,5 @@
-"""Multi-process training (DESIGN §6): 2 processes x 2 CPU devices reproduce 1 process x 4."""
+"""Multi-process training (docs/design.md §6): 2 processes x 2 CPU devices reproduce 1
+process x 4."""
 
 import socket
 import subprocess

@@ -1,4 +1,4 @@
-"""Mesh and parameter rule table of DESIGN §6."""
+"""Mesh and parameter rule table of docs/design.md §6."""
 
 import json
 import os

@@ -117,7 +117,7 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     assert "## Closed loop in the demo world" in first.stdout
     again = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
                            cwd=tf.REPO_ROOT)
-    assert again.returncode == 0 and "training" not in again.stdout
+    assert again.returncode == 0 and "runs finished; training" not in again.stdout
     assert again.stdout.count("| uniform |") == first.stdout.count("| uniform |")
 
 

@@ -1,5 +1,5 @@
-"""The PyTorch mirror of pi0 and pi0.5 (DESIGN §5) against the Flax model, on the tiny presets after
-conversion.
+"""The PyTorch mirror of pi0 and pi0.5 (docs/design.md §5) against the Flax model, on the tiny
+presets after conversion.
 
 Every comparison feeds both sides the same parameters, observation, noise and time. float32 on
 CPU: the mirror agrees to ~1e-6; the tolerances (1e-5, sampling 1e-4) leave room for the time

@@ -1,4 +1,5 @@
-"""The training entrypoint and step (DESIGN §6): outputs of a run, failures, loss weights."""
+"""The training entrypoint and step (docs/design.md §6): outputs of a run, failures, loss
+weights."""
 
 import json
 import os

@@ -1,4 +1,4 @@
-"""AdamW + global-norm clipping + warmup-cosine (DESIGN §6)."""
+"""AdamW + global-norm clipping + warmup-cosine (docs/design.md §6)."""
 
 import jax.numpy as jnp
 import ml_collections

@@ -1,4 +1,4 @@
-"""`BatchTransform`: frame indices of an EpisodeTable -> a numpy batch of the team contract.
+"""`BatchTransform`: frame indices of an EpisodeTable -> a numpy batch of docs/design.md §4.
 
 Vectorized over the batch: one fancy-index per column (a positioned read of just the rows the
 batch needs), the chunk gather, delta actions, normalization and padding; then the prompt tokens
@@ -125,7 +125,7 @@ class BatchTransform:
         self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)
 
     def __call__(self, frames: np.ndarray) -> dict[str, Any]:
-        """frames: `[b]` frame indices of the table -> batch (see the team contract)."""
+        """frames: `[b]` frame indices of the table -> batch (docs/design.md §4)."""
         frames = np.asarray(frames, np.int64)
         index, is_pad = transforms.chunk_indices(frames, self.table.episode_starts, self.horizon)
         actions = self.table.actions[index]  # [b, H, A]

@@ -1,6 +1,6 @@
 """Which stored camera feeds which batch camera, and how a stored image becomes pixels.
 
-Shared by every data source. The batch carries three cameras (see the team contract):
+Shared by every data source. The batch carries three cameras (docs/design.md §4):
 `base_0_rgb` (the head / scene camera), `left_wrist_0_rgb` and `right_wrist_0_rgb`. Stored camera
 names differ between datasets, so the automatic match looks for aliases in the name
 (case-insensitive, as whole `_`/`.`/`-`-separated words or joined words), batch camera by batch

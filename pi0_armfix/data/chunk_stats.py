@@ -1,6 +1,6 @@
 """Statistics of whole action chunks: per-timestep normalization and the chunk correlation.
 
-Two levers of B1K 2025's winners look at a chunk as a whole (DESIGN §3):
+Two levers of B1K 2025's winners look at a chunk as a whole (docs/design.md §3):
 
   per-timestep normalization (`data.norm_per_timestep`): the actions at chunk position h are
       normalized with statistics of position h, `[H, A]` instead of `[A]`. With delta actions

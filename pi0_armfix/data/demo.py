@@ -3,9 +3,9 @@
 Each episode follows a task plan of navigation and manipulation phases, as a BEHAVIOR-1K
 teleoperator would: drive to an object with the arms still, stop, reach with one or both arms
 (base still), close or open the gripper, retract, drive on. Actions follow the B1K R1Pro layout
-(DESIGN §2): base velocity 0:3, torso 3:7 (dim 6 constant 0), left arm 7:14, left gripper 14,
-right arm 15:22, right gripper 22; the gripper is +1 open / -1 closed. It is written as a LeRobot
-v2.1 dataset with three small PNG cameras and a task prompt per episode.
+(docs/design.md §2): base velocity 0:3, torso 3:7 (dim 6 constant 0), left arm 7:14, left gripper
+14, right arm 15:22, right gripper 22; the gripper is +1 open / -1 closed. It is written as a
+LeRobot v2.1 dataset with three small PNG cameras and a task prompt per episode.
 
 The world, its physics, its cameras and its task plans live in `pi0_armfix.sim.world` (the one
 source of truth, shared with the closed-loop environment `pi0_armfix.sim.env`); the operator is

@@ -273,7 +273,7 @@ class BalanceReport:
 
 def balanced_norm_stats(stats: NormStats, summary: MotionSummary, layout: ActionLayout,
                         max_scale: float = 10.0) -> tuple[NormStats, list[BalanceReport]]:
-    """Balanced normalization (DESIGN §4).
+    """Balanced normalization (docs/design.md §4).
 
     Per-dim means (and the q01/q99 centres) stay. For each normalization mode separately (z-score
     spread = std, quantile spread = (q99 - q01) / 2), each group's active dims get their spread

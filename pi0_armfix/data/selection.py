@@ -2,7 +2,7 @@
 
 A dataset's stored vectors are often wider than what the policy should see. B1K 2025 stores the
 R1Pro's full 256-D proprioception in `observation.state` (index map in
-`shared/reference/b1k_2025_dataset.md`); the model needs a 23-D state *in the action order*, so
+`tests/reference/b1k_2025_dataset.md`); the model needs a 23-D state *in the action order*, so
 that delta actions can subtract state dim d from action dim d. A state preset names that
 selection once (`data.state_preset`), with its groups, instead of hand-written index lists.
 

@@ -3,7 +3,8 @@
 Every function here works on any number of leading batch dims, so the pipeline applies them to a
 whole batch of frames at once (the chunk gather is one fancy-index, not a loop).
 
-Normalization (DESIGN §4), per dim, written as one affine map `y = (x - offset) * scale + shift`:
+Normalization (docs/design.md §4), per dim, written as one affine map
+`y = (x - offset) * scale + shift`:
   zscore:   (x - mean) / (std + eps)
   quantile: (x - q01) / (q99 - q01 + eps) * 2 - 1
 A dim whose std (zscore) or q99 - q01 (quantile) is below `DEGENERATE` is passed through centred,

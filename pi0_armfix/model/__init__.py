@@ -73,8 +73,8 @@ Transformer (`gemma.py`, depth layers scanned, params stacked on a leading depth
 
 Outputs
   * v = action_out_proj(suffix_out[:, 1:]) [B, H, A] (the H action tokens), in float32.
-  * Flow matching (DESIGN §3): t ~ Beta(1.5, 1) * 0.999 + 0.001, x_t = t * noise + (1 - t) * a,
-    u = noise - a, per-dim error e = (v - u)**2 [B, H, A], then `pi0_armfix.loss.training_loss`.
+  * Flow matching (docs/design.md §3): t ~ Beta(1.5, 1) * 0.999 + 0.001,
+    x_t = t * noise + (1 - t) * a, u = noise - a, per-dim error e = (v - u)**2 [B, H, A], then `pi0_armfix.loss.training_loss`.
   * Sampling: prefix KV cache once, x <- x + dt * v(x, t), t <- t + dt, dt = -1 / num_steps,
     num_steps Euler steps from t = 1 (x = noise) to t = 0.
 

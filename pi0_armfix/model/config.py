@@ -2,7 +2,7 @@
 
 The config is the only knob of the model. The `pi0` preset reproduces openpi's pi0 (PaliGemma =
 SigLIP So400m/14 + Gemma 2B, action expert = Gemma 300M) so that its parameter tree equals
-`shared/reference/openpi_param_tree.json["pi0"]`; `demo` trains on a laptop CPU; `tiny` is for unit
+`tests/reference/openpi_param_tree.json["pi0"]`; `demo` trains on a laptop CPU; `tiny` is for unit
 tests. `pi05`, `pi05_demo` and `pi05_tiny` are the same sizes as pi0.5 (`Pi0Config.pi05`; tree
 `openpi_param_tree.json["pi05"]`). Every preset of a model uses the same parameter names, only
 the sizes differ.

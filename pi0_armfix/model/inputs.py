@@ -1,6 +1,6 @@
 """Observation preprocessing inside jit: image conversion, resize-with-pad, train-time augmentation.
 
-An observation is the batch dict of CONTRACT.md without the actions:
+An observation is the batch dict of docs/design.md §4 without the actions:
   image: {camera: uint8 [B, h, w, 3]} (or float [B, h, w, 3] already in [-1, 1]),
   image_mask: {camera: bool [B]}, state: float32 [B, A],
   tokenized_prompt: int32 [B, L], tokenized_prompt_mask: bool [B, L].

@@ -1,4 +1,5 @@
-"""The flow's noise law: independent N(0, I), or correlated over the action chunk (DESIGN §3).
+"""The flow's noise law: independent N(0, I), or correlated over the action chunk
+(docs/design.md §3).
 
 B1K 2025's first place drew the flow-matching noise from `N(0, β I + (1 - β) Σ)`, with Σ the
 correlation of normalized action chunks over (h, d): noise that moves like the data (neighbouring

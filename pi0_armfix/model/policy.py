@@ -7,11 +7,11 @@
   sample_actions(params, rng, observation, *, config, num_steps=10, noise=None,
                  use_kv_cache=True, inpaint=None, inpaint_weights=None) -> actions [B, H, A]
 
-`observation` / `batch` are the dicts of CONTRACT.md (raw uint8 cameras at any resolution; the
+`observation` / `batch` are the dicts of docs/design.md §4 (raw uint8 cameras at any resolution; the
 model converts, resizes and, for training, augments them). Parameters are float32; activations
 run in `config.dtype`. init_params, velocity and sample_actions are jit-compiled (config and the
 other non-array arguments static); compute_loss is traced by the caller's train step.
-Flow-matching convention (DESIGN §3): t = 1 is noise, t = 0 the data.
+Flow-matching convention (docs/design.md §3): t = 1 is noise, t = 0 the data.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
 
     Args:
       rng: splits into augmentation, noise and time keys.
-      batch: CONTRACT.md batch with `actions` [B, H, A] and `action_is_pad` [B, H].
+      batch: docs/design.md §4 batch with `actions` [B, H, A] and `action_is_pad` [B, H].
       train: apply image augmentation.
       flow_samples: K noise / time draws per sample, all against one prefix pass
         (`pi0.forward_velocity`); K = 1 is the plain pi0 loss.

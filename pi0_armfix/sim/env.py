@@ -6,7 +6,7 @@ Observation (B1K's openpi keys, what its evaluation harness sends a policy serve
   "observation/state": float32 [23], the official baseline state order (base velocity, torso,
       left arm, right arm, finger gaps);
   "prompt": the task.
-Action: float32 [23], the B1K action (DESIGN §2) in the dataset's units, clipped to +-pi.
+Action: float32 [23], the B1K action (docs/design.md §2) in the dataset's units, clipped to +-pi.
 Reward: 1 for every phase of the task plan that succeeds at this step, else 0. An episode
 terminates when the plan is over (every phase has a time limit, so it always does; there is no
 truncation). `info["results"]`: the phases finished so far; at the end `info["success"]`

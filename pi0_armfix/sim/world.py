@@ -11,7 +11,7 @@ published B1K statistics, low-discrepancy over episodes), per navigation phase t
 and distance from the robot at the phase start, per manipulation phase the hand-frame offset of
 each arm's target and the width of a grasped object.
 
-Physics (one `step(action)` per frame at `fps`; action = the 23-D B1K action, DESIGN §2):
+Physics (one `step(action)` per frame at `fps`; action = the 23-D B1K action, docs/design.md §2):
   base      the pose integrates the velocity command (x, y in the robot frame, yaw rate).
   joints    torso and arm joints track their targets with a first-order lag (0.5 per frame);
             the state (23-D, the official baseline order: base velocity 0:3, torso 3:7, left arm
@@ -56,7 +56,7 @@ import statistics
 
 import numpy as np
 
-# Published B1K 2025 action statistics (../shared/reference/b1k_2025_norm_stats.json): per-joint
+# Published B1K 2025 action statistics (tests/reference/b1k_2025_norm_stats.json): per-joint
 # mean, std, q01, q99 of the torso (dims 3:6) and the two arms (7:14, 15:22).
 _TORSO = np.array([[0.9349, -1.2805, -0.5019], [0.4331, 0.7829, 0.4365],
                    [0.4500, -2.5590, -1.8326], [1.7139, -0.4000, 0.2432]])
@@ -74,7 +74,7 @@ _RIGHT_ARM = np.array([
 TORSO_LOADING = np.array([1.0, -1.0, -1.0])
 
 ARMS = ("left", "right")
-# Action dims (DESIGN §2) and state dims (official baseline order).
+# Action dims (docs/design.md §2) and state dims (official baseline order).
 BASE, TORSO, ARM = slice(0, 3), slice(3, 6), {"left": slice(7, 14), "right": slice(15, 22)}
 GRIPPER = {"left": 14, "right": 22}
 STATE_ARM = {"left": slice(7, 14), "right": slice(14, 21)}

@@ -3,7 +3,7 @@
   python -m pi0_armfix.tools.param_tree --preset=pi0
 
 Output: `{"path/with/slashes": [shape, dtype], ...}` (sorted, the format of
-`shared/reference/openpi_param_tree.json`), then a last line `parameters: N`.
+`tests/reference/openpi_param_tree.json`), then a last line `parameters: N`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Balanced normalization statistics (DESIGN §4) -> openpi `norm_stats.json`.
+"""Balanced normalization statistics (docs/design.md §4) -> openpi `norm_stats.json`.
 
     python -m pi0_armfix.tools.recompute_balanced_norm_stats --config=configs/arm_focused.py \
         [--config.data.root=DIR] --output=balanced_norm_stats.json [--max_scale=10]

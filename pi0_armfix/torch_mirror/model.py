@@ -11,9 +11,9 @@ checkpoint is `Pi0Config.to_dict()`). Its parameters are openpi's tree under tor
       -> (loss, {"group_loss": {group: scalar}})
   sample_actions(observation, noise, num_steps=10, use_kv_cache=True) -> actions [B, H, A]
 
-`observation` is the batch dict of CONTRACT.md (numpy or torch arrays, uint8 cameras at any
-resolution). Flow-matching convention (DESIGN §3): t = 1 is noise, t = 0 the data. Noise and time
-are inputs, so a caller (a parity test, a deployment) controls every random draw.
+`observation` is the batch dict of docs/design.md §4 (numpy or torch arrays, uint8 cameras at any
+resolution). Flow-matching convention (docs/design.md §3): t = 1 is noise, t = 0 the data. Noise and
+time are inputs, so a caller (a parity test, a deployment) controls every random draw.
 """
 
 from __future__ import annotations

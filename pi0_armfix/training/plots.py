@@ -68,9 +68,9 @@ def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
         style = dict(color=colors[i % len(colors)], marker="o", markersize=4,
                      ls="--" if g in body else "-", lw=1.2 if g in body else 2.0)
         gain_ax.plot(steps, [r[f"motion_gain/{g}"] for r in rows], label=g, **style)
-        if f"persistence/motion_gain/{g}" in rows[-1]:
-            gain_ax.axhline(rows[-1][f"persistence/motion_gain/{g}"], color=style["color"],
-                            ls=":", lw=1.0)
+        held = rows[-1].get(f"persistence/motion_gain/{g}")
+        if held is not None and np.isfinite(held):  # NaN (null in the log): nothing moved
+            gain_ax.axhline(held, color=style["color"], ls=":", lw=1.0)
         if f"skill/{g}" in rows[-1]:
             skill_ax.plot(steps, [r.get(f"skill/{g}", np.nan) for r in rows], label=g, **style)
     gain_ax.set_ylim(min(-0.1, gain_ax.get_ylim()[0]), max(1.15, gain_ax.get_ylim()[1]))

@@ -1,4 +1,4 @@
-"""Device mesh and the sharding of the train state and the batch (DESIGN §6).
+"""Device mesh and the sharding of the train state and the batch (docs/design.md §6).
 
 The mesh has two axes, `batch` and `fsdp`. The batch is split over all devices (both axes). The
 parameters, and every optimizer / EMA array that mirrors them, are placed by `PARAM_RULES`: the
