@@ -37,9 +37,9 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
 
 def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Torso and arm joints as targets relative to the current state; base velocity and grippers
-    stay absolute (B1K 2025's winners' representation). The state must be in the action order,
-    as both scales' state presets put it (`b1k_r1pro` at the b1k scale, `b1k_baseline23` for the
-    demo)."""
+    stay absolute (B1K 2025's winners' representation). The state must be in the action order, as
+    the state presets put it: `b1k_r1pro` at the b1k scale, the embedded demo's `b1k_baseline23`
+    (which another dataset at the demo scale replaces by its own preset or `data.state_groups`)."""
     config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
     return config
 
@@ -109,10 +109,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.action_key = "action"  # LeRobot: the stored action feature
     config.data.state_key = "observation.state"  # LeRobot: the stored state feature
     # LeRobot: a named selection of the stored state into the action order (pi0_armfix.data.
-    # selection: 'b1k_r1pro' for B1K's 256-D state, 'b1k_baseline23'); '' = data.state_indices.
-    # The demo stores the baseline's 23-D state (grippers last); the preset puts it in the action
-    # order, which delta actions and the state-copy baseline need (the same information).
-    config.data.state_preset = "b1k_baseline23"
+    # selection: 'b1k_r1pro' for B1K's 256-D state, 'b1k_baseline23' for the baseline's 23-D
+    # order); '' = data.state_indices, or on the embedded demo its 'b1k_baseline23'.
+    config.data.state_preset = ""
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)

@@ -233,7 +233,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
     # passes over the data before they all hold.
     source = sources.open_source(config.data, layout)
-    for warning in dataset_lib.check_data(config, layout, source):
+    for warning in dataset_lib.check_data(config, layout, source,
+                                          action_horizon=model_config.action_horizon):
         _say(f"warning: {warning}")
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     for line in banner(config, workdir, model_config, layout, mesh, source):

@@ -14,6 +14,7 @@ from configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
+from pi0_armfix.data import selection
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.training import checkpoint, sharding
 
@@ -129,7 +130,7 @@ def test_delta_configs_make_torso_and_arms_relative_through_a_state_preset(scale
     for name in DELTA_CONFIGS:
         data = load(name, scale).data
         assert tuple(data.delta_action_mask) == ("torso", "left_arm", "right_arm")
-        assert data.state_preset == state_preset and not data.state_indices
+        assert selection.state_preset(data) == state_preset and not data.state_indices
 
 
 def test_b1k_scale_is_full_pi0_on_a_root_given_on_the_command_line():

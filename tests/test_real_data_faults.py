@@ -18,6 +18,7 @@ from configs import base
 from data_fixtures import identify_frame, make_episodes, write_dataset
 from pi0_armfix import evaluate, train
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import selection
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import sources
@@ -75,6 +76,13 @@ def test_b1k_256d_state_without_a_preset_fails_before_any_pass_naming_the_preset
     config = config_for(b1k_root)
     with pytest.raises(ValueError, match=r"256 dims.*data.state_preset='b1k_r1pro'"):
         train.train_and_evaluate(config, str(tmp_path / "run"))
+
+
+def test_the_demo_state_preset_is_the_embedded_demos_only():
+    assert selection.state_preset({"root": ""}) == "b1k_baseline23"
+    assert selection.state_preset({"root": "/data/mine"}) == ""
+    assert selection.state_preset({"root": "", "state_preset": "b1k_r1pro"}) == "b1k_r1pro"
+    assert selection.state_preset({"root": "", "state_indices": (0, 1)}) == ""
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -188,7 +196,8 @@ def test_action_indices_select_the_dims_of_a_wider_dataset(tmp_path):
 
 def test_actions_wider_than_32_train_without_cameras_with_eval_groups_from_roles(tmp_path,
                                                                                cache_dir):
-    episodes = make_episodes(6, action_width=44, state_width=44, cameras={})
+    episodes = make_episodes(6, action_width=44, state_width=44, cameras={}, min_length=20,
+                             max_length=30)
     root = write_dataset(tmp_path / "ds", episodes, "v2.0", float_dtype=np.float64)
     groups = {"torso": (0, 2), "left_arm": (2, 22), "right_arm": (22, 42), "grippers": (42, 44)}
     roles = {"torso": "torso", "left_arm": "arm", "right_arm": "arm", "grippers": "gripper"}

@@ -31,7 +31,7 @@ B1K = ActionLayout.preset("b1k_r1pro")
 def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, cache_dir,
                                                                        demo_root):
     workdir = tmp_path / "run"
-    result = tf.run_train("configs/arm_focused.py", workdir,
+    result = tf.run_train("configs/arm_weights_3x.py", workdir,
                           tf.tiny_overrides(demo_root, train__total_steps=4,
                                             train__log_every=2, eval__every=4), cache_dir)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -54,7 +54,8 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
     expected |= {f"{kind}/{g}" for kind in ("loss", "weight") for g in B1K.group_names}
     assert expected <= training[-1].keys()
     assert 0 <= training[-1]["data_wait"] <= 1
-    assert {f"{kind}/{g}" for kind in ("err", "motion_gain", "motion_ratio")
+    assert {f"{prefix}{kind}/{g}" for prefix in ("", "persistence/", "state_copy/")
+            for kind in ("err", "skill", "motion_gain", "motion_ratio")
             for g in B1K.group_names} | {"gripper_switch/f1"} <= evaluation[0].keys()
     assert training[-1]["weight/left_arm"] == pytest.approx(3 * training[-1]["weight/base"])
 

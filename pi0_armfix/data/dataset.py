@@ -126,14 +126,23 @@ def training_blocks(config: ConfigLike, layout: ActionLayout,
 
 # ---------------------------------------------------------------------- checks before any pass
 
-def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool = True
+def heldout_chunk_count(lengths: np.ndarray, horizon: int) -> int:
+    """Chunks that tile held-out episodes of these lengths, one every H - 1 frames (the
+    evaluation's chunks, `evaluation.heldout.tiled_chunk_starts`)."""
+    stride = max(int(horizon) - 1, 1)
+    return int(np.sum(-(-np.asarray(lengths, np.int64) // stride)))
+
+
+def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool = True,
+               action_horizon: int = 1
                ) -> list[str]:
     """Every check of the data that can fail, before any pass over it (cheap: metadata, plus the
     probe of `data.probe_episodes` episodes' files and first/last video frames).
 
     Checks the action width (when the source opened), the state width against
     `layout.action_dim` (naming the fix), the delta-action state layout, the curriculum's
-    arm-heavy layout and episode list, the split, and the probe.
+    arm-heavy layout and episode list, the split (the held-out episodes must hold a batch of
+    the evaluation's chunks of H = `action_horizon`), and the probe.
 
     Returns:
       warnings to print once (e.g. batch cameras that no stored camera feeds).
@@ -143,12 +152,14 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
     heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
     evaluation = config.get("eval") or {}
     if int(evaluation.get("every", 0)) > 0:
-        frames = num_frames(source, heldout)
-        if frames < int(evaluation["batch_size"]):
+        lengths = source.episode_lengths[np.isin(source.episode_index, heldout)]
+        chunks = heldout_chunk_count(lengths, action_horizon)
+        if chunks < int(evaluation["batch_size"]):
             raise ValueError(
                 f"eval.every = {evaluation['every']} evaluates on the held-out episodes, but the "
-                f"{len(heldout)} held out (eval.episodes) have {frames} frames, fewer than "
-                f"eval.batch_size = {evaluation['batch_size']}: raise eval.episodes, lower "
+                f"{len(heldout)} held out (eval.episodes) hold {chunks} chunks of H = "
+                f"{action_horizon} ({int(lengths.sum())} frames, a chunk every H - 1), fewer "
+                f"than eval.batch_size = {evaluation['batch_size']}: raise eval.episodes, lower "
                 "eval.batch_size, or set eval.every=0")
     if source.state_width > layout.action_dim:
         stored = getattr(source, "stored_state_width", source.state_width)
@@ -312,9 +323,10 @@ def norm_stats_key(config: ConfigLike, layout: ActionLayout, source, *, action_h
         "eval.episodes": _num_heldout(config),
         "layout.real_dim": layout.real_dim,
     }
-    for field in ("format", "action_key", "state_key", "state_preset", "state_indices",
-                  "action_indices", "balanced_norm"):
+    for field in ("format", "action_key", "state_key", "state_indices", "action_indices",
+                  "balanced_norm"):
         key[f"data.{field}"] = _jsonable(data.get(field))
+    key["data.state_preset"] = selection_lib.state_preset(data)
     if data.get("balanced_norm"):
         key["data.balanced_max_scale"] = float(data.get("balanced_max_scale", 10.0))
         key["layout.groups"] = {g: list(b) for g, b in layout.groups.items()}

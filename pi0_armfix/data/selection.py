@@ -172,10 +172,25 @@ def presets_for(stored_width: int) -> list[str]:
     return [name for name, p in STATE_PRESETS.items() if p.stored_width == stored_width]
 
 
+# The embedded demo stores the baseline's 23-D state (grippers last); read in the action order it
+# serves delta actions and the state-copy baseline with the same information.
+DEMO_STATE_PRESET = "b1k_baseline23"
+
+
+def state_preset(data_cfg: Mapping[str, Any]) -> str:
+    """`data.state_preset`; when unset, the embedded demo's (`DEMO_STATE_PRESET`, for
+    `data.root=''`), else none (every stored dim, or `data.state_indices`)."""
+    preset = data_cfg.get("state_preset") or ""
+    if preset or data_cfg.get("state_indices"):
+        return preset
+    embedded_demo = not data_cfg.get("root") and data_cfg.get("format", "lerobot") == "lerobot"
+    return DEMO_STATE_PRESET if embedded_demo else ""
+
+
 def state_groups(data_cfg: Mapping[str, Any]) -> Mapping[str, Sequence[int]] | None:
-    """`data.state_groups`, or the groups of `data.state_preset` when that is set instead."""
+    """`data.state_groups`, or the groups of the state preset (`state_preset`) instead."""
     explicit = data_cfg.get("state_groups")
     if explicit:
         return explicit
-    preset = data_cfg.get("state_preset") or ""
+    preset = state_preset(data_cfg)
     return STATE_PRESETS[preset].groups if preset in STATE_PRESETS else None

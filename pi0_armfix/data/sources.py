@@ -22,6 +22,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data.episodes import EpisodeTable
 
 FORMATS = ("lerobot", "rlds")
@@ -78,6 +79,6 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         root, layout, cameras=cameras, action_key=data_cfg.get("action_key") or "action",
         state_key=data_cfg.get("state_key") or "observation.state",
         state_indices=data_cfg.get("state_indices") or None,
-        state_preset=data_cfg.get("state_preset") or "",
+        state_preset=selection_lib.state_preset(data_cfg),
         action_indices=data_cfg.get("action_indices") or None,
         video_tolerance_frames=float(data_cfg.get("video_tolerance_frames") or 0.5))
