@@ -37,10 +37,13 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
 
 def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Torso and arm joints as targets relative to the current state; base velocity and grippers
-    stay absolute (B1K 2025's winners' representation). The state must be in the action order, as
-    the state presets put it: `b1k_r1pro` at the b1k scale, the embedded demo's `b1k_baseline23`
-    (which another dataset at the demo scale replaces by its own preset or `data.state_groups`)."""
+    stay absolute (B1K 2025's winners' representation). The state must be in the action order:
+    B1K's `b1k_r1pro` preset at the b1k scale; at the demo scale the demo's 23-D baseline-order
+    state reordered by `b1k_baseline23` (also for a demo written elsewhere by
+    `tools.make_demo_dataset`; another dataset names its own preset or `data.state_groups`)."""
     config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
+    if not config.data.state_preset:
+        config.data.state_preset = "b1k_baseline23"
     return config
 
 

@@ -186,3 +186,18 @@ def test_actions_of_the_wrong_shape_are_a_value_error(torch_model, observation):
     with pytest.raises(ValueError, match="action_horizon=4"):
         torch_model.compute_loss(observation, noise[:, :2], np.zeros((BATCH, 2), bool), noise[:, :2],
                                  time, layout=LAYOUT, strategy="uniform")
+
+
+def test_a_no_state_run_samples_like_flax_in_the_mirror(tmp_path):
+    config = CONFIG.replace(use_state=False)
+    observation = flax_inputs.fake_observation(config, BATCH, seed=1)
+    params = policy.init_params(config, jax.random.key(0))
+    checkpoint.write_converted(str(tmp_path), {k: np.asarray(v) for k, v in
+                                               flatten_tree(params).items()}, config, None,
+                               source="test")
+    model, _ = checkpoint.load_converted(str(tmp_path))
+    noise, _ = _noise_and_time(5)
+    expected = np.asarray(policy.sample_actions(params, None, observation, config=config,
+                                                num_steps=4, noise=jnp.asarray(noise)))
+    np.testing.assert_allclose(model.sample_actions(observation, noise, num_steps=4).numpy(),
+                               expected, rtol=0, atol=1e-4)

@@ -137,6 +137,8 @@ class Pi0(nn.Module):
           tokens [B, S, E] float32 (S = 1 + H, pi0.5: H), input mask [B, S] (all True), ar mask
           [S], and the condition [B, E] (pi0.5) or None.
         """
+        if not self.config.use_state:  # the no-state ablation: a zero state, as in the Flax model
+            state = torch.zeros_like(state)
         action_tokens = layers.dense(params["action_in_proj"], x_t)
         time_emb = posemb_sincos(t, self.config.action_expert.width)
         horizon = x_t.shape[1]
