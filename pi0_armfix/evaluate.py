@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -52,6 +53,7 @@ from pi0_armfix.training import sharding as sharding_lib
 
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
 METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
+STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluations, in eval/
 CLOSED_LOOP_FILE = "closed_loop.json"  # of a closed-loop evaluation, in eval/step_<N>/
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
@@ -234,7 +236,19 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                    "vs true (solid)")
     plots.plot_group_losses(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE), layout,
                             out / "group_losses.png")
+    plots.plot_stagnation(offline_records(workdir), layout, workdir / "eval" / STAGNATION_FILE)
     return step, metrics, layout
+
+
+def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:
+    """Every offline evaluation of a run (`eval/step_<N>/metrics.json`), in step order: a run
+    evaluated at several checkpoints draws its stagnation figure from them (`eval/`
+    `stagnation.png`), like the one training draws from its in-run evaluations."""
+    found = []
+    for path in epath.Path(workdir).glob(f"eval/step_*/{METRICS_FILE}"):
+        record = json.loads(path.read_text())
+        found.append({k: math.nan if v is None else v for k, v in record.items()})
+    return sorted(found, key=lambda r: r["step"])
 
 
 class ReplanningPolicy:

@@ -272,7 +272,8 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
     base_runs = [r for r in results if r["config"] == baseline]
     for config in configs:
         entry = per_config[config]
-        confidence = study_stats.comparison_confidence(config == primary, len(secondary))
+        confidence = study_stats.comparison_confidence(config in (primary, baseline),
+                                                       len(secondary))
         entry["comparison"] = ("baseline" if config == baseline else
                                "primary" if config == primary else "secondary")
         entry["confidence"] = confidence
@@ -430,6 +431,9 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
               "| config | comparison | arms' skill | arms' gain | base skill | switch F1 |",
               "|---|---|---|---|---|---|"]
     for name, c in configs.items():
+        if c["comparison"] == "baseline":
+            lines.append(f"| {name} | the baseline | " + " | ".join("—" for _ in COMPARED) + " |")
+            continue
         vs = c["vs_baseline"]
         level = f"{c['comparison']} ({c['confidence']:.1%})"
         lines.append(f"| {name} | {level} | " + " | ".join(_interval(vs[k]) for k in COMPARED)

@@ -188,6 +188,7 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
     assert f"{saved['motion_gain/left_arm']:.3f}" in result.stdout
     assert saved["persistence/motion_gain/left_arm"] == 0.0  # holding never moves an arm
     assert saved["persistence/skill/left_arm"] == 0.0 and "skill/left_arm" in saved
+    assert (workdir / "eval" / "stagnation.png").stat().st_size > 10_000  # over the evaluations
 
 
 def test_offline_evaluation_is_quiet_by_default(tmp_path, cache_dir, demo_root):
