@@ -29,7 +29,9 @@ def default_demo(tmp_path_factory):
     cache = tmp_path_factory.mktemp("cache")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("PI0_ARMFIX_CACHE", str(cache))
-        source = open_source(ConfigDict({"root": "", "format": "lerobot"}), LAYOUT)
+        # Every stored dim in its stored order (the runs' default reorders it, tested below).
+        source = open_source(ConfigDict({"root": "", "format": "lerobot",
+                                         "state_indices": tuple(range(23))}), LAYOUT)
     assert source.root == demo.demo_cache_path(cache, demo.DemoSpec())
     return source
 
@@ -69,6 +71,17 @@ def test_state_follows_the_baseline_state_order(demo_frames):
     # Joints track their targets: left arm at state 7:14, right arm at 14:21 (grippers last).
     assert np.abs(state[:, 7:14] - actions[:, 7:14]).mean() < 0.02
     assert np.abs(state[:, 14:21] - actions[:, 15:22]).mean() < 0.02
+
+
+def test_runs_read_the_embedded_demos_state_in_the_action_order(default_demo, demo_frames):
+    actions, stored, _ = demo_frames
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PI0_ARMFIX_CACHE", str(default_demo.root.parent))
+        source = open_source(ConfigDict({"root": "", "format": "lerobot"}), LAYOUT)
+    state = source.load_table([int(default_demo.episode_index[0])], images=False).state
+    first = stored[:len(state)]
+    np.testing.assert_array_equal(state[:, 15:22], first[:, 14:21])  # right arm after the gripper
+    np.testing.assert_array_equal(state[:, 14], first[:, 21])  # left gripper width at 14
 
 
 def test_the_base_drives_with_the_arms_still_and_stands_while_they_move(demo_frames):
