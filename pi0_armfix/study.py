@@ -548,14 +548,17 @@ def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
                     ) -> dict[str, float] | None:
     """The ceiling's metrics (`evaluation.ceiling`, the embedded demo only): from the runs'
     `ceiling/...` metrics, or, for runs evaluated before the ceiling existed, measured on the
-    first run's held-out chunks. None on other data."""
+    first run's held-out chunks. None on other data, or without the first run's checkpoints."""
     prefix = heldout_lib.CEILING + "/"
     for result in results:
         found = {k[len(prefix):]: v for k, v in result["metrics"].items() if k.startswith(prefix)}
         if found:
             return found
     first = results[0]
-    run = inference.restore_run(run_folder(workdir, first["config"], first["seed"]))
+    try:
+        run = inference.restore_run(run_folder(workdir, first["config"], first["seed"]))
+    except ValueError:  # results copied without their checkpoints: no ceiling to measure
+        return None
     if run.config.data.root:
         return None
     groups = evaluate.eval_groups(run.config.eval, run.layout)
