@@ -235,6 +235,15 @@ def _number(value: Any) -> float:
 
 
 COMPARED = ("arm_skill", "arm_gain", "base_skill", "switch_f1")  # vs the baseline config
+GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
+    ("skill", "Skill over persistence (1 - err / persistence err; > 0: better than holding the "
+     "previous action, 1: perfect)", 3),
+    ("motion_gain", "Motion gain (1 = moves like the data, 0 = still, or moving in unrelated "
+     "directions)", 3),
+    ("motion_ratio", "Motion ratio (magnitude only: 1 = moves as much as the data, in any "
+     "direction)", 3),
+    ("err", "Error (MSE of the sampled chunk)", 4),
+)
 
 
 def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets(),
@@ -388,28 +397,13 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
               "same chunks (evaluation units: absolute actions over each dim's training std). "
               "Rows in italics are the do-nothing predictors on the same chunks: *persistence* "
               "holds the previous action, *state copy* repeats the current state where it maps "
-              "to the actions (see docs/evaluation.md).", "",
-              "## Skill over persistence (1 - err / persistence err; > 0: better than holding "
-              "the previous action, 1: perfect)", "", header, rule]
-    for name, c in configs.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(c, f"skill/{g}") for g in groups) + " |")
-    lines += _reference_rows(study, lambda g: f"skill/{g}")
-    lines += ["", "## Motion gain (1 = moves like the data, 0 = still, or moving in unrelated "
-              "directions)", "", header, rule]
-    for name, c in configs.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(c, f"motion_gain/{g}") for g in groups)
-                     + " |")
-    lines += _reference_rows(study, lambda g: f"motion_gain/{g}")
-    lines += ["", "## Motion ratio (magnitude only: 1 = moves as much as the data, in any "
-              "direction)", "", header, rule]
-    for name, c in configs.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(c, f"motion_ratio/{g}") for g in groups)
-                     + " |")
-    lines += _reference_rows(study, lambda g: f"motion_ratio/{g}")
-    lines += ["", "## Error (MSE of the sampled chunk)", "", header, rule]
-    for name, c in configs.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(c, f"err/{g}", 4) for g in groups) + " |")
-    lines += _reference_rows(study, lambda g: f"err/{g}", 4)
+              "to the actions (see docs/evaluation.md).", ""]
+    for metric, title, digits in GROUP_TABLES:
+        lines += [f"## {title}", "", header, rule]
+        lines += [f"| {name} | " + " | ".join(_cell(c, f"{metric}/{g}", digits) for g in groups)
+                  + " |" for name, c in configs.items()]
+        lines += _reference_rows(study, lambda g, m=metric: f"{m}/{g}", digits) + [""]
+    lines = lines[:-1]
     lines += ["", "## Gripper switches (each event of the held-out timeline once, matched within "
               "the tolerance)", "",
               "| config | precision | recall | F1 | TP / FP / FN (mean over seeds) |",
