@@ -604,7 +604,7 @@ def main(argv: Sequence[str]) -> None:
     if FLAGS.seeds < study_stats.MIN_SEEDS:
         print(f"study: {FLAGS.seeds} seed(s) per config: the intervals will be anecdotes "
               f"(use --seeds={study_stats.MIN_SEEDS} or more for results)", flush=True)
-    if FLAGS.closed_loop_episodes:
+    if FLAGS.closed_loop_episodes and not FLAGS.report_only:
         print(f"study: every run also drives {FLAGS.closed_loop_episodes} closed-loop episodes "
               "of the demo world once trained (more than half of a demo run's time; "
               "--closed_loop_episodes=0 skips them)", flush=True)
