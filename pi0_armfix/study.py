@@ -512,8 +512,7 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
         if metric == "motion_gain":
             ax.axhline(1.0, color="gray", lw=0.8)
         else:
-            low, high = ax.get_ylim()
-            ax.set_ylim(max(low, -3.0), max(high, 0.5))
+            ax.set_ylim(max(ax.get_ylim()[0], -3.0), 1.1)  # skill is at most 1
         ax.set_xticks(x, groups, rotation=20)
         ax.set(title=title)
         ax.grid(axis="y", alpha=0.3)
