@@ -56,8 +56,9 @@ def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> 
 
 
 def gripper_boundary(q01: np.ndarray, q99: np.ndarray) -> np.ndarray:
-    """The open/close boundary of each dim: the midpoint of its 1 % and 99 % quantiles (the one
-    definition shared by the evaluation, the loss's switch emphasis and the closed loop)."""
+    """The open/close boundary of each dim: the midpoint of its 1 % and 99 % quantiles (the
+    evaluation's; `data.batching.normalized_midpoints` takes the same midpoint for the loss's
+    switch emphasis, in normalized units)."""
     return (np.asarray(q01, np.float64) + np.asarray(q99, np.float64)) / 2
 
 
