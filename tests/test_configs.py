@@ -22,7 +22,7 @@ CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",
            "arm_delta_focused", "arm_delta_per_timestep", "arm_delta_correlated_noise",
            "arm_delta_flow_samples", "gripper_switch", "arm_recipe", "arm_weights_3x",
-           "state_dropout", "state_noise", "no_state")
+           "state_dropout", "state_noise", "no_state", "arm_focused_openpi_augment")
 # Trained at tiny scale: every strategy, and every lever (arm_recipe holds delta actions,
 # per-timestep stats, correlated noise and switch emphasis; K flow samples on its own).
 TRAINED = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -90,7 +90,7 @@ def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
 
 DELTA_CONFIGS = {"arm_delta", "arm_delta_focused", "arm_delta_per_timestep",
                  "arm_delta_correlated_noise", "arm_delta_flow_samples", "arm_recipe",
-                 "arm_focused"}
+                 "arm_focused", "arm_focused_openpi_augment"}
 STATE_LEVERS = {"state_dropout": ("state_dropout", 0.5), "state_noise": ("state_noise", 0.3),
                 "no_state": ("use_state", False)}
 
@@ -114,6 +114,13 @@ def test_demo_augmentation_is_colour_only_and_b1k_uses_openpis():
                  for s in (None, "b1k"))
     assert (demo.crop_scale, demo.rotate_degrees) == (1.0, 0.0) and demo.jitter_p > 0
     assert (b1k.crop_scale, b1k.rotate_degrees) == (0.95, 5.0)
+
+
+def test_openpi_augment_config_is_the_main_job_with_openpis_crop_and_rotation():
+    config, main = load("arm_focused_openpi_augment"), load("arm_focused")
+    assert (config.model.augment.crop_scale, config.model.augment.rotate_degrees) == (0.95, 5.0)
+    config.model.augment = main.model.augment
+    assert config == main
 
 
 def test_only_the_balanced_curriculum_and_delta_configs_change_the_data():
