@@ -171,6 +171,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.max_chunks = 512  # chunks tiling the held-out episodes (each step once), at most
     config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role
     config.eval.switch_tolerance = 2  # steps by which a predicted gripper switch may miss
+    # Closed loop and server: (open_above, close_below) of the grippers' hysteresis in action units
+    # (pi0_armfix.hysteresis; B1K 2025's winners: about (0.9, -0.98)); () = commands pass as sampled.
+    config.eval.gripper_hysteresis = ()
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
     if scale == "b1k":

@@ -35,7 +35,7 @@ from absl import app, flags
 from etils import epath
 from tqdm import tqdm
 
-from pi0_armfix import console, inference
+from pi0_armfix import console, hysteresis, inference
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
@@ -90,6 +90,11 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
                          f"eval.batch_size = {eval_cfg['batch_size']}")
     if eval_cfg["num_steps"] <= 0:
         raise ValueError(f"eval.num_steps = {eval_cfg['num_steps']} must be positive")
+    if hysteresis.check_thresholds(eval_cfg.get("gripper_hysteresis", ()),
+                                   "eval.gripper_hysteresis") and not layout.groups_with_role(
+                                       "gripper"):
+        raise ValueError("eval.gripper_hysteresis is set but the layout has no group of role "
+                         "gripper (layout.roles); set it to ()")
     tolerance = eval_cfg.get("switch_tolerance", 2)
     if tolerance < 0:
         raise ValueError(f"eval.switch_tolerance = {tolerance} must be >= 0 (steps by which a "
@@ -254,19 +259,27 @@ def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:
 class ReplanningPolicy:
     """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
     `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
-    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting)."""
+    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
+    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""
 
-    def __init__(self, policy: inference.RunPolicy, n_exec: int, follow_tail: bool):
+    def __init__(self, policy: inference.RunPolicy, n_exec: int, follow_tail: bool,
+                 latch: hysteresis.GripperLatch | None = None):
         self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
+        self.latch = latch
 
     def start(self, envs):
         self._tails: dict[int, np.ndarray] = {}
+        if self.latch is not None:
+            self.latch.reset()
 
     def __call__(self, active, observations):
         follow = None
         if self.follow_tail and all(i in self._tails for i in active):
             follow = np.stack([self._tails[i] for i in active])
         chunks = self.policy.infer(observations, follow=follow)
+        if self.latch is not None:
+            chunks = np.stack([self.latch(i, chunk, self.n_exec)
+                               for i, chunk in zip(active, chunks)])
         for i, chunk in zip(active, chunks):
             self._tails[i] = chunk[self.n_exec:]
         return chunks
@@ -274,13 +287,16 @@ class ReplanningPolicy:
 
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
                 episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
-                sim_seed: int = env_lib.EVAL_SEED, progress: bool = True
+                sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
+                gripper_hysteresis: Sequence[float] | None = None
                 ) -> tuple[int, dict[str, Any]]:
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
     world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
-    each chunk following the last one's unexecuted tail when `follow_tail`; writes
-    `closed_loop[_rtc].json` and `rollouts[_rtc].png` (against the scripted expert) into
-    `<workdir>/eval/step_<N>/`. Returns `(step, summary)` (`sim.rollout.summarize`)."""
+    each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
+    the hysteresis `gripper_hysteresis` ((open_above, close_below); None: the run's
+    `eval.gripper_hysteresis`; empty: none); writes `closed_loop[_rtc][_hysteresis].json` and
+    `rollouts[...].png` (against the scripted expert) into `<workdir>/eval/step_<N>/`. Returns
+    `(step, summary)` (`sim.rollout.summarize`)."""
     policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
     run = policy_.run
     if run.layout.real_dim != 23:
@@ -290,18 +306,22 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
         raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
                          "with --rtc: the tail to follow)")
+    latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
     spec = DemoSpec(seed=sim_seed)
-    records = rollout_lib.rollout(ReplanningPolicy(policy_, n_exec, follow_tail), range(episodes),
-                                  spec=spec, n_exec=n_exec,
+    records = rollout_lib.rollout(ReplanningPolicy(policy_, n_exec, follow_tail, latch),
+                                  range(episodes), spec=spec, n_exec=n_exec,
                                   progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
                "follow_tail": follow_tail,
+               "gripper_hysteresis": None if latch is None else [latch.open_above,
+                                                                 latch.close_below],
                "sim_seed": sim_seed, **rollout_lib.summarize(records),
                "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
                                     "seconds": r.seconds,
                                     "phases": [dataclasses.asdict(p) for p in r.results]}
                                    for r in records]}
-    results_path, figure_path = closed_loop_paths(run.workdir, run.step, follow_tail)
+    results_path, figure_path = closed_loop_paths(run.workdir, run.step, follow_tail,
+                                                  latch is not None)
     results_path.parent.mkdir(parents=True, exist_ok=True)
     results_path.write_text(json.dumps(summary, indent=2) + "\n")
     shown = records[:ROLLOUT_ROWS]
@@ -309,15 +329,19 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                  spec=spec, progress=False)
     rollout_lib.plot_rollouts(shown, expert, figure_path,
                               f"step {run.step}: closed loop, n_exec {n_exec}"
-                              + (", following the unexecuted tail" if follow_tail else ""))
+                              + (", following the unexecuted tail" if follow_tail else "")
+                              + ("" if latch is None else ", gripper hysteresis "
+                                 f"({latch.open_above:g}, {latch.close_below:g})"))
     return run.step, summary
 
 
-def closed_loop_paths(workdir: epath.PathLike, step: int, follow_tail: bool
-                      ) -> tuple[epath.Path, epath.Path]:
+def closed_loop_paths(workdir: epath.PathLike, step: int, follow_tail: bool,
+                      hysteresis_on: bool = False) -> tuple[epath.Path, epath.Path]:
     """`eval/step_<N>/closed_loop.json` and `rollouts.png` of a run (`_rtc` before the suffix
-    for the variant that follows the tail)."""
-    out, tag = epath.Path(workdir) / "eval" / f"step_{step}", "_rtc" if follow_tail else ""
+    for the variant that follows the tail, then `_hysteresis` for the one whose grippers pass
+    the hysteresis)."""
+    out = epath.Path(workdir) / "eval" / f"step_{step}"
+    tag = ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else "")
     return out / CLOSED_LOOP_FILE.replace(".json", f"{tag}.json"), out / f"rollouts{tag}.png"
 
 
@@ -330,12 +354,14 @@ def main(argv: Sequence[str]) -> None:
         try:
             step, summary = closed_loop(FLAGS.workdir, FLAGS.step, FLAGS.params,
                                         episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
-                                        follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed)
+                                        follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
+                                        gripper_hysteresis=FLAGS.gripper_hysteresis)
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
         print(rollout_lib.format_summary(summary))
-        results_path, figure_path = closed_loop_paths(FLAGS.workdir, step, FLAGS.rtc)
+        results_path, figure_path = closed_loop_paths(FLAGS.workdir, step, FLAGS.rtc,
+                                                      summary["gripper_hysteresis"] is not None)
         print(f"results in {results_path}; rollouts in {figure_path}")
         return
     try:
@@ -363,6 +389,9 @@ def cli() -> None:
                       "tail of the previous one (real-time chunking's soft inpainting)")
     flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
                          "episodes (the demo dataset is seed 0)")
+    flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
+                      "grippers' hysteresis (pi0_armfix.hysteresis), in action units; unset: the "
+                      "run's eval.gripper_hysteresis; empty: none")
     app.run(main)
 
 

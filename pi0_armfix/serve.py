@@ -10,7 +10,10 @@ actions absolute and in the dataset's units (`pi0_armfix.inference.RunPolicy`). 
 msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
 read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
 message naming the problem (openpi's client raises it as a RuntimeError); the connection and the
-server stay up. `GET /healthz` answers 200 (openpi's health check).
+server stay up. `GET /healthz` answers 200 (openpi's health check). With `--gripper_hysteresis`
+(or the run's `eval.gripper_hysteresis`), each connection's gripper commands pass the hysteresis
+of `pi0_armfix.hysteresis`, held across its requests as if the client executed `--n_exec` actions
+of every chunk.
 """
 
 from __future__ import annotations
@@ -29,8 +32,7 @@ import numpy as np
 from absl import app, flags
 from websockets.asyncio import server as ws_server
 
-from pi0_armfix import console
-from pi0_armfix import inference
+from pi0_armfix import console, hysteresis, inference
 
 
 # ---------------------------------------------------------------------- openpi's msgpack encoding
@@ -63,14 +65,17 @@ unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
 
 class PolicyServer:
     """Serves `policy` (a `RunPolicy`, or anything with `infer([obs]) -> [1, H, A]` and
-    `metadata()`) to websocket clients, one request at a time."""
+    `metadata()`) to websocket clients, one request at a time; `latch` filters each client's
+    gripper commands (its held commands after the first `n_exec` actions of a chunk; None: all)."""
 
-    def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000):
+    def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000,
+                 latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None):
         self.policy, self.host, self.port = policy, host, port
+        self.latch, self.n_exec = latch, n_exec
         self._metadata = pack(policy.metadata())
 
-    def answer(self, message: bytes | str) -> bytes | str:
-        """One request -> the packed actions, or the error text (never raises)."""
+    def answer(self, message: bytes | str, client: Any = None) -> bytes | str:
+        """One request of `client` -> the packed actions, or the error text (never raises)."""
         try:
             if isinstance(message, str):
                 raise ValueError("requests are binary msgpack messages, got a text message")
@@ -83,6 +88,8 @@ class PolicyServer:
                                  f"{type(observation).__name__}")
             start = time.monotonic()
             actions = self.policy.infer([observation])[0]
+            if self.latch is not None:
+                actions = self.latch(client, actions, self.n_exec)
             return pack({"actions": actions,
                          "server_timing": {"infer_ms": 1000 * (time.monotonic() - start)}})
         except ValueError as e:
@@ -92,8 +99,12 @@ class PolicyServer:
 
     async def _handle(self, websocket) -> None:
         await websocket.send(self._metadata)
-        async for message in websocket:
-            await websocket.send(self.answer(message))
+        try:
+            async for message in websocket:
+                await websocket.send(self.answer(message, client=websocket.id))
+        finally:
+            if self.latch is not None:
+                self.latch.forget(websocket.id)
 
     @staticmethod
     def _health(connection, request):
@@ -122,13 +133,18 @@ def main(argv: Sequence[str]) -> None:
         policy = inference.RunPolicy.from_workdir(
             FLAGS.workdir, FLAGS.step, FLAGS.params,
             keys=inference.ObservationKeys.parse(FLAGS.keys))
+        latch = hysteresis.run_latch(policy.run.config, policy.layout, FLAGS.gripper_hysteresis)
+        if FLAGS.n_exec < 0:
+            raise ValueError(f"--n_exec = {FLAGS.n_exec} must be >= 0 (0: the whole chunk)")
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.serve: {e}") from None
-    server = PolicyServer(policy, FLAGS.host, FLAGS.port)
+    server = PolicyServer(policy, FLAGS.host, FLAGS.port, latch, FLAGS.n_exec or None)
     meta = policy.metadata()
     print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
           f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "
-          f"{meta['observation_keys']}", flush=True)
+          f"{meta['observation_keys']}"
+          + ("" if latch is None else f"; gripper hysteresis ({latch.open_above:g}, "
+             f"{latch.close_below:g})"), flush=True)
     asyncio.run(server.serve())
 
 
@@ -143,6 +159,11 @@ def cli() -> None:
     flags.DEFINE_string("keys", "", "observation key mapping key=role,... (role: a batch camera "
                         "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state' or 'prompt'); "
                         "'' = B1K's openpi keys")
+    flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
+                      "hysteresis (pi0_armfix.hysteresis), in action units; unset: the run's "
+                      "eval.gripper_hysteresis; empty: none")
+    flags.DEFINE_integer("n_exec", 0, "actions a client executes of each chunk, for the "
+                         "gripper hysteresis' held commands (0: the whole chunk)")
     app.run(main)
 
 

@@ -60,6 +60,7 @@ from pi0_armfix.evaluation import baselines as baselines_lib  # noqa: E402
 from pi0_armfix.evaluation import heldout as heldout_lib  # noqa: E402
 from pi0_armfix.evaluation import metrics as eval_metrics  # noqa: E402
 from pi0_armfix.data import stats as stats_lib  # noqa: E402
+from pi0_armfix.sim.world import FAILURE_REASONS  # noqa: E402
 from pi0_armfix.training import metrics as metrics_lib  # noqa: E402
 
 RESULT_FILE = "result.json"
@@ -125,7 +126,8 @@ def closed_loop_metrics(folder: Path, steps: int, episodes: int) -> dict[str, fl
             f"the closed-loop evaluation of {folder}")
     saved = json.loads((folder / "eval" / f"step_{steps}" / "closed_loop.json").read_text())
     return {CLOSED_LOOP + k: v for k, v in saved.items()
-            if k.startswith(("success/", "phase_success/", "progress/", "seconds_to"))
+            if k.startswith(("success/", "phase_success/", "progress/", "failure/",
+                             "gripper_switches/", "seconds_to"))
             or k == "episodes"}
 
 
@@ -478,6 +480,29 @@ def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
             + " | " + " | ".join(_cell(c, f"{CLOSED_LOOP}progress/{k}")
                                  for k in CLOSED_LOOP_KINDS[:2])
             + " | " + " | ".join(diffs) + " |")
+    return lines + failure_table(configs)
+
+
+def failure_table(configs: Mapping[str, Any]) -> list[str]:
+    """Why the phases failed: per config, the fraction of its phases that failed for each reason
+    (`sim.world.FAILURE_REASONS`, mean over seeds), and the gripper switches per phase."""
+    reasons = [(kind, reason) for kind in CLOSED_LOOP_KINDS[:2]
+               for reason in FAILURE_REASONS[kind]]
+    if not any(f"{CLOSED_LOOP}failure/{k}/{r}" in c["mean"] for c in configs.values()
+               for k, r in reasons):
+        return []
+    lines = ["", "Why phases failed: the fraction of a kind's phases that failed for each reason "
+             "(the furthest stage the phase reached; see docs/evaluation.md), mean over seeds; "
+             "gripper switches: open/close commands per phase.", "",
+             "| config | " + " | ".join(f"{k[:3]}: {r}" for k, r in reasons)
+             + " | switches per navigation phase | per manipulation phase |",
+             "|---" * (len(reasons) + 3) + "|"]
+    for name, c in configs.items():
+        cells = [c["mean"].get(f"{CLOSED_LOOP}failure/{k}/{r}") for k, r in reasons]
+        cells += [c["mean"].get(f"{CLOSED_LOOP}gripper_switches/{k}")
+                  for k in CLOSED_LOOP_KINDS[:2]]
+        lines.append(f"| {name} | " + " | ".join(
+            "n/a" if v is None or not math.isfinite(v) else f"{v:.2f}" for v in cells) + " |")
     return lines
 
 

@@ -20,6 +20,7 @@ from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import evaluate, inference, serve
 from pi0_armfix.data import batching, sources
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.sim import world as world_lib
 from pi0_armfix.sim.env import DemoWorldEnv
 
 # Delta arm actions and the baseline-order state reordered into the action order: the policy
@@ -138,6 +139,12 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
     assert saved["episodes"] == 1 and len(saved["episodes_detail"]) == 1
     assert saved["n_exec"] == 2  # half the tiny preset's horizon of 4
     assert 0.0 <= saved["success/manipulation"] <= 1.0
+    for kind in ("navigation", "manipulation"):  # every failed phase has its reason
+        failed = sum(saved[f"failure/{kind}/{r}"] for r in world_lib.FAILURE_REASONS[kind])
+        assert failed == pytest.approx(1 - saved[f"phase_success/{kind}"])
+    assert "phases failed:" in result.stdout
+    assert all(p["reason"] or p["success"] for p in saved["episodes_detail"][0]["phases"])
+    assert saved["gripper_hysteresis"] is None
     assert (out / "rollouts.png").stat().st_size > 10_000
 
 

@@ -130,3 +130,22 @@ def test_report_only_tables_the_finished_runs_and_trains_nothing(tmp_path):
                               closed_loop_episodes=50, train=False)
     assert [(r["config"], r["seed"]) for r in results] == [("uniform", 0), ("uniform", 1)]
     assert not study.run_folder(tmp_path, "arm_focused", 0).exists()
+
+
+def test_closed_loop_failure_reasons_get_a_table_of_mean_fractions(tmp_path):
+    results = []
+    for seed, never_reached in enumerate((0.5, 0.7)):
+        result = _result("uniform", seed, 0.1)
+        result["metrics"] |= {"closed_loop/episodes": 10, "closed_loop/success/task": 0.0,
+                              "closed_loop/failure/manipulation/never_reached": never_reached,
+                              "closed_loop/failure/navigation/not_stopped": 1.0,
+                              "closed_loop/gripper_switches/manipulation": 3.0}
+        results.append(result)
+    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    text = (tmp_path / "study.md").read_text()
+    header = next(line for line in text.splitlines() if "man: never_reached" in line)
+    row = next(line for line in text.splitlines() if line.startswith("| uniform | ")
+               and line.count("|") == header.count("|"))
+    cells = dict(zip(header.split(" | "), row.split(" | ")))
+    assert cells["man: never_reached"] == "0.60" and cells["nav: not_stopped"] == "1.00"
+    assert cells["nav: heading_off"] == "n/a"

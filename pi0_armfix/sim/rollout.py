@@ -26,7 +26,8 @@ from tqdm import tqdm  # noqa: E402
 
 from pi0_armfix.sim import env as env_lib  # noqa: E402
 from pi0_armfix.sim.expert import demonstration  # noqa: E402
-from pi0_armfix.sim.world import ACTION_DIM, STATE_ARM, DemoSpec, PhaseResult, World  # noqa: E402
+from pi0_armfix.sim.world import (ACTION_DIM, FAILURE_REASONS, STATE_ARM, DemoSpec,  # noqa: E402
+                                  PhaseResult, World)
 
 KINDS = ("navigation", "manipulation", "task")
 
@@ -144,7 +145,10 @@ def rollout(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec, n_e
 def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
     """Success rates over episodes (`success/<kind>`: every phase of that kind succeeded), over
     phases (`phase_success/<kind>`), the phases' mean progress (`progress/<kind>`, see
-    `PhaseResult`) and the mean seconds to a successful task."""
+    `PhaseResult`), the fraction of phases that failed for each reason
+    (`failure/<kind>/<reason>`, `sim.world.FAILURE_REASONS`: they add up to 1 - phase success),
+    the gripper switches per phase (`gripper_switches/<kind>`) and the mean seconds to a
+    successful task."""
     summary: dict[str, Any] = {"episodes": len(records)}
     for kind in KINDS:
         summary[f"success/{kind}"] = float(np.mean([r.success[kind] for r in records]))
@@ -154,6 +158,11 @@ def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
                                                                     lambda p: p.progress)):
             summary[f"{name}/{kind}"] = (float(np.mean([value(p) for p in phases])) if phases
                                          else float("nan"))
+        for reason in FAILURE_REASONS[kind]:
+            summary[f"failure/{kind}/{reason}"] = (
+                float(np.mean([p.reason == reason for p in phases])) if phases else float("nan"))
+        summary[f"gripper_switches/{kind}"] = (
+            float(np.mean([p.gripper_switches for p in phases])) if phases else float("nan"))
     done = [r.seconds for r in records if r.success["task"]]
     summary["seconds_to_success"] = float(np.mean(done)) if done else float("nan")
     return summary
@@ -166,6 +175,12 @@ def format_summary(summary: dict[str, Any]) -> str:
         cells = [summary.get(f"{name}/{kind}") for name in ("phase_success", "progress")]
         lines.append(f"{kind:<14}{summary[f'success/{kind}']:>10.3f}"
                      + "".join(f"{c:>10.3f}" if c is not None else f"{'':>10}" for c in cells))
+    for kind in KINDS[:2]:
+        reasons = ", ".join(f"{reason} {summary[f'failure/{kind}/{reason}']:.2f}"
+                            for reason in FAILURE_REASONS[kind]
+                            if summary.get(f"failure/{kind}/{reason}", 0) > 0)
+        lines.append(f"{kind} phases failed: {reasons or 'none'}; gripper switches per phase "
+                     f"{summary[f'gripper_switches/{kind}']:.1f}")
     lines.append(f"{summary['episodes']} episodes; mean time to task success "
                  f"{summary['seconds_to_success']:.1f} s")
     return "\n".join(lines)

@@ -38,6 +38,19 @@ Phases and success:
   fails and the world moves on to the next phase, so every phase of every episode is measured.
   The task succeeds when every phase did.
 
+Why a phase failed (`PhaseResult.reason`, the furthest stage it got to; `FAILURE_REASONS`):
+  navigation    never_within_radius: never within `arrive_radius` of the target;
+                heading_off: within it, but never with the heading within `heading_tolerance`;
+                not_stopped: within it and heading right, but never with every base command
+                below `stop_speed` there.
+  manipulation  not_holding: a release phase began with nothing in a hand that must release;
+                never_reached: a hand never came within `reach_tolerance` of its target;
+                dropped: an object left the hand away from its target (opened elsewhere, or a
+                grasped object let go before the hands were home);
+                closed_away: a grasp's gripper closed only away from the target;
+                never_gripped: reached, but the gripper never closed (grasp) or opened (release)
+                there; not_home: every arm did its part but the hands were not home in time.
+
 What the cameras show (uint8, `image_size` square), rendered from `scene()`:
   head          a panorama: the current target as a disc whose column is its bearing (+-pi
                 across the width), whose row and size encode its distance; wall stripes shift
@@ -231,6 +244,25 @@ def draw_layout(spec: DemoSpec, index: int) -> EpisodeLayout:
     return EpisodeLayout(task, arm, torso, tuple(phases))
 
 
+FAILURE_REASONS = {
+    "navigation": ("never_within_radius", "heading_off", "not_stopped"),
+    "manipulation": ("not_holding", "never_reached", "dropped", "closed_away", "never_gripped",
+                     "not_home"),
+}
+
+
+def tolerances(spec: DemoSpec, factor: float) -> DemoSpec:
+    """`spec` with every success tolerance (arrival radius, heading, stop speed, reach) times
+    `factor`: the world of a success curve (at 2x a policy may miss by twice the world's
+    tolerances)."""
+    if factor <= 0:
+        raise ValueError(f"tolerance factor {factor} must be > 0")
+    return dataclasses.replace(
+        spec, arrive_radius=spec.arrive_radius * factor,
+        heading_tolerance=spec.heading_tolerance * factor,
+        stop_speed=spec.stop_speed * factor, reach_tolerance=spec.reach_tolerance * factor)
+
+
 def wrap_angle(angle: float) -> float:
     """angle in (-pi, pi]."""
     return math.atan2(math.sin(angle), math.cos(angle))
@@ -240,12 +272,15 @@ def wrap_angle(angle: float) -> float:
 class PhaseResult:
     """`progress`: how far the robot got, 1 - the closest approach over the start distance
     (navigation: to the target; manipulation: the hand to its target offset, mean over the
-    phase's arms), in [0, 1]: a graded view of phases that mostly fail."""
+    phase's arms), in [0, 1]: a graded view of phases that mostly fail. `reason`: why it failed (`FAILURE_REASONS`; '' on success);
+    `gripper_switches`: the grippers' open/close commands during the phase (both arms)."""
 
     kind: str  # "navigation" | "manipulation"
     success: bool
     frames: int  # frames the phase took (to success or to its time limit)
     progress: float = 0.0
+    reason: str = ""
+    gripper_switches: int = 0
 
 
 class World:
@@ -329,6 +364,7 @@ class World:
             raise ValueError(f"an action of the demo world is [{ACTION_DIM}], got {action.shape}")
         closing = {arm: action[GRIPPER[arm]] <= 0 < self.command[GRIPPER[arm]] for arm in ARMS}
         opening = {arm: self.command[GRIPPER[arm]] <= 0 < action[GRIPPER[arm]] for arm in ARMS}
+        self._events["switches"] += int(sum(closing.values()) + sum(opening.values()))
         self.command = action.copy()
         x, y, heading = self.pose
         c, s = math.cos(heading), math.sin(heading)
@@ -353,17 +389,22 @@ class World:
         step = self.phase_step
         active = step is not None and step[0] == "reach"
         for arm in ARMS:
+            mine = active and arm in step[1]
             if closing[arm]:
-                grasps = (active and arm in step[1] and step[2] == "grasp"
-                          and self._outcome[arm] is None and self._at_target(arm))
-                if grasps:
+                grasping = mine and step[2] == "grasp" and self._outcome[arm] is None
+                if grasping and self._at_target(arm):
                     self.held[arm] = self.task.colour
                     self._outcome[arm] = True
+                elif grasping:
+                    self._events["closed_away"] = True
                 self.gap[arm] = self._width if self.held[arm] is not None else 0.0
             elif opening[arm]:
-                if (active and arm in step[1] and step[2] == "release"
-                        and self._outcome[arm] is None and self.held[arm] is not None):
+                if (mine and step[2] == "release" and self._outcome[arm] is None
+                        and self.held[arm] is not None):
                     self._outcome[arm] = self._at_target(arm)  # placed, or dropped elsewhere
+                    self._events["dropped"] |= not self._outcome[arm]
+                elif mine and step[2] == "grasp" and self.held[arm] is not None:
+                    self._events["dropped"] = True  # let go before the hands were home
                 self.held[arm] = None
                 self.gap[arm] = OPEN_GAP
 
@@ -371,6 +412,10 @@ class World:
 
     def _start_phase(self, phase: int) -> None:
         self.phase, self._phase_frames = phase, 0
+        # How far the phase got, for the reason of a failure (`FAILURE_REASONS`).
+        self._events = {"switches": 0, "within_radius": False, "heading_ok": False,
+                        "reached": set(), "closed_away": False, "dropped": False,
+                        "not_holding": False}
         if self.done:
             return
         draws = self.layout.phases[phase]
@@ -390,6 +435,8 @@ class World:
             self._width = draws["width"]
             self._home = {arm: self._state[STATE_ARM[arm]].copy() for arm in ARMS}
             self._outcome = {arm: None for arm in step[1]}  # True done, False failed
+            self._events["not_holding"] = step[2] == "release" and any(
+                self.held[arm] is None for arm in step[1])
             self._start_gap = {arm: float(np.linalg.norm(self._offsets[arm])) for arm in step[1]}
         self._closest = dict(self._start_gap)
 
@@ -400,8 +447,11 @@ class World:
             self._closest["base"] = min(self._closest["base"], distance)
             heading_error = abs(wrap_angle(2 * (self.pose[2] - self._approach))) / 2
             stopped = np.abs(self.command[BASE]).max() < spec.stop_speed
-            if distance < spec.arrive_radius and heading_error < spec.heading_tolerance \
-                    and stopped:
+            within = bool(distance < spec.arrive_radius)
+            heading_ok = within and bool(heading_error < spec.heading_tolerance)
+            self._events["within_radius"] |= within
+            self._events["heading_ok"] |= heading_ok
+            if heading_ok and stopped:
                 return self._finish(True)
             limit = spec.navigation_seconds
         else:
@@ -410,6 +460,8 @@ class World:
                 if self._outcome[arm] is None:
                     remaining = float(np.linalg.norm(self._offsets[arm] - self.hand(arm)))
                     self._closest[arm] = min(self._closest[arm], remaining)
+                    if remaining < spec.reach_tolerance:
+                        self._events["reached"].add(arm)
                 if step[2] == "press" and self._outcome[arm] is None and self._at_target(arm):
                     self._outcome[arm] = True
             home = all(np.linalg.norm(self.hand(arm)) < spec.reach_tolerance for arm in arms)
@@ -421,9 +473,27 @@ class World:
         if self._phase_frames >= limit * spec.fps:
             self._finish(False)
 
+    def _failure_reason(self) -> str:
+        """Why the current phase failed: the furthest stage it got to (module docstring)."""
+        step, events = self.phase_step, self._events
+        if step[0] == "nav":
+            return ("not_stopped" if events["heading_ok"] else
+                    "heading_off" if events["within_radius"] else "never_within_radius")
+        arms = step[1]
+        if events["not_holding"]:
+            return "not_holding"
+        if any(arm not in events["reached"] for arm in arms):
+            return "never_reached"
+        if events["dropped"]:
+            return "dropped"
+        if step[2] != "press" and any(self._outcome[arm] is None for arm in arms):
+            return "closed_away" if events["closed_away"] else "never_gripped"
+        return "not_home"
+
     def _finish(self, success: bool) -> None:
         progress = np.mean([max(0.0, 1.0 - self._closest[k] / self._start_gap[k])
                             for k in self._start_gap])
-        self.results.append(PhaseResult(phase_kind(self.phase_step), success, self._phase_frames,
-                                        float(progress)))
+        self.results.append(PhaseResult(
+            phase_kind(self.phase_step), success, self._phase_frames, float(progress),
+            "" if success else self._failure_reason(), self._events["switches"]))
         self._start_phase(self.phase + 1)
