@@ -26,7 +26,7 @@ import functools
 import json
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import ml_collections
@@ -103,6 +103,18 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
 
 # ---------------------------------------------------------------------- the evaluator
 
+class Evaluation(NamedTuple):
+    """One evaluation: `metrics` (`HeldOutChunks.score`: the policy's with its skill, and each
+    reference's under `<name>/...`), the `predicted` and `true` absolute chunks `[N, H, A]` in
+    evaluation units, and the per-chunk sums the study resamples (`chunk_sums`, to be written
+    as `heldout.CHUNK_SUMS_FILE`)."""
+
+    metrics: dict[str, float]
+    predicted: np.ndarray
+    true: np.ndarray
+    chunk_sums: dict[str, np.ndarray]
+
+
 class Evaluator:
     """Samples the fixed held-out chunks with given params and measures them.
 
@@ -130,7 +142,7 @@ class Evaluator:
         self.groups = eval_groups(eval_cfg, layout)
         self.chunks = heldout_lib.HeldOutChunks(
             config, layout, norm_stats, horizon=model_config.action_horizon,
-            measure=functools.partial(eval_metrics.chunk_metrics, layout=layout,
+            sums=functools.partial(eval_metrics.chunk_sums, layout=layout,
                                       gripper_groups=self.groups["gripper_groups"],
                                       switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
             tokenize=tokenize, image_size=model_config.image_resolution, source=source)
@@ -160,14 +172,13 @@ class Evaluator:
             predicted.append(np.asarray(self._sample(params, rng, observation)))
         return np.concatenate(predicted)
 
-    def __call__(self, params: Any) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-        """Returns the metrics (`HeldOutChunks.metrics`: the policy's with its skill, and each
-        reference's under `<name>/...`), and the predicted and true absolute chunks `[N, H, A]`
-        in evaluation units."""
+    def __call__(self, params: Any) -> Evaluation:
+        """Samples the held-out chunks with `params` and scores them (`Evaluation`)."""
         chunks = self.chunks
         predicted = chunks.transform.absolute_actions(self.sample(params), chunks.frames)
         predicted = predicted / chunks.scale
-        return chunks.metrics(predicted, self.layout), predicted, chunks.true
+        metrics, sums = chunks.score(predicted)
+        return Evaluation(metrics, predicted, chunks.true, sums)
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
@@ -229,9 +240,10 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                               params_sharding=sharding_lib.tree_shardings(params, mesh),
                               source=source, noise_factor=inference.run_noise_factor(
                                   workdir, config, layout, model_config))
-        metrics, predicted, true = evaluator(params)
+        metrics, predicted, true, sums = evaluator(params)
     out = workdir / "eval" / f"step_{step}"
     out.mkdir(parents=True, exist_ok=True)
+    heldout_lib.save_chunk_sums(out / heldout_lib.CHUNK_SUMS_FILE, sums)
     # Strict JSON: a metric with nothing to measure (NaN) is null.
     (out / METRICS_FILE).write_text(json.dumps(
         {"step": step, "params": run.params_name,
@@ -288,14 +300,16 @@ class ReplanningPolicy:
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
                 episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
                 sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
-                gripper_hysteresis: Sequence[float] | None = None
-                ) -> tuple[int, dict[str, Any]]:
+                gripper_hysteresis: Sequence[float] | None = None,
+                tolerances: Sequence[float] = ()) -> tuple[int, dict[str, Any]]:
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
     world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
     each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
     the hysteresis `gripper_hysteresis` ((open_above, close_below); None: the run's
     `eval.gripper_hysteresis`; empty: none); writes `closed_loop[_rtc][_hysteresis].json` and
-    `rollouts[...].png` (against the scripted expert) into `<workdir>/eval/step_<N>/`. Returns
+    `rollouts[...].png` (against the scripted expert) into `<workdir>/eval/step_<N>/`. With
+    `tolerances` (factors other than 1), the same episodes again in the world with its success
+    tolerances times each factor: `success_curve` in the summary, `success_curve.png`. Returns
     `(step, summary)` (`sim.rollout.summarize`)."""
     policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
     run = policy_.run
@@ -306,10 +320,12 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
         raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
                          "with --rtc: the tail to follow)")
+    if any(f <= 0 for f in tolerances):
+        raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
     latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
     spec = DemoSpec(seed=sim_seed)
-    records = rollout_lib.rollout(ReplanningPolicy(policy_, n_exec, follow_tail, latch),
-                                  range(episodes), spec=spec, n_exec=n_exec,
+    replanning = ReplanningPolicy(policy_, n_exec, follow_tail, latch)
+    records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
                                   progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
                "follow_tail": follow_tail,
@@ -320,10 +336,24 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                     "seconds": r.seconds,
                                     "phases": [dataclasses.asdict(p) for p in r.results]}
                                    for r in records]}
+    looser = [f for f in tolerances if f != 1]
+    if looser:
+        summary["success_curve"] = {"1": {k: v for k, v in summary.items()
+                                          if k.startswith(("success/", "phase_success/"))}}
+        summary["success_curve"] |= {
+            factor: {k: v for k, v in measured.items()
+                     if k.startswith(("success/", "phase_success/"))}
+            for factor, measured in rollout_lib.success_curve(
+                replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
+                progress=progress and jax.process_index() == 0).items()}
     results_path, figure_path = closed_loop_paths(run.workdir, run.step, follow_tail,
                                                   latch is not None)
     results_path.parent.mkdir(parents=True, exist_ok=True)
     results_path.write_text(json.dumps(summary, indent=2) + "\n")
+    if looser:
+        rollout_lib.plot_success_curves({"policy": summary["success_curve"]},
+                                        figure_path.with_name("success_curve.png"),
+                                        f"step {run.step}: {episodes} episodes")
     shown = records[:ROLLOUT_ROWS]
     expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
                                  spec=spec, progress=False)
@@ -355,7 +385,8 @@ def main(argv: Sequence[str]) -> None:
             step, summary = closed_loop(FLAGS.workdir, FLAGS.step, FLAGS.params,
                                         episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
                                         follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
-                                        gripper_hysteresis=FLAGS.gripper_hysteresis)
+                                        gripper_hysteresis=FLAGS.gripper_hysteresis,
+                                        tolerances=[float(f) for f in FLAGS.tolerances])
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
@@ -392,6 +423,9 @@ def cli() -> None:
     flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
                       "grippers' hysteresis (pi0_armfix.hysteresis), in action units; unset: the "
                       "run's eval.gripper_hysteresis; empty: none")
+    flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "
+                      "(e.g. 1,2,4: the same episodes with the world's tolerances doubled and "
+                      "quadrupled; empty: the world as it is only)")
     app.run(main)
 
 

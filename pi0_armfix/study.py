@@ -15,7 +15,8 @@ first seeds). The results of all finished runs are gathered into:
   study.md    per group: skill over persistence, motion gain and ratio, error, each with the
               do-nothing rows (and the ceiling on the demo); gripper switch precision / recall /
               F1 with the event counts; each config's difference to the first config (the
-              baseline) with a Welch t interval over seeds (`study_stats`), and the targets.
+              baseline) with a Welch t interval over seeds widened by the held-out episodes'
+              sampling error (`study_stats`), and the targets.
   study.json  every run's metrics, the per-seed headline values and every aggregate.
   study.png   per-group skill and motion gain, mean with the seeds' spread as error bars, the
               do-nothing predictors as markers.
@@ -30,6 +31,13 @@ A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1
 `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
 configs with other normalizations or delta actions compare).
+
+The held-out episodes' sampling error: every run's evaluation keeps its per-chunk sums
+(`eval/step_<N>/chunk_sums.npz`); the study recomputes the run's headline numbers on resamples of
+the held-out episodes (the same resamples for every run) and keeps them in `result.json`
+(`episode_replicates`). A finished run without the sums is evaluated again from its checkpoint
+(`pi0_armfix.evaluate`); one kept without either leaves the intervals to the seeds alone, and
+study.md says so.
 """
 
 from __future__ import annotations
@@ -68,6 +76,7 @@ SWITCH_METRICS = ("precision", "recall", "f1")
 SWITCH_COUNTS = ("tp", "fp", "fn")
 CLOSED_LOOP = "closed_loop/"  # prefix of the closed-loop metrics of a run
 CLOSED_LOOP_KINDS = ("navigation", "manipulation", "task")
+EPISODE_REPLICATES = "episode_replicates"  # result.json: headline numbers per episode resample
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,6 +140,53 @@ def closed_loop_metrics(folder: Path, steps: int, episodes: int) -> dict[str, fl
             or k == "episodes"}
 
 
+def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
+                       ) -> dict[str, Any]:
+    """A run's headline numbers (`COMPARED`) on each of the study's resamples of its held-out
+    episodes (`study_stats.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
+    `{"episodes": E, <name>: [B] values}`."""
+    _, episode = np.unique(sums[heldout_lib.EPISODE], return_inverse=True)
+    num_episodes = int(episode.max()) + 1
+    onehot = np.zeros((len(episode), num_episodes))
+    onehot[np.arange(len(episode)), episode] = 1.0
+    counts = study_stats.episode_counts(num_episodes)
+    totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in sums.items()
+              if k != heldout_lib.EPISODE}  # [B] each
+
+    def part(prefix, b):
+        return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
+
+    replicates = {k: [] for k in COMPARED}
+    for b in range(len(counts)):
+        metrics = eval_metrics.metrics_from_sums(part("policy/", b), layout)
+        persistence = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
+        metrics.update(eval_metrics.skill_scores(metrics, persistence, layout))
+        for k, v in run_summary(metrics, layout).items():
+            if k in replicates:
+                replicates[k].append(v if math.isfinite(v) else None)
+    return {"episodes": num_episodes, **replicates}
+
+
+def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missing: bool
+                           ) -> dict[str, Any]:
+    """The result with its `episode_replicates` (`result.json` rewritten), from the run's
+    per-chunk sums; a run without them is evaluated again from its checkpoint when
+    `evaluate_missing`, else (or without a checkpoint) returned as it is."""
+    if EPISODE_REPLICATES in result:
+        return result
+    path = folder / "eval" / f"step_{result['steps']}" / heldout_lib.CHUNK_SUMS_FILE
+    if not path.exists():
+        if not evaluate_missing or not (folder / "checkpoints").is_dir():
+            return result
+        _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
+                 f"--step={result['steps']}"], folder, f"the held-out evaluation of {folder}")
+    layout = ActionLayout.from_config(result["layout"])
+    result = {**result, EPISODE_REPLICATES: episode_replicates(
+        heldout_lib.load_chunk_sums(path), layout)}
+    stats_lib.write_json_atomic(folder / RESULT_FILE, result)
+    return result
+
+
 def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequence[str],
             closed_loop_episodes: int = 0) -> dict[str, Any]:
     """Trains (or resumes) one run, evaluates it in closed loop when asked, and writes its
@@ -147,6 +203,7 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
     result = {"config": config, "seed": seed, "steps": steps, "layout": layout,
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
     stats_lib.write_json_atomic(folder / RESULT_FILE, result)
+    result = add_episode_replicates(result, folder, evaluate_missing=True)
     return add_closed_loop(result, folder, closed_loop_episodes)
 
 
@@ -178,9 +235,10 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
         for config in configs:
             result = load_result(run_folder(workdir, config, seed))
             if result is not None and result["steps"] == steps:
-                results[config, seed] = add_closed_loop(
-                    result, run_folder(workdir, config, seed),
-                    closed_loop_episodes if train else 0)
+                folder = run_folder(workdir, config, seed)
+                result = add_episode_replicates(result, folder, evaluate_missing=train)
+                results[config, seed] = add_closed_loop(result, folder,
+                                                        closed_loop_episodes if train else 0)
             elif result is not None:
                 raise ValueError(f"{run_folder(workdir, config, seed)} finished {result['steps']} "
                                  f"steps, not --steps={steps}: use another --workdir")
@@ -264,6 +322,16 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
     if primary not in configs:
         raise ValueError(f"--primary={primary!r} is not one of the study's configs {configs}")
     secondary = [c for c in configs if c not in (baseline, primary)]
+    resampled = _episode_resamples(results)
+    episodes = resampled["episodes"] if resampled else 0
+
+    def replicates(config: str, key: str) -> np.ndarray | None:
+        if not resampled:
+            return None
+        return np.asarray([[math.nan if v is None else v
+                            for v in r[EPISODE_REPLICATES][key]]
+                           for r in results if r["config"] == config], np.float64)
+
     per_config: dict[str, Any] = {}
     for config in configs:
         runs = [r for r in results if r["config"] == config]
@@ -277,7 +345,10 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
             "mean": {k: _nanmean(v) for k, v in {**values, **headline}.items()},
             "std": {k: _nanstd(v) for k, v in {**values, **headline}.items()},
             "headline": {k: v.tolist() for k, v in headline.items()},
-            "arm_skill_interval": study_stats.mean_interval(headline["arm_skill"]),
+            "arm_skill_interval": study_stats.mean_interval(
+                headline["arm_skill"], episodes=episodes, episode_variance=(
+                    study_stats.episode_variance(replicates(config, "arm_skill"), episodes)
+                    if resampled else 0.0)),
         }
     base_values = per_config[baseline]["headline"]
     base_runs = [r for r in results if r["config"] == baseline]
@@ -288,9 +359,12 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         entry["comparison"] = ("baseline" if config == baseline else
                                "primary" if config == primary else "secondary")
         entry["confidence"] = confidence
-        entry["vs_baseline"] = {k: study_stats.welch_interval(entry["headline"][k],
-                                                              base_values[k], confidence)
-                                for k in COMPARED}
+        entry["vs_baseline"] = {k: study_stats.welch_interval(
+            entry["headline"][k], base_values[k], confidence, episodes=episodes,
+            episode_variance=(study_stats.episode_variance(
+                replicates(config, k), episodes, replicates(baseline, k))
+                if resampled and config != baseline else 0.0))
+            for k in COMPARED}
         runs = [r for r in results if r["config"] == config]
         for kind in CLOSED_LOOP_KINDS:
             key = f"{CLOSED_LOOP}success/{kind}"
@@ -309,7 +383,16 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
                            if m},
             "ceiling": dict(ceiling) if ceiling else None,
             "min_seeds": seeds, "anecdotal": seeds < study_stats.MIN_SEEDS,
-            "targets": dataclasses.asdict(targets)}
+            "episode_resampling": resampled, "targets": dataclasses.asdict(targets)}
+
+
+def _episode_resamples(results: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:
+    """`{"episodes", "replicates"}` when every run has its `episode_replicates` on the same
+    number of held-out episodes (the same resamples), else None."""
+    found = [r.get(EPISODE_REPLICATES) for r in results]
+    if not all(found) or len({f["episodes"] for f in found}) != 1:
+        return None
+    return {"episodes": found[0]["episodes"], "replicates": len(found[0][COMPARED[0]])}
 
 
 def meets_targets(entry: Mapping[str, Any], baseline: Mapping[str, Any], layout: ActionLayout,
@@ -419,11 +502,17 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         counts = " / ".join(_value(m, f"gripper_switch/{k}", 0) for k in SWITCH_COUNTS)
         lines.append(f"| {label} | " + " | ".join(_value(m, f"gripper_switch/{k}")
                                                  for k in SWITCH_METRICS) + f" | {counts} |")
+    resampled = study.get("episode_resampling")
+    sampling = (f"the seeds' spread and the held-out episodes' sampling error ({resampled['episodes']}"
+                f" episodes, {resampled['replicates']} bootstrap resamples shared by every run)"
+                if resampled else "the seeds' spread only: some runs lack their per-chunk sums, "
+                "so the interval speaks for these held-out episodes alone")
     lines += ["", f"## Against `{study['baseline']}` (difference of means over seeds, Welch t "
               "interval)", "",
               f"Primary comparison: `{study['primary']}` (95 % interval); the others are "
               "secondary, their intervals Bonferroni-corrected so that together they hold at "
-              "95 %. An interval that excludes 0 is a difference these seeds can tell.", "",
+              f"95 %. The intervals hold {sampling}. An interval that excludes 0 is a "
+              "difference these seeds and episodes can tell.", "",
               "| config | comparison | arms' skill | arms' gain | base skill | switch F1 |",
               "|---|---|---|---|---|---|"]
     for name, c in configs.items():
@@ -582,7 +671,7 @@ def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
     groups = evaluate.eval_groups(run.config.eval, run.layout)
     chunks = heldout_lib.HeldOutChunks(
         run.config, run.layout, run.norm_stats, horizon=run.model_config.action_horizon,
-        measure=functools.partial(eval_metrics.chunk_metrics, layout=run.layout,
+        sums=functools.partial(eval_metrics.chunk_sums, layout=run.layout,
                                   gripper_groups=groups["gripper_groups"],
                                   switch_tolerance=run.config.eval.switch_tolerance))
     return chunks.reference[heldout_lib.CEILING]

@@ -71,6 +71,7 @@ from pi0_armfix.data import batching, pipeline, sources
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import policy, pretrained
@@ -541,8 +542,11 @@ def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: 
               writer: metrics_lib.MetricsWriter, workdir: epath.Path,
               layout: ActionLayout) -> None:
     params = state.ema_params if state.ema_params is not None else state.params
-    metrics, predicted, true = evaluator(params)
+    metrics, predicted, true, sums = evaluator(params)
     writer.write(step, metrics)
+    if jax.process_index() == 0:
+        heldout_lib.save_chunk_sums(
+            workdir / "eval" / f"step_{step}" / heldout_lib.CHUNK_SUMS_FILE, sums)
     if jax.process_index() == 0:
         plots.plot_stagnation(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")

@@ -4,11 +4,13 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import study
+from pi0_armfix.evaluation import metrics as eval_metrics
 
 LAYOUT = {"preset": "b1k_r1pro", "action_dim": 32}
 
@@ -149,3 +151,62 @@ def test_closed_loop_failure_reasons_get_a_table_of_mean_fractions(tmp_path):
     cells = dict(zip(header.split(" | "), row.split(" | ")))
     assert cells["man: never_reached"] == "0.60" and cells["nav: not_stopped"] == "1.00"
     assert cells["nav: heading_off"] == "n/a"
+
+
+def _with_replicates(result, spread, rng):
+    """`result` with episode replicates spread around its own headline numbers."""
+    summary = study.run_summary(result["metrics"], study.ActionLayout.from_config(LAYOUT))
+    result["episode_replicates"] = {"episodes": 20, **{
+        k: list(summary[k] + spread * rng.standard_normal(200)) for k in study.COMPARED}}
+    return result
+
+
+def test_intervals_widen_by_the_held_out_episodes_sampling_error_when_every_run_has_it():
+    rng = np.random.default_rng(0)
+    plain = [_result(c, s, g + 0.01 * s) for c, g in (("uniform", 0.0), ("fix", 0.3))
+             for s in range(5)]
+    resampled = [_with_replicates(dict(r), 0.2, rng) for r in plain]
+    narrow = study.aggregate(plain)["configs"]["fix"]["vs_baseline"]["arm_gain"]
+    agg = study.aggregate(resampled)
+    wide = agg["configs"]["fix"]["vs_baseline"]["arm_gain"]
+    assert wide[0] == narrow[0] and wide[2] - wide[1] > 2 * (narrow[2] - narrow[1])
+    assert agg["episode_resampling"] == {"episodes": 20, "replicates": 200}
+    assert study.aggregate(resampled[:-1] + plain[-1:])["episode_resampling"] is None
+
+
+def test_the_report_says_which_errors_its_intervals_hold(tmp_path):
+    rng = np.random.default_rng(0)
+    results = [_with_replicates(_result(c, s, 0.1 * s), 0.1, rng)
+               for c in ("uniform", "fix") for s in range(2)]
+    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    assert "held-out episodes' sampling error (20 episodes" in (tmp_path / "study.md").read_text()
+    study.write_reports(results[:-1] + [_result("fix", 1, 0.1)], tmp_path, steps=10,
+                        command="python -m pi0_armfix.study")
+    assert "the seeds' spread only" in (tmp_path / "study.md").read_text()
+
+
+def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluations_numbers(
+        monkeypatch):
+    layout = study.ActionLayout.preset("b1k_r1pro")
+    rng = np.random.default_rng(1)
+    true = rng.normal(size=(6, 5, 23))
+    true[..., [14, 22]] = np.sign(rng.normal(size=(6, 5, 2)))
+    predicted = true + 0.3 * rng.normal(size=true.shape)
+    persistence = np.repeat(true[:, :1], 5, axis=1)
+    valid = np.ones((6, 5), bool)
+    kwargs = dict(layout=layout, gripper_groups=("left_gripper", "right_gripper"),
+                  gripper_threshold=np.zeros(23), switch_tolerance=1)
+    sums = {"episode": np.array([0, 0, 1, 1, 2, 2]),
+            **{f"policy/{k}": v for k, v in eval_metrics.chunk_sums(
+                predicted, true, valid, **kwargs).items()},
+            **{f"persistence/{k}": v for k, v in eval_metrics.chunk_sums(
+                persistence, true, valid, **kwargs).items()}}
+    monkeypatch.setattr(study.study_stats, "episode_counts", lambda e: np.ones((2, e)))
+    replicates = study.episode_replicates(sums, layout)
+    metrics = eval_metrics.chunk_metrics(predicted, true, valid, **kwargs)
+    metrics |= eval_metrics.skill_scores(
+        metrics, eval_metrics.chunk_metrics(persistence, true, valid, **kwargs), layout)
+    expected = study.run_summary(metrics, layout)
+    assert replicates["episodes"] == 3
+    for k in study.COMPARED:
+        assert replicates[k] == pytest.approx([expected[k]] * 2)

@@ -47,3 +47,52 @@ def test_one_seed_has_an_estimate_but_no_interval():
 
 def test_nan_seeds_are_left_out():
     assert study_stats.mean_interval([0.1, np.nan, 0.3])[0] == pytest.approx(0.2)
+
+
+EPISODES, RESAMPLED_STUDIES = 20, 2000
+
+
+def _episode_study_miss_rate(effect: float, seed_spread: float, interaction: float,
+                             with_episodes: bool, seed: int = 0) -> float:
+    """Share of simulated studies whose interval excludes 0. Each run's metric is its mean over
+    the same held-out episodes of seed effect + episode effect (shared) + config x episode effect
+    (the part a comparison keeps: on other episodes the difference changes), 5 seeds per config;
+    the episode variance comes from the study's resamples, as in `study.aggregate`."""
+    rng = np.random.default_rng(seed)
+    counts = study_stats.episode_counts(EPISODES)
+    misses = 0
+    for _ in range(RESAMPLED_STUDIES):
+        shared = rng.normal(0.0, 1.0, EPISODES)
+        per_episode = {c: rng.normal(0.0, seed_spread, (5, 1)) + shared
+                       + rng.normal(0.0, interaction, EPISODES) for c in ("a", "b")}
+        per_episode["a"] = per_episode["a"] + effect
+        replicates = {c: per_episode[c] @ counts.T / EPISODES for c in per_episode}  # [5, B]
+        variance = (study_stats.episode_variance(replicates["a"], EPISODES, replicates["b"])
+                    if with_episodes else 0.0)
+        interval = study_stats.welch_interval(
+            per_episode["a"].mean(axis=1), per_episode["b"].mean(axis=1),
+            episode_variance=variance, episodes=EPISODES)
+        misses += study_stats.excludes_zero(interval)
+    return misses / RESAMPLED_STUDIES
+
+
+@pytest.mark.parametrize("seed_spread, interaction", [(1.0, 0.0), (1.0, 0.5), (0.2, 1.0),
+                                                      (0.05, 1.0)])
+def test_the_interval_with_the_episodes_excludes_zero_in_about_5_percent_of_no_effect_studies(
+        seed_spread, interaction):
+    assert 0.03 <= _episode_study_miss_rate(0.0, seed_spread, interaction, True) <= 0.07
+
+
+def test_seeds_alone_overstate_a_difference_that_the_held_out_episodes_carry():
+    assert _episode_study_miss_rate(0.0, 0.2, 1.0, with_episodes=False) > 0.2
+
+
+def test_the_interval_with_the_episodes_still_finds_a_real_effect():
+    assert _episode_study_miss_rate(1.0, 0.2, 1.0, True) > 0.7
+
+
+def test_episode_resamples_are_the_same_for_every_run_and_draw_e_episodes_each():
+    counts = study_stats.episode_counts(EPISODES)
+    np.testing.assert_array_equal(counts, study_stats.episode_counts(EPISODES))
+    assert counts.shape == (study_stats.EPISODE_REPLICATES, EPISODES)
+    assert (counts.sum(axis=1) == EPISODES).all()

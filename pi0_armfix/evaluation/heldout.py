@@ -6,11 +6,17 @@ tile each episode's timeline (`tiled_chunk_starts`: every switch event once), at
 `eval.max_chunks` of them. Their true actions are absolute, in the data's units divided by the
 training split's std of the absolute actions (`evaluation_scale`): runs with different
 normalizations or action representations are measured in the same units.
+
+Beside the metrics, an evaluation keeps each chunk's sums (`metrics.chunk_sums`, the policy's and
+persistence's) with the held-out episode each chunk belongs to (`CHUNK_SUMS_FILE`): the study
+resamples the held-out episodes from them for its intervals.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,6 +33,8 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.sim.world import DemoSpec
 
 CEILING = "ceiling"  # the reference name of the expert's redraw (the demo only)
+CHUNK_SUMS_FILE = "chunk_sums.npz"  # of an evaluation, in eval/step_<N>/
+EPISODE = "episode"  # the chunk-sums entry holding each chunk's held-out episode (0 .. E-1)
 
 
 def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int,
@@ -69,22 +77,23 @@ class HeldOutChunks:
       layout: the run's action layout.
       norm_stats: the run's statistics.
       horizon: H.
-      measure: `chunks [N, H, A] (evaluation units) -> metrics` against these chunks' truth; the
-        evaluation's `chunk_metrics` with its groups and tolerance.
+      sums: `(chunks [N, H, A], true, valid, gripper_threshold=) -> per-chunk sums` (evaluation
+        units): the evaluation's `metrics.chunk_sums` with its layout, groups and tolerance.
       tokenize, image_size: the run's tokenizer and image size for model batches; without
         `tokenize` only actions are read (no images, no prompts).
       source: the run's opened data source (None = open the one `config.data` names).
 
     Attributes:
-      frames `[N]`, batches (model batches of `eval.batch_size`), valid `[N, H]`, true
-      `[N, H, A]` (evaluation units), scale `[A]`, gripper_threshold `[A]`, transform, and
-      reference: `{name: metrics}` of `persistence`, `state_copy` and, on the embedded demo,
-      `ceiling`, each with its `skill/<g>` over persistence.
+      frames `[N]`, episodes `[N]` (each chunk's held-out episode, 0 .. E-1), batches (model
+      batches of `eval.batch_size`), valid `[N, H]`, true `[N, H, A]` (evaluation units), scale
+      `[A]`, gripper_threshold `[A]`, transform, reference: `{name: metrics}` of `persistence`,
+      `state_copy` and, on the embedded demo, `ceiling`, each with its `skill/<g>` over
+      persistence, and reference_sums: `{name: per-chunk sums}` of the same.
     """
 
     def __init__(self, config: Any, layout: ActionLayout,
                  norm_stats: Mapping[str, stats_lib.NormStats], *, horizon: int,
-                 measure: Callable[..., dict[str, float]], tokenize=None,
+                 sums: Callable[..., dict[str, np.ndarray]], tokenize=None,
                  image_size: tuple[int, int] = (224, 224), source=None):
         eval_cfg = config.eval
         table = dataset_lib.heldout_table(config, layout, source=source,
@@ -97,6 +106,7 @@ class HeldOutChunks:
         batch_size = eval_cfg.batch_size
         self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg.max_chunks,
                                          batch_size)
+        self.episodes = np.searchsorted(table.episode_starts, self.frames, side="right") - 1
         if len(self.frames) == 0:
             raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) hold "
                              f"fewer than eval.batch_size = {batch_size} chunks of H = {horizon}")
@@ -107,24 +117,52 @@ class HeldOutChunks:
             np.concatenate([b["actions"] for b in self.batches]), self.frames)
         self.scale, self.gripper_threshold = evaluation_scale(norm_stats, true, self.valid)
         self.true = true / self.scale
-        self.measure = lambda chunks: measure(chunks, self.true, self.valid,
-                                              gripper_threshold=self.gripper_threshold)
+        self.layout = layout
+        self.sums = lambda chunks: sums(chunks, self.true, self.valid,
+                                        gripper_threshold=self.gripper_threshold)
         chunks = baselines_lib.baseline_chunks(table, self.frames, horizon, layout,
                                                selection_lib.state_groups(config.data))
         if not config.data.root and config.data.get("format", "lerobot") == "lerobot":
             chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
-        self.reference = {name: self.measure(c[..., :layout.real_dim] / self.scale)
-                          for name, c in chunks.items()}
+        self.reference_sums = {name: self.sums(c[..., :layout.real_dim] / self.scale)
+                               for name, c in chunks.items()}
+        self.reference = {name: self._measure(s) for name, s in self.reference_sums.items()}
         for measured in self.reference.values():
             measured.update(eval_metrics.skill_scores(measured, self.reference["persistence"],
                                                       layout))
 
-    def metrics(self, predicted: np.ndarray, layout: ActionLayout) -> dict[str, float]:
-        """A policy's metrics (chunks `[N, H, A]` in evaluation units) with its skill over
-        persistence, every reference's under `<name>/...`, and the number of chunks."""
-        metrics = self.measure(predicted)
-        metrics.update(eval_metrics.skill_scores(metrics, self.reference["persistence"], layout))
+    def _measure(self, sums: Mapping[str, np.ndarray]) -> dict[str, float]:
+        return eval_metrics.metrics_from_sums({k: float(v.sum()) for k, v in sums.items()},
+                                              self.layout)
+
+    def score(self, predicted: np.ndarray) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+        """A policy's chunks `[N, H, A]` (evaluation units) -> its metrics (with its skill over
+        persistence, every reference's under `<name>/...`, and the number of chunks), and the
+        per-chunk sums to keep (`CHUNK_SUMS_FILE`: the policy's under `policy/`, persistence's
+        under `persistence/`, and `episode`)."""
+        sums = self.sums(predicted)
+        metrics = self._measure(sums)
+        metrics.update(eval_metrics.skill_scores(metrics, self.reference["persistence"],
+                                                 self.layout))
         for name, measured in self.reference.items():
             metrics.update({f"{name}/{k}": v for k, v in measured.items()})
         metrics["chunks"] = float(len(self.frames))
-        return metrics
+        kept = {EPISODE: self.episodes.astype(np.int64),
+                **{f"policy/{k}": v for k, v in sums.items()},
+                **{f"persistence/{k}": v for k, v in self.reference_sums["persistence"].items()}}
+        return metrics, kept
+
+
+def save_chunk_sums(path: Any, sums: Mapping[str, np.ndarray]) -> None:
+    """Writes an evaluation's per-chunk sums (`HeldOutChunks.score`) to `path` (npz), atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "wb") as f:
+        np.savez_compressed(f, **sums)
+    os.replace(partial, path)
+
+
+def load_chunk_sums(path: Any) -> dict[str, np.ndarray]:
+    with np.load(Path(path)) as saved:
+        return {k: saved[k] for k in saved.files}

@@ -19,6 +19,11 @@ A displacement is the chunk's last valid action minus its first (the current one
 group (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean command measured from
 the zero command (a standing base is 0). A gripper switch is a crossing of the dim's open/close
 boundary (`gripper_boundary`) between two consecutive valid steps.
+
+Every metric is a ratio of sums over chunks (`chunk_sums`, one row per chunk), so the metrics of
+any multiset of chunks (a resample of the held-out episodes, `metrics_from_sums`) come from the
+per-chunk sums without sampling again: the study's intervals take the held-out episodes'
+sampling error from them.
 """
 
 from __future__ import annotations
@@ -80,41 +85,53 @@ def switch_events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray
     return tuple(np.concatenate([start, x], axis=1).transpose(0, 2, 1) for x in (up, down))
 
 
-def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> int:
-    """Number of true switch events matched one-to-one by a predicted event of the same kind
+def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> np.ndarray:
+    """Per row, the true switch events matched one-to-one by a predicted event of the same kind
     within `tolerance` steps (greedy in time order, each predicted event used once).
 
     Args:
-      predicted, true: `[..., H]` bool events (one row per chunk, dim and direction).
+      predicted, true: `[R, H]` bool events (one row per chunk, dim and direction).
+    Returns:
+      `[R]` matched counts.
     """
-    pred_rows = predicted.reshape(-1, predicted.shape[-1])
-    matched = 0
-    for row, true_row in enumerate(true.reshape(-1, true.shape[-1])):
-        candidates = list(np.flatnonzero(pred_rows[row]))
+    matched = np.zeros(len(true), np.int64)
+    for row, true_row in enumerate(true):
+        candidates = list(np.flatnonzero(predicted[row]))
         for h in np.flatnonzero(true_row):
             near = [p for p in candidates if abs(p - h) <= tolerance]
             if near:
                 candidates.remove(min(near, key=lambda p: abs(p - h)))
-                matched += 1
+                matched[row] += 1
     return matched
 
 
-def switch_scores(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
-                  threshold: np.ndarray, tolerance: int) -> dict[str, float]:
-    """Precision, recall and F1 of the predicted gripper switches against the true ones, and the
-    event counts behind them (`tp`, `fp`, `fn`).
-
-    Each event is counted once when the chunks do not overlap on the episode timeline (the
-    `Evaluator`'s chunks tile the held-out episodes). Precision is NaN without any predicted
-    switch, recall without any true switch, F1 (`2 TP / (2 TP + FP + FN)`) without either.
+def switch_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
+                threshold: np.ndarray, tolerance: int) -> dict[str, np.ndarray]:
+    """Per chunk `[N]`, the gripper switch events: matched (`switch/tp`), predicted
+    (`switch/predicted`) and true (`switch/true`).
 
     Args:
       predicted, true: `[N, H, D]` gripper dims; valid: `[N, H]`; threshold: `[D]`.
     """
-    pred_events = np.stack(switch_events(predicted, valid, threshold))
-    true_events = np.stack(switch_events(true, valid, threshold))
-    tp = matched_switches(pred_events, true_events, tolerance)
-    num_pred, num_true = int(pred_events.sum()), int(true_events.sum())
+    pred_events = np.stack(switch_events(predicted, valid, threshold), axis=1)  # [N, 2, D, H]
+    true_events = np.stack(switch_events(true, valid, threshold), axis=1)
+    n, horizon = len(predicted), predicted.shape[1]
+    tp = matched_switches(pred_events.reshape(-1, horizon), true_events.reshape(-1, horizon),
+                          tolerance).reshape(n, -1).sum(axis=1)
+    return {"switch/tp": tp.astype(np.float64),
+            "switch/predicted": pred_events.reshape(n, -1).sum(axis=1).astype(np.float64),
+            "switch/true": true_events.reshape(n, -1).sum(axis=1).astype(np.float64)}
+
+
+def switch_scores(sums: dict[str, float]) -> dict[str, float]:
+    """Precision, recall and F1 of the predicted gripper switches against the true ones, and the
+    event counts behind them (`tp`, `fp`, `fn`), from summed `switch_sums`.
+
+    Each event is counted once when the chunks do not overlap on the episode timeline (the
+    `Evaluator`'s chunks tile the held-out episodes). Precision is NaN without any predicted
+    switch, recall without any true switch, F1 (`2 TP / (2 TP + FP + FN)`) without either.
+    """
+    tp, num_pred, num_true = sums["switch/tp"], sums["switch/predicted"], sums["switch/true"]
 
     def ratio(num, den):
         return float(num / den) if den else float("nan")
@@ -126,10 +143,11 @@ def switch_scores(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
             "gripper_switch/fn": float(num_true - tp)}
 
 
-def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
-                  layout: ActionLayout, gripper_groups: Sequence[str],
-                  gripper_threshold: np.ndarray, switch_tolerance: int = 2) -> dict[str, float]:
-    """Stagnation metrics of sampled chunks against the true ones (see the module docstring).
+def chunk_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
+               layout: ActionLayout, gripper_groups: Sequence[str],
+               gripper_threshold: np.ndarray, switch_tolerance: int = 2
+               ) -> dict[str, np.ndarray]:
+    """Per chunk, the sums every metric is a ratio of (`metrics_from_sums`), float64 `[N]` each.
 
     Args:
       predicted, true: `[N, H, D]` absolute action chunks in evaluation units (D >= real_dim).
@@ -138,9 +156,9 @@ def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
       gripper_threshold: `[D]` the open/close boundary of each dim, same units.
       switch_tolerance: steps by which a predicted gripper switch may miss the true one.
     Returns:
-      `err/<g>`, `motion_gain/<g>`, `motion_ratio/<g>` for every group,
-      `gripper_switch/{precision,recall,f1,tp,fp,fn}`; NaN where the data gives nothing to
-      measure. Computed in float64.
+      per group g `sq_err/<g>` and `steps/<g>` (valid steps x dims), `motion_dot/<g>` (predicted
+      . true displacement), `motion_true/<g>` (|true displacement|^2), `norm_predicted/<g>` and
+      `norm_true/<g>` (displacement lengths); `switch/{tp,predicted,true}` (`switch_sums`).
     """
     predicted, true = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
     velocity = transforms.pad_last(layout.velocity_mask()[:layout.real_dim], true.shape[-1])
@@ -148,21 +166,47 @@ def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
     dt = displacement(true, valid, velocity)
     sq_err = np.square(predicted - true)
     w = valid[..., None].astype(np.float64)
-    metrics = {}
+    sums = {}
     for g in layout.group_names:
         dims = layout.group_dims(g)
-        metrics[f"err/{g}"] = float((sq_err[..., dims] * w).sum() / max(w.sum() * len(dims), 1.0))
-        true_motion = float(np.sum(dt[:, dims] ** 2))
-        metrics[f"motion_gain/{g}"] = (float(np.sum(dp[:, dims] * dt[:, dims]) / true_motion)
-                                       if true_motion > 0 else float("nan"))
-        true_norm = float(np.linalg.norm(dt[:, dims], axis=-1).sum())
-        metrics[f"motion_ratio/{g}"] = (
-            float(np.linalg.norm(dp[:, dims], axis=-1).sum() / true_norm)
-            if true_norm > 0 else float("nan"))
+        sums[f"sq_err/{g}"] = (sq_err[..., dims] * w).sum(axis=(1, 2))
+        sums[f"steps/{g}"] = w.sum(axis=(1, 2)) * len(dims)
+        sums[f"motion_dot/{g}"] = np.sum(dp[:, dims] * dt[:, dims], axis=1)
+        sums[f"motion_true/{g}"] = np.sum(dt[:, dims] ** 2, axis=1)
+        sums[f"norm_predicted/{g}"] = np.linalg.norm(dp[:, dims], axis=-1)
+        sums[f"norm_true/{g}"] = np.linalg.norm(dt[:, dims], axis=-1)
     dims = np.concatenate([layout.group_dims(g) for g in gripper_groups] + [np.zeros(0, int)])
-    metrics.update(switch_scores(predicted[..., dims], true[..., dims], valid,
-                                 np.asarray(gripper_threshold)[dims], switch_tolerance))
+    sums.update(switch_sums(predicted[..., dims], true[..., dims], valid,
+                            np.asarray(gripper_threshold)[dims], switch_tolerance))
+    return sums
+
+
+def metrics_from_sums(sums: dict[str, float], layout: ActionLayout) -> dict[str, float]:
+    """The metrics (module docstring) of chunks whose `chunk_sums` add up to `sums`: `err/<g>`,
+    `motion_gain/<g>`, `motion_ratio/<g>` for every group and
+    `gripper_switch/{precision,recall,f1,tp,fp,fn}`; NaN where the data gives nothing to
+    measure."""
+    metrics = {}
+    for g in layout.group_names:
+        metrics[f"err/{g}"] = float(sums[f"sq_err/{g}"] / max(sums[f"steps/{g}"], 1.0))
+        true_motion = sums[f"motion_true/{g}"]
+        metrics[f"motion_gain/{g}"] = (float(sums[f"motion_dot/{g}"] / true_motion)
+                                       if true_motion > 0 else float("nan"))
+        true_norm = sums[f"norm_true/{g}"]
+        metrics[f"motion_ratio/{g}"] = (float(sums[f"norm_predicted/{g}"] / true_norm)
+                                        if true_norm > 0 else float("nan"))
+    metrics.update(switch_scores(sums))
     return metrics
+
+
+def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
+                  layout: ActionLayout, gripper_groups: Sequence[str],
+                  gripper_threshold: np.ndarray, switch_tolerance: int = 2) -> dict[str, float]:
+    """Stagnation metrics of sampled chunks against the true ones (see the module docstring):
+    `metrics_from_sums` of all the chunks' `chunk_sums` (same arguments). Computed in float64."""
+    sums = chunk_sums(predicted, true, valid, layout=layout, gripper_groups=gripper_groups,
+                      gripper_threshold=gripper_threshold, switch_tolerance=switch_tolerance)
+    return metrics_from_sums({k: float(v.sum()) for k, v in sums.items()}, layout)
 
 
 def skill_scores(metrics: dict[str, float], persistence: dict[str, float],

@@ -2,8 +2,10 @@
 
 A policy maps the observations of the environments that need actions to action chunks
 `[b, h, 23]` (absolute, dataset units); each environment executes the first `n_exec` actions of
-its chunk, then asks again (receding horizon). Policies here: the scripted expert, a zero-action
-policy and a replay of random recorded chunks (the sanity bounds); a trained run is one through
+its chunk, then asks again (receding horizon). Policies here: the scripted expert, the expert
+with errors the size of a policy's (`NoisyExpertPolicy`), holding the last action, a zero-action
+policy and a replay of random recorded chunks (the calibration rows,
+`pi0_armfix.tools.closed_loop_calibration`); a trained run is one through
 `pi0_armfix.inference.RunPolicy` (`pi0_armfix.evaluate --closed_loop`).
 
 Per episode the result of every phase (`sim.world`), whether navigation, manipulation and the task
@@ -27,7 +29,7 @@ from tqdm import tqdm  # noqa: E402
 from pi0_armfix.sim import env as env_lib  # noqa: E402
 from pi0_armfix.sim.expert import demonstration  # noqa: E402
 from pi0_armfix.sim.world import (ACTION_DIM, FAILURE_REASONS, STATE_ARM, DemoSpec,  # noqa: E402
-                                  PhaseResult, World)
+                                  PhaseResult, World, tolerances)
 
 KINDS = ("navigation", "manipulation", "task")
 
@@ -48,6 +50,43 @@ class ExpertPolicy:
 
     def __call__(self, active, observations):
         return np.stack([self._experts[i].act() for i in active])[:, None]
+
+
+class NoisyExpertPolicy:
+    """The scripted teleoperator with an error added to every action: N(0, `noise_std`^2) per dim
+    (data units, `[23]`), drawn afresh every `hold` steps and held in between, like the error of a
+    sampled chunk, which is off by much the same amount for the steps executed from it. What a
+    policy as wrong as a trained one, but otherwise perfect, would achieve."""
+
+    def __init__(self, noise_std: np.ndarray, hold: int, seed: int = 0):
+        self.noise_std, self.hold = np.asarray(noise_std, np.float64), max(int(hold), 1)
+        self.seed = seed
+
+    def start(self, envs):
+        self._experts = [env.unwrapped.expert() for env in envs]
+        self._rngs = [np.random.default_rng([self.seed, i]) for i in range(len(envs))]
+        self._noise = [np.zeros(ACTION_DIM) for _ in envs]
+        self._steps = [0 for _ in envs]
+
+    def __call__(self, active, observations):
+        actions = []
+        for i in active:
+            if self._steps[i] % self.hold == 0:
+                self._noise[i] = self._rngs[i].normal(0.0, 1.0, ACTION_DIM) * self.noise_std
+            self._steps[i] += 1
+            actions.append(self._experts[i].act() + self._noise[i])
+        return np.stack(actions)[:, None]
+
+
+class HoldPolicy:
+    """Holds the last action: the command the robot starts with (posture, grippers open, base
+    still), never changed. Persistence in closed loop."""
+
+    def start(self, envs):
+        self._first = [env.unwrapped.world.command.copy() for env in envs]
+
+    def __call__(self, active, observations):
+        return np.stack([self._first[i] for i in active])[:, None].astype(np.float32)
 
 
 class ZeroPolicy:
@@ -184,6 +223,40 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines.append(f"{summary['episodes']} episodes; mean time to task success "
                  f"{summary['seconds_to_success']:.1f} s")
     return "\n".join(lines)
+
+
+def success_curve(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec,
+                  factors: Sequence[float], n_exec: int = 1, progress: bool = True
+                  ) -> dict[str, dict[str, Any]]:
+    """`{factor: summarize(...)}`: `policy` on `episodes` in the world with every success tolerance
+    times each factor (`sim.world.tolerances`; 1 = the world as it is), so a policy that misses by
+    a little is told from one that misses by far."""
+    return {f"{factor:g}": summarize(rollout(policy, episodes, spec=tolerances(spec, factor),
+                                             n_exec=n_exec, progress=progress,
+                                             desc=f"closed loop at {factor:g}x tolerance"))
+            for factor in factors}
+
+
+def plot_success_curves(curves: dict[str, dict[str, dict[str, Any]]], path, title: str) -> None:
+    """Phase success of navigation and manipulation against the tolerance factor, one line per
+    policy (`{name: success_curve(...)}`)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, kind in zip(axes, KINDS[:2]):
+        for name, curve in curves.items():
+            factors = [float(f) for f in curve]
+            ax.plot(factors, [curve[f][f"phase_success/{kind}"] for f in curve], "o-", label=name)
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("tolerance factor (1 = the world's arrival radius, heading, stop speed, "
+                      "reach)", fontsize=8)
+        ax.set_ylabel(f"{kind} phases succeeded")
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_title(kind)
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def plot_rollouts(records: Sequence[EpisodeRecord], expert: Sequence[EpisodeRecord],
