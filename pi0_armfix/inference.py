@@ -31,6 +31,7 @@ from pi0_armfix.data import batching, sources, transforms
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import policy
 from pi0_armfix.model import tokenizer as tokenizer_lib
@@ -182,6 +183,15 @@ class RunPolicy:
             num_steps=int(num_steps or config.eval.num_steps), noise_factor=noise_factor)
         self._key = jax.random.key(seed)
         self._draws = 0
+        # Images of any size become the model's float images here, so the sampler compiles once
+        # per batch size, not once per camera resolution a client sends.
+        self._to_model_images = jax.jit(functools.partial(
+            model_inputs_lib.model_image, resolution=run.model_config.image_resolution))
+
+    def _fit(self, images: np.ndarray) -> np.ndarray:
+        """uint8 `[B, h, w, 3]` -> float32 `[B, *image_resolution, 3]` in [-1, 1] (the model's
+        own conversion and resize-with-pad)."""
+        return np.asarray(self._to_model_images(images))
 
     @classmethod
     def from_workdir(cls, workdir: epath.PathLike, step: int | None = None,
@@ -243,7 +253,7 @@ class RunPolicy:
         normalized = self.state_norm(state)
         tokens, masks = self.tokens([self._prompt(o) for o in observations], normalized)
         batch_size = len(observations)
-        images = {camera: np.stack([self._image(o, key) for o in observations])
+        images = {camera: self._fit(np.stack([self._image(o, key) for o in observations]))
                   for key, camera in self.keys.cameras.items()}
         return {
             "image": images,
@@ -266,7 +276,12 @@ class RunPolicy:
         if key not in observation:
             raise ValueError(f"the observation lacks {key!r} (the state); it has "
                              f"{sorted(observation)}")
-        state = np.asarray(observation[key], np.float64).reshape(-1)
+        try:
+            state = np.asarray(observation[key], np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"observation[{key!r}] must be {self.stored_state_width} finite "
+                             f"numbers (the dataset's state), got {type(observation[key]).__name__}"
+                             ) from None
         if state.shape != (self.stored_state_width,) or not np.isfinite(state).all():
             raise ValueError(f"observation[{key!r}] must be {self.stored_state_width} finite "
                              f"numbers (the dataset's state), got shape {np.shape(observation[key])}")
@@ -287,7 +302,7 @@ class RunPolicy:
         image = np.asarray(observation[key])
         if image.ndim == 3 and image.shape[0] == 3 and image.shape[-1] != 3:
             image = image.transpose(1, 2, 0)  # [3, h, w] as some openpi clients send
-        if image.ndim != 3 or image.shape[-1] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"observation[{key!r}] must be a uint8 image [h, w, 3], got "
-                             f"{image.dtype} {image.shape}")
+        if image.ndim != 3 or image.shape[-1] != 3 or image.dtype != np.uint8 or not image.size:
+            raise ValueError(f"observation[{key!r}] must be a uint8 image [h, w, 3] with h, w > 0, "
+                             f"got {image.dtype} {image.shape}")
         return image

@@ -22,6 +22,8 @@ import asyncio
 import functools
 import http
 import logging
+import math
+import socket
 import time
 import traceback
 from collections.abc import Sequence
@@ -30,6 +32,7 @@ from typing import Any
 import msgpack
 import numpy as np
 from absl import app, flags
+from websockets import exceptions as websockets_exceptions
 from websockets.asyncio import server as ws_server
 
 from pi0_armfix import console, hysteresis, inference
@@ -48,15 +51,49 @@ def _pack_array(obj: Any) -> Any:
     return obj
 
 
+# What a request may carry: numbers and booleans (and byte/unicode strings). Never objects: an
+# object array built from network bytes is a table of pointers (a crash, or worse).
+ACCEPTED_KINDS = "biufSU"
+
+
+class MalformedArray(ValueError):
+    """An array of a request that is not what it claims to be (or not allowed)."""
+
+
+def _request_dtype(text: Any) -> np.dtype:
+    try:
+        dtype = np.dtype(text.decode() if isinstance(text, bytes) else text)
+    except (TypeError, ValueError) as e:
+        raise MalformedArray(f"an array's dtype {text!r} is not a numpy dtype ({e})") from None
+    if dtype.kind not in ACCEPTED_KINDS or dtype.fields is not None:
+        raise MalformedArray(f"an array's dtype {dtype.str!r} is not accepted (numbers, booleans and "
+                         "strings only)")
+    return dtype
+
+
 def _unpack_array(obj: dict) -> Any:
     if b"__ndarray__" in obj:
-        return np.ndarray(buffer=obj[b"data"], dtype=np.dtype(obj[b"dtype"]),
-                          shape=obj[b"shape"])
+        dtype = _request_dtype(obj.get(b"dtype"))
+        shape, data = obj.get(b"shape"), obj.get(b"data")
+        if (not isinstance(shape, (list, tuple)) or not all(
+                isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+                or not isinstance(data, bytes)):
+            raise MalformedArray(f"an array's shape {shape!r} or data is malformed")
+        if math.prod(shape) * dtype.itemsize != len(data):
+            raise MalformedArray(f"an array of shape {tuple(shape)} and dtype {dtype.str} needs "
+                             f"{math.prod(shape) * dtype.itemsize} bytes, the request holds "
+                             f"{len(data)}")
+        return np.frombuffer(data, dtype=dtype).reshape(shape)
     if b"__npgeneric__" in obj:
-        return np.dtype(obj[b"dtype"]).type(obj[b"data"])
+        dtype = _request_dtype(obj.get(b"dtype"))
+        try:
+            return dtype.type(obj.get(b"data"))
+        except (TypeError, ValueError, OverflowError) as e:
+            raise MalformedArray(f"a scalar of dtype {dtype.str} is malformed ({e})") from None
     return obj
 
 
+MAX_MESSAGE_MB = 64  # three 720p RGBA images and a state are ~11 MiB
 pack = functools.partial(msgpack.packb, default=_pack_array)
 unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
 
@@ -69,9 +106,12 @@ class PolicyServer:
     gripper commands (its held commands after the first `n_exec` actions of a chunk; None: all)."""
 
     def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000,
-                 latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None):
+                 latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None, *,
+                 sock: socket.socket | None = None,
+                 max_message_bytes: int = MAX_MESSAGE_MB << 20):
         self.policy, self.host, self.port = policy, host, port
         self.latch, self.n_exec = latch, n_exec
+        self.sock, self.max_message_bytes = sock, max_message_bytes
         self._metadata = pack(policy.metadata())
 
     def answer(self, message: bytes | str, client: Any = None) -> bytes | str:
@@ -81,6 +121,8 @@ class PolicyServer:
                 raise ValueError("requests are binary msgpack messages, got a text message")
             try:
                 observation = unpack(message)
+            except MalformedArray as e:
+                raise ValueError(f"the request is malformed: {e}") from None
             except Exception as e:  # msgpack raises several types for garbage
                 raise ValueError(f"the request is not msgpack ({type(e).__name__}: {e})") from e
             if not isinstance(observation, dict):
@@ -98,10 +140,12 @@ class PolicyServer:
             return f"pi0_armfix.serve: internal error\n{traceback.format_exc()}"
 
     async def _handle(self, websocket) -> None:
-        await websocket.send(self._metadata)
         try:
+            await websocket.send(self._metadata)
             async for message in websocket:
                 await websocket.send(self.answer(message, client=websocket.id))
+        except websockets_exceptions.ConnectionClosed:
+            pass  # the client left (or sent more than --max_message_mb): nothing to answer
         finally:
             if self.latch is not None:
                 self.latch.forget(websocket.id)
@@ -115,8 +159,11 @@ class PolicyServer:
     async def serve(self, ready: asyncio.Event | None = None) -> None:
         """Serves until cancelled; sets `ready` once listening (and `self.port` to the bound
         port, for port 0)."""
-        async with ws_server.serve(self._handle, self.host, self.port, compression=None,
-                                   max_size=None, process_request=self._health) as server:
+        where = ({"sock": self.sock} if self.sock is not None
+                 else {"host": self.host, "port": self.port})
+        async with ws_server.serve(self._handle, compression=None,
+                                   max_size=self.max_message_bytes,
+                                   process_request=self._health, **where) as server:
             self.port = server.sockets[0].getsockname()[1]
             if ready is not None:
                 ready.set()
@@ -130,6 +177,14 @@ def main(argv: Sequence[str]) -> None:
     console.quiet_library_logging()
     logging.getLogger("websockets").setLevel(logging.WARNING)
     try:
+        if FLAGS.max_message_mb < 1:
+            raise ValueError(f"--max_message_mb = {FLAGS.max_message_mb} must be >= 1")
+        # Bound before the (slow) policy load: a port in use is one line, at once.
+        try:
+            sock = socket.create_server((FLAGS.host, FLAGS.port))
+        except OSError as e:
+            raise ValueError(f"cannot listen on {FLAGS.host}:{FLAGS.port} ({e.strerror or e}); "
+                             "pass another --port (or stop what holds it)") from None
         policy = inference.RunPolicy.from_workdir(
             FLAGS.workdir, FLAGS.step, FLAGS.params,
             keys=inference.ObservationKeys.parse(FLAGS.keys))
@@ -138,7 +193,8 @@ def main(argv: Sequence[str]) -> None:
             raise ValueError(f"--n_exec = {FLAGS.n_exec} must be >= 0 (0: the whole chunk)")
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.serve: {e}") from None
-    server = PolicyServer(policy, FLAGS.host, FLAGS.port, latch, FLAGS.n_exec or None)
+    server = PolicyServer(policy, FLAGS.host, FLAGS.port, latch, FLAGS.n_exec or None,
+                          sock=sock, max_message_bytes=FLAGS.max_message_mb << 20)
     meta = policy.metadata()
     print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
           f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "
@@ -162,6 +218,8 @@ def cli() -> None:
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
                       "hysteresis (pi0_armfix.hysteresis), in action units; unset: the run's "
                       "eval.gripper_hysteresis; empty: none")
+    flags.DEFINE_integer("max_message_mb", MAX_MESSAGE_MB, "largest request accepted, MiB (a "
+                         "larger one closes that client's connection; the server keeps serving)")
     flags.DEFINE_integer("n_exec", 0, "actions a client executes of each chunk, for the "
                          "gripper hysteresis' held commands (0: the whole chunk)")
     app.run(main)

@@ -3,16 +3,19 @@ malformed requests, the closed-loop evaluation and the latency benchmark."""
 
 import asyncio
 import json
+import socket
 import subprocess
 import sys
 import threading
 import time
 
+import msgpack
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from openpi_client import msgpack_numpy as openpi_msgpack
 from openpi_client.websocket_client_policy import WebsocketClientPolicy
+from websockets import exceptions as websockets_exceptions
 from websockets.sync.client import connect
 
 import train_fixtures as tf
@@ -20,6 +23,8 @@ from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import evaluate, inference, serve
 from pi0_armfix.data import batching, sources
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import inputs as model_inputs_lib
+from pi0_armfix.model import policy as model_policy
 from pi0_armfix.sim import world as world_lib
 from pi0_armfix.sim.env import DemoWorldEnv
 
@@ -73,8 +78,9 @@ def test_the_policy_builds_the_inputs_training_builds_and_undoes_the_delta(run, 
     np.testing.assert_allclose(inputs["state"], expected["state"], atol=1e-6)
     for key in ("tokenized_prompt", "tokenized_prompt_mask"):
         np.testing.assert_array_equal(inputs[key], expected[key])
-    for camera in inputs["image"]:
-        np.testing.assert_array_equal(inputs["image"][camera], expected["image"][camera])
+    for camera in inputs["image"]:  # the model's own conversion of training's images
+        np.testing.assert_allclose(inputs["image"][camera], model_inputs_lib.model_image(
+            expected["image"][camera], policy.run.model_config.image_resolution), atol=1e-6)
     true_chunks = table.actions[np.minimum(frames[:, None] + np.arange(policy.horizon),
                                            table.num_frames - 1)]
     np.testing.assert_allclose(policy.absolute(expected["actions"], state), true_chunks,
@@ -115,6 +121,103 @@ def test_malformed_requests_get_an_error_and_the_server_keeps_serving(server):
         raw.send(openpi_msgpack.packb([1, 2, 3]))
         assert "must be an observation dict" in raw.recv()
     assert client.infer(observation)["actions"].shape[1] == 23
+
+
+def _raw_request(port, message):
+    with connect(f"ws://127.0.0.1:{port}", max_size=None) as raw:
+        raw.recv()  # the metadata
+        raw.send(message)
+        return raw.recv()
+
+
+def test_an_object_array_is_refused_and_the_server_keeps_serving(server):
+    observation = _observation()
+    state = {b"__ndarray__": True, b"data": bytes(range(16)), b"dtype": "|O", b"shape": [2]}
+    request = msgpack.packb({**{k: v for k, v in observation.items()
+                                if k != "observation/state"}, "observation/state": state},
+                            default=serve._pack_array)
+    assert "dtype '|O' is not accepted" in _raw_request(server.port, request)
+    client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
+    assert client.infer(observation)["actions"].shape[1] == 23
+
+
+@pytest.mark.parametrize("array, message", [
+    ({b"__ndarray__": True, b"data": b"\0" * 3, b"dtype": "<f4", b"shape": [2]},
+     "needs 8 bytes, the request holds 3"),
+    ({b"__ndarray__": True, b"data": b"\0" * 8, b"dtype": "<f4", b"shape": [-2]},
+     "shape .* malformed"),
+    ({b"__ndarray__": True, b"data": b"", b"dtype": "not a dtype", b"shape": [0]},
+     "is not a numpy dtype"),
+    ({b"__npgeneric__": True, b"data": 1, b"dtype": "|O"}, "is not accepted")])
+def test_malformed_arrays_are_refused_before_use(array, message):
+    with pytest.raises(ValueError, match=message):
+        serve.unpack(msgpack.packb({"x": array}))
+
+
+def test_an_empty_image_and_a_text_state_are_refused_by_key(server):
+    client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
+    observation = _observation()
+    with pytest.raises(RuntimeError, match="wrist_image_left.*h, w > 0"):
+        client.infer({**observation, "observation/wrist_image_left": np.zeros((0, 8, 3), np.uint8)})
+    with pytest.raises(RuntimeError, match="'observation/state'.* got str"):
+        client.infer({**observation, "observation/state": "twenty-three numbers"})
+
+
+def test_a_request_over_the_size_cap_closes_only_that_connection(run):
+    small = serve.PolicyServer(inference.RunPolicy.from_workdir(run), "127.0.0.1", 0,
+                               max_message_bytes=4096)
+    loop, ready = asyncio.new_event_loop(), asyncio.Event()
+    threading.Thread(target=lambda: loop.run_until_complete(small.serve(ready)),
+                     daemon=True).start()
+    deadline = time.monotonic() + 60
+    while not ready.is_set() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    with connect(f"ws://127.0.0.1:{small.port}", max_size=None) as raw:
+        raw.recv()
+        raw.send(b"\0" * 10_000)
+        with pytest.raises(Exception):  # the server closes this connection (1009)
+            raw.recv()
+    with connect(f"ws://127.0.0.1:{small.port}", max_size=None) as raw:
+        assert isinstance(raw.recv(), bytes)  # a new client still gets the metadata
+
+
+def test_a_client_that_leaves_mid_answer_is_no_error_of_the_server():
+    class Leaving:
+        id = "gone"
+
+        async def send(self, message):
+            raise websockets_exceptions.ConnectionClosed(None, None)
+
+    class Stub:
+        def metadata(self):
+            return {}
+
+    asyncio.run(serve.PolicyServer(Stub())._handle(Leaving()))
+
+
+def test_images_of_any_size_compile_the_sampler_once(run):
+    policy = inference.RunPolicy.from_workdir(run)
+    observation = _observation()
+    policy.infer([observation])
+    compiled = model_policy.sample_actions._cache_size()
+    for size in ((48, 40), (20, 64)):
+        bigger = {**observation, **{key: np.zeros((*size, 3), np.uint8)
+                                    for key in inference.B1K_KEYS.cameras}}
+        assert policy.infer([bigger]).shape[1:] == (policy.horizon, 23)
+    assert model_policy.sample_actions._cache_size() == compiled
+
+
+def test_a_port_in_use_is_one_line_before_the_policy_loads(run, cache_dir):  # noqa: F811
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        result = subprocess.run(
+            [sys.executable, "-m", "pi0_armfix.serve", f"--workdir={run}", "--host=127.0.0.1",
+             f"--port={port}"], env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,
+            text=True, timeout=300)
+    assert result.returncode != 0
+    assert result.stderr.strip().splitlines()[-1].startswith(
+        f"pi0_armfix.serve: cannot listen on 127.0.0.1:{port}")
+    assert "Traceback" not in result.stderr and "serving" not in result.stdout
 
 
 def test_arrays_round_trip_between_the_server_and_openpis_encoding():

@@ -50,6 +50,15 @@ def resize_with_pad(images: jax.Array, height: int, width: int) -> jax.Array:
     return jnp.pad(resized, padding, constant_values=-1.0)
 
 
+def model_image(images: jax.Array, resolution: tuple[int, int]) -> jax.Array:
+    """Camera images `[B, h, w, 3]` (uint8, or float in [-1, 1]) -> the model's float32
+    `[B, *resolution, 3]` in [-1, 1]: what `preprocess_observation` does before augmenting."""
+    image = image_to_float(jnp.asarray(images))
+    if image.shape[1:3] != tuple(resolution):
+        image = resize_with_pad(image, *resolution)
+    return image
+
+
 def crop_rotate_map(rng: jax.Array, height: int, width: int, cfg: AugmentConfig) -> jax.Array:
     """The source coordinates [2, h, w] (y, x) each output pixel samples: a random crop of
     `crop_scale` of each side, resized back to (h, w), then rotated about the centre by an angle
@@ -153,9 +162,7 @@ def preprocess_observation(rng: jax.Array | None, observation: Mapping[str, Any]
     batch_size = observation["state"].shape[0]
     images, masks = {}, {}
     for index, key in enumerate(config.image_keys):
-        image = image_to_float(jnp.asarray(observation["image"][key]))
-        if image.shape[1:3] != config.image_resolution:
-            image = resize_with_pad(image, *config.image_resolution)
+        image = model_image(observation["image"][key], config.image_resolution)
         if train:
             keys = jax.random.split(jax.random.fold_in(rng, index), image.shape[0])
             augment = functools.partial(augment_image, cfg=config.augment, wrist="wrist" in key)
