@@ -14,6 +14,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.cameras import match_cameras
 from pi0_armfix.data.lerobot import VERSIONS, LeRobotSource
 from pi0_armfix.data.sources import open_source
+from pi0_armfix.data.video import VideoDecoder
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 
@@ -294,3 +295,64 @@ def test_open_source_detects_the_lerobot_version(tmp_path):
 def test_open_source_rejects_an_unknown_format(tmp_path):
     with pytest.raises(ValueError, match=r"data.format 'hdf5' is not supported"):
         open_source(ConfigDict({"root": str(tmp_path), "format": "hdf5"}), LAYOUT)
+
+
+# ---------------------------------------------------------------------------- v3.0 segments
+
+
+def _late_by_one_frame(root):
+    """Rewrites every data file's timestamps one frame late (as some converters write them)."""
+    fps = json.loads((root / "meta" / "info.json").read_text())["fps"]
+    for path in root.glob("data/chunk-*/*.parquet"):
+        table = pq.read_table(path)
+        late = pa.array(table.column("timestamp").to_numpy() + np.float32(1 / fps))
+        pq.write_table(table.set_column(table.schema.get_field_index("timestamp"), "timestamp",
+                                        late), path)
+
+
+def test_a_row_past_its_v3_segment_is_refused_not_read_from_the_next_episode(tmp_path):
+    episodes = make_episodes(4)
+    root = write_dataset(tmp_path / "ds", episodes, "v3.0", image_format="video",
+                         episodes_per_file=2)
+    _late_by_one_frame(root)
+    table = LeRobotSource(root, LAYOUT).load_table([0])
+    last = len(episodes[0]["actions"]) - 1
+    with pytest.raises(ValueError, match=rf"episode 0, camera .*row {last}: .*1.00 frames past "
+                                         r"the episode's segment .*file-000.mp4.*"
+                                         r"video_tolerance_frames=1"):
+        table.images(last)
+    with pytest.raises(ValueError, match="past the episode's segment"):
+        LeRobotSource(root, LAYOUT).probe()
+
+
+def test_a_one_frame_overrun_within_the_tolerance_reads_each_rows_own_episode(tmp_path):
+    episodes = make_episodes(4)
+    root = write_dataset(tmp_path / "ds", episodes, "v3.0", image_format="video",
+                         episodes_per_file=2)
+    _late_by_one_frame(root)
+    source = LeRobotSource(root, LAYOUT, video_tolerance_frames=1)
+    source.probe()
+    table = source.load_table([0, 1, 2, 3])
+    for position in range(4):
+        length = len(episodes[position]["actions"])
+        for row in range(length):
+            images = table.images(int(table.episode_starts[position]) + row)
+            for c, camera in enumerate(table.images.cameras):
+                # One frame late: row r shows frame r + 1, the last row its segment's last frame.
+                assert identify_frame(images[camera], position, length, c) == min(row + 1,
+                                                                                   length - 1)
+
+
+def test_a_float32_one_frame_overrun_passes_a_tolerance_of_one_frame(tmp_path):
+    # float32(43 / 10) * 10 = 43.0000019: one frame past the 43-frame video's last frame, and a
+    # hair more.
+    episodes = make_episodes(1, min_length=43, max_length=43)
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1", image_format="video")
+    video = next(root.glob("videos/chunk-000/observation.images.rgb.head/episode_000000.mp4"))
+    decoder = VideoDecoder(video, 10, tolerance=1.0)
+    late = float(np.float32(43 / 10))
+    # Frame colours repeat every 16 frames: 42 looks like 10 and 26.
+    assert identify_frame(decoder.frame_at(late), 0, 43, 0) == 42 % 16
+    strict = VideoDecoder(video, 10, tolerance=0.5)
+    with pytest.raises(ValueError, match="video_tolerance_frames=1 to read the nearest frame"):
+        strict.frame_at(late)

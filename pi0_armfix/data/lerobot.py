@@ -26,7 +26,10 @@ features are stored in parquet as structs `{bytes, path}` holding PNG or JPEG by
 are mp4 files whose frame for a row is the one at the row's timestamp (plus the episode's
 `from_timestamp` in v3.0), to within `data.video_tolerance_frames` (default half a frame: the
 nearest frame; 1 accepts data whose timestamps run one frame past the video, a known fault of
-some converted sets). Decoders are per thread, so any number of Grain threads may read at once.
+some converted sets). In v3.0 an episode owns only its segment `[from_timestamp, to_timestamp)`
+of a file that holds many: a row whose time falls past its segment's last frame is read at that
+frame when it overruns by at most `data.video_tolerance_frames`, and is an error naming the
+episode, the row and the file otherwise (it would read the next episode's frames). Decoders are per thread, so any number of Grain threads may read at once.
 `LeRobotSource.probe` decodes the first and last frame of a sample of episodes before training.
 
 Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
@@ -49,6 +52,7 @@ import dataclasses
 import functools
 import itertools
 import json
+import math
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -65,7 +69,7 @@ from pi0_armfix.cache import digest
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.frame_store import FrameStore, FrameColumn
 from pi0_armfix.data.files import lfs_pointer_message, unreadable
-from pi0_armfix.data.video import VideoDecoder
+from pi0_armfix.data.video import TIME_EPSILON_FRAMES, VideoDecoder
 
 ACTION = "action"
 STATE = "observation.state"
@@ -164,7 +168,9 @@ class _Episode:
     task: str
     data_file: Path
     first_row: int
-    videos: Mapping[str, tuple[Path, float]]  # camera feature -> (mp4 file, from_timestamp)
+    # camera feature -> (mp4 file, from_timestamp, to_timestamp): the episode's segment of the
+    # file (v2: the whole file, to_timestamp infinite)
+    videos: Mapping[str, tuple[Path, float, float]]
 
 
 def _first_task(tasks: Any, where: str) -> str:
@@ -200,7 +206,7 @@ def _episodes_v2(root: Path, info: Mapping[str, Any], video_keys: Sequence[str])
             task=_first_task(row.get("tasks"), f"{path} line {line}"),
             data_file=root / _template(info, "data_path", info_path, **names), first_row=0,
             videos={key: (root / _template(info, "video_path", info_path, video_key=key, **names),
-                          0.0) for key in video_keys}))
+                          0.0, math.inf) for key in video_keys}))
     return sorted(episodes, key=lambda e: e.index)
 
 
@@ -216,7 +222,10 @@ def _episodes_v3(root: Path, info: Mapping[str, Any], video_keys: Sequence[str])
                     f"videos/{key}/from_timestamp"]
     rows = []
     for file in files:
-        table = _read_parquet(file, columns)
+        present = set(_open_parquet(file).schema_arrow.names)
+        ends = [f"videos/{key}/to_timestamp" for key in video_keys
+                if f"videos/{key}/to_timestamp" in present]
+        table = _read_parquet(file, columns + ends)
         rows += [(file, row) for row in table.to_pylist()]
     # v3.0 rows are addressed by the dataset-global `index`; a data file starts at the smallest
     # `dataset_from_index` of the episodes it holds.
@@ -233,7 +242,8 @@ def _episodes_v3(root: Path, info: Mapping[str, Any], video_keys: Sequence[str])
             video = _template(info, "video_path", info_path, video_key=key,
                               chunk_index=row[f"videos/{key}/chunk_index"],
                               file_index=row[f"videos/{key}/file_index"])
-            videos[key] = (root / video, float(row[f"videos/{key}/from_timestamp"]))
+            videos[key] = (root / video, float(row[f"videos/{key}/from_timestamp"]),
+                           float(row.get(f"videos/{key}/to_timestamp", math.inf)))
         episodes.append(_Episode(
             index=int(row["episode_index"]), length=int(row["length"]),
             task=_first_task(row["tasks"], f"{file} episode {row['episode_index']}"),
@@ -390,17 +400,23 @@ class LeRobotSource:
                 continue
             times = np.concatenate([b["timestamp"] for b in blocks]).astype(np.float64)
             for key in videos:
-                path, start = episode.videos[key]
+                path, start, stop = episode.videos[key]
                 if not path.is_file():
                     raise ValueError(f"missing video file {path} (episode {episode.index})")
                 decoder = VideoDecoder(path, self.fps, self.video_tolerance_frames)
                 try:
                     where = f"episode {episode.index}, camera {key!r}"
+                    for row in (0, len(times) - 1):
+                        segment_time(start, stop, times[row], self.fps,
+                                     self.video_tolerance_frames, f"{where}, row {row}", path)
                     _probe_frame(decoder, start + times[0], where + ", first row")
                     last = decoder.last_frame_time()
                     if episode.length <= _PROBE_DECODE_FRAMES or last is None:
-                        _probe_frame(decoder, start + times[-1], where + ", last row")
-                    elif start + times[-1] > last + self.video_tolerance_frames / self.fps:
+                        _probe_frame(decoder, segment_time(
+                            start, stop, times[-1], self.fps, self.video_tolerance_frames,
+                            where, path), where + ", last row")
+                    elif start + times[-1] > (last + self.video_tolerance_frames / self.fps
+                                              + TIME_EPSILON_FRAMES / self.fps):
                         raise ValueError(
                             f"{path} ends at {last:.4f} s (its last frame) but {where}'s last "
                             f"row has timestamp {times[-1]:.4f} s"
@@ -548,7 +564,7 @@ class LeRobotSource:
         videos = images and any(kind == "video" for kind in self._camera_kind.values())
         if videos:
             for episode in chosen:
-                for path, _ in episode.videos.values():
+                for path, *_ in episode.videos.values():
                     if not path.is_file():
                         raise ValueError(f"missing video file {path} (episode {episode.index})")
         store = self.frame_store
@@ -576,6 +592,38 @@ def _probe_frame(decoder: "VideoDecoder", seconds: float, where: str) -> None:
         decoder.frame_at(seconds)
     except ValueError as err:
         raise ValueError(f"{err} ({where})") from None
+
+
+def segment_time(start: float, stop: float, timestamp: float, fps: float, tolerance: float,
+                 where: str, path: Path) -> float:
+    """The time in the mp4 of a row with `timestamp` whose episode owns the segment
+    `[start, stop)` of the file: `start + timestamp`, moved to the segment's last frame (or its
+    first) when it lies past it by at most `tolerance` frames.
+
+    Raises:
+      ValueError naming `where` (episode, camera, row) and the file when it lies further out.
+    """
+    seconds = start + timestamp
+    last = stop - 1.0 / fps
+    slack = (tolerance + TIME_EPSILON_FRAMES) / fps
+    if seconds > last + TIME_EPSILON_FRAMES / fps:
+        if seconds - last <= slack:
+            return last
+        over = (seconds - last) * fps
+        raise ValueError(
+            f"{where}: timestamp {timestamp:.4f} s lies {over:.2f} frames past the episode's "
+            f"segment [{start:.4f} s, {stop:.4f} s) of {path} (its last frame at {last:.4f} s; "
+            "beyond it the file holds the next episode). "
+            + (f"If the data's timestamps run late by up to {math.ceil(over - 1e-6)} frame(s), "
+               f"set data.video_tolerance_frames={math.ceil(over - 1e-6)} to read the segment's "
+               "last frame" if over <= 2 + 1e-6 else "The episode's meta/episodes record or its "
+               "timestamps are wrong"))
+    if seconds < start - TIME_EPSILON_FRAMES / fps:
+        if start - seconds <= slack:
+            return start
+        raise ValueError(f"{where}: timestamp {timestamp:.4f} s lies before the episode's "
+                         f"segment [{start:.4f} s, {stop:.4f} s) of {path}")
+    return seconds
 
 
 class LeRobotFrameImages:
@@ -631,8 +679,11 @@ class LeRobotFrameImages:
         out = {}
         for camera, feature in self._features.items():
             if self._kinds[feature] == "video":
-                path, start = episode.videos[feature]
-                out[camera] = self._video(path).frame_at(start + self._timestamps[frame])
+                path, start, stop = episode.videos[feature]
+                seconds = segment_time(start, stop, float(self._timestamps[frame]), self._fps,
+                                       self._tolerance, f"episode {episode.index}, camera "
+                                       f"{feature!r}, row {offset}", path)
+                out[camera] = self._video(path).frame_at(seconds)
             else:
                 out[camera] = self._image(feature, episode.data_file, episode.first_row + offset)
         return out

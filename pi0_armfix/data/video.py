@@ -15,11 +15,16 @@ from __future__ import annotations
 
 import collections
 import fractions
+import math
 from pathlib import Path
 
 import numpy as np
 
 from pi0_armfix.data.files import unreadable
+
+# Timestamps are float32: a row one frame late can compute to 1.0000114 frames. Time comparisons
+# allow this much (in frames) beyond the tolerance they apply.
+TIME_EPSILON_FRAMES = 1e-3
 
 
 def fit_inside(height: int, width: int, size: tuple[int, int] | None) -> tuple[int, int]:
@@ -117,14 +122,21 @@ class VideoDecoder:
         if wanted in self._frames:
             return self._frames[wanted]
         nearest = min(self._frames, key=lambda n: abs(n - seconds * self.fps), default=None)
-        if nearest is not None and abs(nearest - seconds * self.fps) <= self.tolerance:
+        if (nearest is not None
+                and abs(nearest - seconds * self.fps) <= self.tolerance + TIME_EPSILON_FRAMES):
             return self._frames[nearest]
         self._decoder = None
         last = "no frame" if nearest is None else f"frame {nearest} at {nearest / self.fps:.4f} s"
+        needed = (math.ceil(abs(nearest - seconds * self.fps) - TIME_EPSILON_FRAMES)
+                  if nearest is not None else None)
+        advice = (f"If the data's timestamps run past the video by up to {needed} frame(s), set "
+                  f"data.video_tolerance_frames={needed} to read the nearest frame"
+                  if needed is not None and needed > self.tolerance and needed <= 2 else
+                  "The data's timestamps and the video disagree by more than a frame or two: "
+                  "check the dataset's fps and its videos")
         raise ValueError(
             f"{self.path} has no frame at {seconds:.4f} s (frame {seconds * self.fps:.2f} at "
-            f"{self.fps:g} fps; decoding ended at {last}). If the data's timestamps run past the "
-            f"video by up to a frame, set data.video_tolerance_frames=1 to read the nearest frame")
+            f"{self.fps:g} fps; decoding ended at {last}). {advice}")
 
     def frames(self):
         """Every frame in order from the start: yields (time in seconds or None, uint8 [h, w, 3])
