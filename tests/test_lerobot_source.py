@@ -356,3 +356,30 @@ def test_a_float32_one_frame_overrun_passes_a_tolerance_of_one_frame(tmp_path):
     strict = VideoDecoder(video, 10, tolerance=0.5)
     with pytest.raises(ValueError, match="video_tolerance_frames=1 to read the nearest frame"):
         strict.frame_at(late)
+
+
+def _declare_fps(root, fps):
+    info = json.loads((root / "meta" / "info.json").read_text())
+    info["fps"] = fps
+    (root / "meta" / "info.json").write_text(json.dumps(info))
+
+
+def test_a_declared_fps_that_contradicts_the_rows_is_refused_before_any_pass(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
+    _declare_fps(root, 5)  # rows and videos at 10
+    with pytest.raises(ValueError, match=r"declares fps 5, but the rows of episode 0 .* 0.1000 s "
+                                         r"apart \(10 fps\)"):
+        LeRobotSource(root, LAYOUT).probe()
+
+
+def test_a_declared_fps_that_contradicts_the_videos_is_refused(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
+    _declare_fps(root, 5)
+    for path in root.glob("data/chunk-*/*.parquet"):  # rows at 5 fps, videos still at 10
+        table = pq.read_table(path)
+        slow = pa.array(table.column("timestamp").to_numpy() * np.float32(2))
+        pq.write_table(table.set_column(table.schema.get_field_index("timestamp"), "timestamp",
+                                        slow), path)
+    with pytest.raises(ValueError, match=r"rgb.head/episode_000000.mp4 plays at 10 fps but .* "
+                                         r"declares fps 5"):
+        LeRobotSource(root, LAYOUT).probe()

@@ -399,6 +399,7 @@ class LeRobotSource:
             if not videos:
                 continue
             times = np.concatenate([b["timestamp"] for b in blocks]).astype(np.float64)
+            self._check_row_rate(times, episode)
             for key in videos:
                 path, start, stop = episode.videos[key]
                 if not path.is_file():
@@ -406,6 +407,12 @@ class LeRobotSource:
                 decoder = VideoDecoder(path, self.fps, self.video_tolerance_frames)
                 try:
                     where = f"episode {episode.index}, camera {key!r}"
+                    rate = decoder.rate()
+                    if rate is not None and abs(rate - self.fps) > FPS_TOLERANCE * self.fps:
+                        raise ValueError(
+                            f"{path} plays at {rate:.4g} fps but {self.root / 'meta/info.json'} "
+                            f"declares fps {self.fps:g} ({where}): frames would be read at the "
+                            "wrong times; fix the declared fps (or the video)")
                     for row in (0, len(times) - 1):
                         segment_time(start, stop, times[row], self.fps,
                                      self.video_tolerance_frames, f"{where}, row {row}", path)
@@ -425,6 +432,19 @@ class LeRobotSource:
                             "set data.video_tolerance_frames=1 to read the nearest frame")
                 finally:
                     decoder.close()
+
+    def _check_row_rate(self, times: np.ndarray, episode: _Episode) -> None:
+        """The declared fps against the rows' timestamps of one episode (their median step)."""
+        steps = np.diff(times)
+        if not len(steps):
+            return
+        step = float(np.median(steps))
+        if step <= 0 or abs(1.0 / step - self.fps) > FPS_TOLERANCE * self.fps:
+            raise ValueError(
+                f"{self.root / 'meta/info.json'} declares fps {self.fps:g}, but the rows of "
+                f"episode {episode.index} ({episode.data_file}) are {step:.4f} s apart"
+                + (f" ({1.0 / step:.4g} fps)" if step > 0 else "")
+                + ": a video frame would be read at the wrong time; fix the declared fps")
 
     # ------------------------------------------------------------------ streaming
 
@@ -585,6 +605,7 @@ class LeRobotSource:
 
 # Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
 _PROBE_DECODE_FRAMES = 1800
+FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
 
 
 def _probe_frame(decoder: "VideoDecoder", seconds: float, where: str) -> None:

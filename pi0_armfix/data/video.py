@@ -153,6 +153,11 @@ class VideoDecoder:
         finally:
             self._decoder = None
 
+    def rate(self) -> float | None:
+        """The stream's frame rate from the container (None if it does not say)."""
+        rate = self._stream.average_rate or self._stream.guessed_rate
+        return float(rate) if rate else None
+
     def last_frame_time(self) -> float | None:
         """Time of the video's last frame from the container's metadata (None if unknown)."""
         stream = self._stream
