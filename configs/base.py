@@ -109,6 +109,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.root = ""  # '' = embedded demo dataset, generated on first use into a cache folder
     config.data.format = "lerobot"  # lerobot | rlds
     config.data.cameras = config_dict.placeholder(object)  # {batch camera: stored}; None = auto
+    config.data.images = True  # False: read no camera (all-zero, masked): data without its videos
     config.data.action_key = "action"  # LeRobot: the stored action feature
     config.data.state_key = "observation.state"  # LeRobot: the stored state feature
     # LeRobot: a named selection of the stored state into the action order (pi0_armfix.data.

@@ -13,6 +13,7 @@ from data_fixtures import (B1K_CAMERAS, identify_frame, make_episodes, write_dat
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.cameras import match_cameras
 from pi0_armfix.data.lerobot import VERSIONS, LeRobotSource
+from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data.sources import open_source
 from pi0_armfix.data.video import VideoDecoder
 
@@ -383,3 +384,37 @@ def test_a_declared_fps_that_contradicts_the_videos_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"rgb.head/episode_000000.mp4 plays at 10 fps but .* "
                                          r"declares fps 5"):
         LeRobotSource(root, LAYOUT).probe()
+
+
+# ---------------------------------------------------------------------------- without the videos
+
+
+def _without_videos(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3), "v2.1", image_format="video")
+    for video in root.glob("videos/**/*.mp4"):
+        video.unlink()
+    return root
+
+
+def _config(root, **data):
+    return ConfigDict({"data": {"root": str(root), "probe_episodes": 4, **data},
+                       "eval": {"every": 0}, "seed": 0})
+
+
+def test_a_pass_that_reads_no_images_never_probes_the_videos(tmp_path):
+    root = _without_videos(tmp_path)
+    config = _config(root)
+    source = open_source(config.data, LAYOUT)
+    dataset_lib.check_data(config, LAYOUT, source, images=False)  # the stats and analysis tools
+    with pytest.raises(ValueError, match="missing video file"):
+        dataset_lib.check_data(config, LAYOUT, source, images=True)
+
+
+def test_data_images_false_trains_a_dataset_without_its_cameras(tmp_path):
+    root = _without_videos(tmp_path)
+    config = _config(root, images=False)
+    source = open_source(config.data, LAYOUT)
+    assert source.cameras == {}
+    dataset_lib.check_data(config, LAYOUT, source, images=True)
+    table = source.load_table()
+    assert table.images is None and table.num_episodes == 3

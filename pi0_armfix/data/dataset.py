@@ -199,7 +199,7 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
             source.cameras, getattr(source, "camera_names", ()), where)
         if missing:
             warnings.append(missing)
-    source.probe(int(data.get("probe_episodes", 4)))
+    source.probe(int(data.get("probe_episodes", 4)), videos=images)
     return warnings
 
 

@@ -283,7 +283,7 @@ class LeRobotSource:
                  cameras: Mapping[str, str] | None = None, action_key: str = ACTION,
                  state_key: str = STATE, state_indices: Sequence[int] | None = None,
                  state_preset: str = "", action_indices: Sequence[int] | None = None,
-                 video_tolerance_frames: float = 0.5):
+                 video_tolerance_frames: float = 0.5, images: bool = True):
         self.root = Path(root)
         info_path = self.root / "meta" / "info.json"
         if not info_path.is_file():
@@ -332,7 +332,9 @@ class LeRobotSource:
         stored = {name: f["dtype"] for name, f in features.items()
                   if f.get("dtype") in ("image", "video")}
         self.camera_names = tuple(stored)
-        self.cameras = cameras_lib.match_cameras(list(stored), cameras, str(self.root))
+        # data.images=False: no camera is matched, so none is read or probed.
+        self.cameras = (cameras_lib.match_cameras(list(stored), cameras, str(self.root))
+                        if images else {})
         self._camera_kind = {name: stored[name] for name in self.cameras.values()}
         video_keys = [name for name, kind in self._camera_kind.items() if kind == "video"]
         load = _episodes_v2 if major == 2 else _episodes_v3
@@ -374,7 +376,7 @@ class LeRobotSource:
 
     # ------------------------------------------------------------------ probe
 
-    def probe(self, num_episodes: int = 4) -> None:
+    def probe(self, num_episodes: int = 4, videos: bool = True) -> None:
         """Checks a sample of episodes before any pass over the data: their parquet files read
         (git-LFS pointers named), the action/state columns have the declared widths, and for each
         video camera the frame of the first row decodes and the last row's timestamp lies within
@@ -384,6 +386,8 @@ class LeRobotSource:
 
         Args:
           num_episodes: episodes probed, evenly spread over the dataset (first and last included).
+          videos: False for a pass that reads no images (the statistics and analysis tools):
+            only the parquet files are probed.
 
         Raises:
           ValueError naming the file, the episode and the time that cannot be read.
@@ -391,7 +395,7 @@ class LeRobotSource:
         if num_episodes <= 0:
             return
         positions = np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round())
-        videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
+        videos = [k for k, kind in self._camera_kind.items() if kind == "video"] if videos else []
         for position in positions.astype(int):
             episode = self._episodes[position]
             keys = ("actions", "state") + (("timestamp",) if videos else ())

@@ -79,6 +79,7 @@ class RldsSource:
       layout: the action layout; the dataset's action width must equal `layout.real_dim`.
       split: the split to read.
       cameras: `data.cameras` ({batch camera: image feature path}); None = automatic match.
+      use_images: `data.images`; False matches no camera (every camera all-zero and masked).
       action_key, state_key, prompt_key: step feature paths.
 
     Attributes:
@@ -89,7 +90,8 @@ class RldsSource:
     fps = 0.0
 
     def __init__(self, root: str | Path, layout: ActionLayout, *, split: str = "train",
-                 cameras: Mapping[str, str] | None = None, action_key: str = "action",
+                 cameras: Mapping[str, str] | None = None, use_images: bool = True,
+                 action_key: str = "action",
                  state_key: str = "observation/state", prompt_key: str = "language_instruction"):
         import tensorflow_datasets as tfds
 
@@ -124,7 +126,8 @@ class RldsSource:
         images = [path for path, f in features.items()
                   if isinstance(f, tfds.features.Image) and f.shape[-1] == 3]
         self.camera_names = tuple(images)
-        self.cameras = cameras_lib.match_cameras(images, cameras, str(self.root))
+        self.cameras = (cameras_lib.match_cameras(images, cameras, str(self.root))
+                        if use_images else {})
         self._image_paths = list(self.cameras.values())
         self.state_width = (int(np.prod(features[state_key].shape)) if self._keys["state"]
                             else 0)
@@ -153,9 +156,10 @@ class RldsSource:
         return (f"RldsSource({str(self.root)!r}, split={self.split!r}, {self.num_episodes} "
                 f"episodes, cameras={self.cameras})")
 
-    def probe(self, num_episodes: int = 4) -> None:
+    def probe(self, num_episodes: int = 4, videos: bool = True) -> None:
         """Reads a sample of `num_episodes` episodes, first and last included (their array_record
-        records and images decode), before any pass over the data."""
+        records and images decode), before any pass over the data (`videos`: unused, an RLDS
+        episode holds its images)."""
         if num_episodes <= 0:
             return
         for episode in np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round()):

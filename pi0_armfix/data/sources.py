@@ -6,6 +6,8 @@ Config keys read here (`config.data`):
                  (a TFDS builder directory of array_record files, read with `tfds.data_source`).
   cameras        optional {batch camera: stored camera name}; unset = automatic match
                  (`pi0_armfix.data.cameras`).
+  images         False: no camera is read (every batch camera an all-zero image, masked out), for
+                 a dataset whose videos are not on this machine; its video files are never probed.
   action_key, state_key     LeRobot: the stored action / state features (default `action`,
                  `observation.state`).
   state_preset, state_indices, action_indices   LeRobot: which stored dims the model sees
@@ -62,13 +64,15 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         raise ValueError(f"data.format {fmt!r} is not supported; choose one of {list(FORMATS)}")
     root = data_cfg.get("root", "")
     cameras = dict(data_cfg.get("cameras") or {}) or None
+    images = bool(data_cfg.get("images", True))
     if fmt == "rlds":
         if not root:
             raise ValueError("data.root is '' (the built-in demo dataset, a LeRobot dataset) but "
                              "data.format is 'rlds'; set data.format='lerobot' or a data.root")
         from pi0_armfix.data.rlds import RldsSource  # TFDS is slow to import; only load it here
 
-        return RldsSource(root, layout, split=data_cfg.get("split", "train"), cameras=cameras)
+        return RldsSource(root, layout, split=data_cfg.get("split", "train"), cameras=cameras,
+                          use_images=images)
     from pi0_armfix.data.lerobot import LeRobotSource
 
     if not root:
@@ -81,4 +85,5 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         state_indices=data_cfg.get("state_indices") or None,
         state_preset=selection_lib.state_preset(data_cfg),
         action_indices=data_cfg.get("action_indices") or None,
-        video_tolerance_frames=float(data_cfg.get("video_tolerance_frames") or 0.5))
+        video_tolerance_frames=float(data_cfg.get("video_tolerance_frames") or 0.5),
+        images=images)
