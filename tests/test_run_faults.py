@@ -136,6 +136,36 @@ def test_resume_new_archives_the_old_run_and_starts_at_step_zero(finished_run, t
     assert [r["step"] for r in tf.records(workdir) if "loss" in r] == [1, 2, 3, 4]
 
 
+def test_without_config_json_the_resume_check_reads_the_checkpoints_config(finished_run,
+                                                                          tmp_path):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    (workdir / "config.json").unlink()
+    with pytest.raises(train.ConfigurationError,
+                       match=r"holds a run with another config .*checkpoints/4/config/metadata"
+                             r".*loss.strategy: 'uniform' -> 'per_group'"):
+        train.train_and_evaluate(_config(**{**finished_run[1], "loss.strategy": "per_group"}),
+                                 str(workdir))
+
+
+def test_resume_new_without_config_json_still_archives(finished_run, tmp_path, capsys):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    (workdir / "config.json").unlink()
+    overrides = {**finished_run[1], "train.resume": "new"}
+    train.train_and_evaluate(_config(**overrides), str(workdir))
+    assert "the previous run moved to" in capsys.readouterr().out
+    assert [r["step"] for r in tf.records(workdir) if "loss" in r] == [1, 2, 3, 4]
+
+
+def test_a_run_folder_with_no_config_anywhere_is_refused_with_the_ways_out(tmp_path):
+    workdir = tmp_path / "run"
+    workdir.mkdir()
+    (workdir / "norm_stats.json").write_text("{}")
+    with pytest.raises(ValueError, match="neither its config.json nor a checkpoint's config.*"
+                                         "train.resume=new"):
+        fingerprint.check_resume(workdir, base.get_config().to_dict(), holds_run=True,
+                                 may_write=False)
+
+
 def test_optimizer_and_schedule_changes_resume_with_a_note(finished_run, tmp_path, capsys):
     workdir = shutil.copytree(finished_run[0], tmp_path / "run")
     overrides = {**finished_run[1], "train.total_steps": 5, "optim.lr": 5e-4}

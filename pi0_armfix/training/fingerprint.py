@@ -27,6 +27,7 @@ from typing import Any
 from etils import epath
 
 CONFIG_FILE = "config.json"
+CHECKPOINT_CONFIG = "metadata"  # the file of a checkpoint's JSON config item (orbax's name)
 ARCHIVE_DIR = "archive"
 RESUME_MODES = ("auto", "force", "new")
 
@@ -79,6 +80,18 @@ def differences(saved: Mapping[str, Any], current: Mapping[str, Any]
             [line for k, line in changes if not is_fingerprint_key(k)])
 
 
+def saved_config_path(workdir: epath.Path) -> epath.Path | None:
+    """Where a run folder's config is: its `config.json`, else the config item of its newest
+    finished checkpoint (every checkpoint holds the config it was saved with), else None."""
+    path = workdir / CONFIG_FILE
+    if path.exists():
+        return path
+    steps = sorted((int(d.name) for d in (workdir / "checkpoints").glob("*")
+                    if d.name.isdigit() and (d / "config" / CHECKPOINT_CONFIG).exists()),
+                   reverse=True) if (workdir / "checkpoints").exists() else []
+    return workdir / "checkpoints" / str(steps[0]) / "config" / CHECKPOINT_CONFIG if steps else None
+
+
 def check_resume(workdir: epath.Path, config: Mapping[str, Any], *, holds_run: bool,
                  may_write: bool) -> list[str]:
     """Applies `train.resume` to `workdir` before anything of it is read; returns notes to print.
@@ -95,8 +108,7 @@ def check_resume(workdir: epath.Path, config: Mapping[str, Any], *, holds_run: b
     mode = config["train"]["resume"]
     if mode not in RESUME_MODES:
         raise ValueError(f"train.resume = {mode!r}: use one of {RESUME_MODES}")
-    saved_path = workdir / CONFIG_FILE
-    if not (holds_run and saved_path.exists()):
+    if not holds_run:
         return []
     if mode == "new":  # decided before any file is read: process 0 may be moving them
         destination = workdir / ARCHIVE_DIR / time.strftime("%Y%m%d-%H%M%S")
@@ -106,6 +118,13 @@ def check_resume(workdir: epath.Path, config: Mapping[str, Any], *, holds_run: b
                 if entry.name not in (ARCHIVE_DIR, "run.lock"):
                     entry.rename(destination / entry.name)
         return [f"train.resume=new: the previous run moved to {destination}; starting at step 0"]
+    saved_path = saved_config_path(workdir)
+    if saved_path is None:
+        raise ValueError(
+            f"workdir {workdir} holds a run (checkpoints or norm stats) but neither its "
+            f"{CONFIG_FILE} nor a checkpoint's config: nothing says which config it belongs to. "
+            "Start a new run with another --workdir or --config.train.resume=new (moves the old "
+            "files to archive/), or continue it as this config with --config.train.resume=force")
     try:
         saved = json.loads(saved_path.read_text())
     except json.JSONDecodeError as e:
