@@ -43,13 +43,16 @@ study.md says so.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -117,11 +120,54 @@ def final_evaluation(folder: Path) -> dict[str, float]:
     return records[-1]
 
 
+class StudyInterrupted(Exception):
+    """The study was asked to stop (SIGINT or SIGTERM)."""
+
+
+class Children:
+    """The study's child processes (training, evaluation), each in its own process group so that
+    a Ctrl-C reaches the study alone, which then stops them (SIGTERM: a training run saves a
+    checkpoint and exits) and starts no other: nothing is left running, nothing is lost."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._running: set[subprocess.Popen] = set()
+        self.stopping = threading.Event()
+
+    def run(self, command: list[str], log) -> int:
+        with self._lock:
+            if self.stopping.is_set():
+                raise StudyInterrupted()
+            child = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
+                                     env=os.environ, start_new_session=True)
+            self._running.add(child)
+        try:
+            code = child.wait()
+        finally:
+            with self._lock:
+                self._running.discard(child)
+        if self.stopping.is_set():
+            raise StudyInterrupted()
+        return code
+
+    def stop(self, *_) -> None:
+        """Starts no more children and sends SIGTERM to the running ones' process groups."""
+        with self._lock:
+            self.stopping.set()
+            for child in self._running:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(child.pid, signal.SIGTERM)
+
+
+CHILDREN = Children()
+
+
 def _logged(command: list[str], folder: Path, what: str) -> None:
-    """Runs `command`, its output appended to the run's `train.log`; raises on failure."""
+    """Runs `command`, its output appended to the run's `train.log`; raises on failure
+    (`StudyInterrupted` when the study is stopping)."""
     with open(folder / "train.log", "a") as log:
-        done = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT, env=os.environ)
-    if done.returncode:
+        returncode = CHILDREN.run(command, log)
+    if returncode:
         tail = (folder / "train.log").read_text().splitlines()[-5:]
         raise RuntimeError(f"{what} failed (exit {done.returncode}); the end of "
                            f"{folder / 'train.log'}:\n" + "\n".join(tail))
@@ -221,7 +267,13 @@ def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict
 
 def load_result(folder: Path) -> dict[str, Any] | None:
     path = folder / RESULT_FILE
-    return json.loads(path.read_text()) if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not JSON ({e}): delete it and rerun the study to evaluate "
+                         "that run again") from None
 
 
 def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir: Path,
@@ -257,9 +309,16 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
     with concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool:
         futures = {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes):
                    (c, s) for c, s in todo}
-        for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures),
-                           desc="study runs", unit="run"):
-            results[futures[future]] = future.result()
+        try:
+            for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures),
+                               desc="study runs", unit="run"):
+                results[futures[future]] = future.result()
+        except StudyInterrupted:
+            pool.shutdown(wait=True, cancel_futures=True)
+            finished = sum(load_result(run_folder(workdir, c, s)) is not None
+                           for c in configs for s in seeds)
+            raise StudyInterrupted(f"{finished} of {len(configs) * len(seeds)} runs finished"
+                                   ) from None
     return [results[c, s] for c in configs for s in seeds]
 
 
@@ -723,10 +782,17 @@ def main(argv: Sequence[str]) -> None:
               "--closed_loop_episodes=0 skips them)", flush=True)
     workdir = Path(FLAGS.workdir).absolute()
     command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])
+    # Ctrl-C or kill: stop the children (each in its own process group), start no other.
+    signal.signal(signal.SIGINT, CHILDREN.stop)
+    signal.signal(signal.SIGTERM, CHILDREN.stop)
     try:
         results = run_study(configs, list(range(FLAGS.seeds)), FLAGS.steps, workdir,
                             FLAGS.override, FLAGS.parallel, FLAGS.closed_loop_episodes,
                             train=not FLAGS.report_only)
+    except StudyInterrupted as stopped:
+        raise SystemExit(f"pi0_armfix.study: stopped; {stopped}. Rerun the same command to go "
+                         "on: finished runs are kept, an interrupted one resumes from its last "
+                         "checkpoint") from None
     except (RuntimeError, ValueError) as err:
         raise SystemExit(f"pi0_armfix.study: {err}") from None
     write_reports(results, workdir, steps=FLAGS.steps, command=command,

@@ -1,8 +1,11 @@
 """The study tool: configs x seeds -> tables with the spread over seeds, resumable."""
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -210,3 +213,45 @@ def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluati
     assert replicates["episodes"] == 3
     for k in study.COMPARED:
         assert replicates[k] == pytest.approx([expected[k]] * 2)
+
+
+SLEEPING_STUDY = """
+import os, sys
+from pathlib import Path
+from pi0_armfix import study
+
+def sleeper(config, seed, steps, folder, overrides):  # a training run that takes its time
+    return [sys.executable, "-c", "import os, time; open(%r, 'w').write(str(os.getpid())); "
+            "time.sleep(120)" % str(Path(folder) / "pid")]
+
+study.train_command = sleeper
+sys.argv = ["study", "--configs=uniform,arm_focused", "--seeds=2", "--steps=3",
+            "--workdir=" + sys.argv[1], "--closed_loop_episodes=0"]
+study.cli()
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_kill_stops_the_study_and_its_children_and_says_how_to_resume(tmp_path,
+                                                                                 signum):
+    script = tmp_path / "sleeping_study.py"
+    script.write_text(SLEEPING_STUDY)
+    workdir = tmp_path / "study"
+    process = subprocess.Popen([sys.executable, str(script), str(workdir)], cwd=tf.REPO_ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(workdir.glob("*/seed_*/pid")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    [pid_file] = list(workdir.glob("*/seed_*/pid"))
+    time.sleep(0.2)  # the pid is written before the child sleeps
+    child = int(pid_file.read_text())
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode != 0
+    assert stderr.strip().splitlines()[-1] == (
+        "pi0_armfix.study: stopped; 0 of 4 runs finished. Rerun the same command to go on: "
+        "finished runs are kept, an interrupted one resumes from its last checkpoint")
+    assert "Traceback" not in stderr
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)
+    assert len(list(workdir.glob("*/seed_*/pid"))) == 1  # no run started after the signal
