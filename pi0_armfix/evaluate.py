@@ -54,7 +54,7 @@ from pi0_armfix.training import sharding as sharding_lib
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
 METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
 STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluations, in eval/
-CLOSED_LOOP_FILE = "closed_loop.json"  # of a closed-loop evaluation, in eval/step_<N>/
+CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_loop_paths`)
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
 
@@ -306,13 +306,27 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
     each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
     the hysteresis `gripper_hysteresis` ((open_above, close_below); None: the run's
-    `eval.gripper_hysteresis`; empty: none); writes `closed_loop[_rtc][_hysteresis].json` and
-    `rollouts[...].png` (against the scripted expert) into `<workdir>/eval/step_<N>/`. With
+    `eval.gripper_hysteresis`; empty: none); writes `closed_loop_<episodes>ep[...].json` and
+    `rollouts_<episodes>ep[...].png` (against the scripted expert; `closed_loop_paths`: named by
+    their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
     `tolerances` (factors other than 1), the same episodes again in the world with its success
     tolerances times each factor: `success_curve` in the summary, `success_curve.png`. Returns
     `(step, summary)` (`sim.rollout.summarize`)."""
+    if episodes < 1:
+        raise ValueError(f"--episodes = {episodes} must be >= 1")
+    if sim_seed < 0:
+        raise ValueError(f"--sim_seed = {sim_seed} must be >= 0 (a world seed)")
+    if n_exec < 0:
+        raise ValueError(f"--n_exec = {n_exec} must be >= 0 (0: half the action horizon)")
+    if any(f <= 0 for f in tolerances):
+        raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
     policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
     run = policy_.run
+    latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
+    results_path, figure_path = closed_loop_paths(
+        run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
+        hysteresis_on=latch is not None, sim_seed=sim_seed)
+    writable_folder(results_path.parent)  # before the rollouts, not after
     if run.layout.real_dim != 23:
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
                          "takes the 23-D B1K action (layout b1k_r1pro)")
@@ -320,9 +334,6 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
         raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
                          "with --rtc: the tail to follow)")
-    if any(f <= 0 for f in tolerances):
-        raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
-    latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
     spec = DemoSpec(seed=sim_seed)
     replanning = ReplanningPolicy(policy_, n_exec, follow_tail, latch)
     records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
@@ -346,13 +357,11 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
             for factor, measured in rollout_lib.success_curve(
                 replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
                 progress=progress and jax.process_index() == 0).items()}
-    results_path, figure_path = closed_loop_paths(run.workdir, run.step, follow_tail,
-                                                  latch is not None)
-    results_path.parent.mkdir(parents=True, exist_ok=True)
-    results_path.write_text(json.dumps(summary, indent=2) + "\n")
+    stats_lib.write_json_atomic(results_path, strict_json(summary))
     if looser:
         rollout_lib.plot_success_curves({"policy": summary["success_curve"]},
-                                        figure_path.with_name("success_curve.png"),
+                                        figure_path.with_name(
+                                            figure_path.name.replace("rollouts", "success_curve")),
                                         f"step {run.step}: {episodes} episodes")
     shown = records[:ROLLOUT_ROWS]
     expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
@@ -365,14 +374,41 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     return run.step, summary
 
 
-def closed_loop_paths(workdir: epath.PathLike, step: int, follow_tail: bool,
-                      hysteresis_on: bool = False) -> tuple[epath.Path, epath.Path]:
-    """`eval/step_<N>/closed_loop.json` and `rollouts.png` of a run (`_rtc` before the suffix
-    for the variant that follows the tail, then `_hysteresis` for the one whose grippers pass
-    the hysteresis)."""
+def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int, n_exec: int = 0,
+                      follow_tail: bool = False, hysteresis_on: bool = False,
+                      sim_seed: int = env_lib.EVAL_SEED) -> tuple[epath.Path, epath.Path]:
+    """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis].json` and the
+    `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
+    asked: 0, half the horizon, is left out; the world seed when not the evaluation's)."""
     out = epath.Path(workdir) / "eval" / f"step_{step}"
-    tag = ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else "")
-    return out / CLOSED_LOOP_FILE.replace(".json", f"{tag}.json"), out / f"rollouts{tag}.png"
+    tag = (f"_{episodes}ep" + (f"_exec{n_exec}" if n_exec else "")
+           + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")
+           + ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else ""))
+    return out / f"{CLOSED_LOOP_STEM}{tag}.json", out / f"rollouts{tag}.png"
+
+
+def writable_folder(folder: epath.Path) -> None:
+    """Creates `folder` and checks that a file can be written there, or raises ValueError naming
+    it (before an evaluation's work, which would otherwise be lost at its end)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / ".write_check"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"cannot write the results into {folder} ({e.strerror or e}); make the "
+                         "run folder writable (or evaluate a copy of it)") from None
+
+
+def strict_json(value: Any) -> Any:
+    """`value` with every non-finite float replaced by None (JSON has no NaN: null)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    return value
 
 
 def main(argv: Sequence[str]) -> None:
@@ -382,17 +418,24 @@ def main(argv: Sequence[str]) -> None:
     console.quiet_library_logging()
     if FLAGS.closed_loop:
         try:
+            try:
+                tolerances = [float(f) for f in FLAGS.tolerances]
+            except ValueError:
+                raise ValueError(f"--tolerances={','.join(FLAGS.tolerances)} must be numbers "
+                                 "(tolerance factors, e.g. 1,2,4)") from None
             step, summary = closed_loop(FLAGS.workdir, FLAGS.step, FLAGS.params,
                                         episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
                                         follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
                                         gripper_hysteresis=FLAGS.gripper_hysteresis,
-                                        tolerances=[float(f) for f in FLAGS.tolerances])
+                                        tolerances=tolerances)
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
         print(rollout_lib.format_summary(summary))
-        results_path, figure_path = closed_loop_paths(FLAGS.workdir, step, FLAGS.rtc,
-                                                      summary["gripper_hysteresis"] is not None)
+        results_path, figure_path = closed_loop_paths(
+            FLAGS.workdir, step, episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
+            follow_tail=FLAGS.rtc, hysteresis_on=summary["gripper_hysteresis"] is not None,
+            sim_seed=FLAGS.sim_seed)
         print(f"results in {results_path}; rollouts in {figure_path}")
         return
     try:

@@ -179,7 +179,8 @@ def closed_loop_metrics(folder: Path, steps: int, episodes: int) -> dict[str, fl
     _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
              f"--step={steps}", "--closed_loop", f"--episodes={episodes}"], folder,
             f"the closed-loop evaluation of {folder}")
-    saved = json.loads((folder / "eval" / f"step_{steps}" / "closed_loop.json").read_text())
+    path, _ = evaluate.closed_loop_paths(folder, steps, episodes=episodes)
+    saved = json.loads(path.read_text())
     return {CLOSED_LOOP + k: v for k, v in saved.items()
             if k.startswith(("success/", "phase_success/", "progress/", "failure/",
                              "gripper_switches/", "seconds_to"))

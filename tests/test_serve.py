@@ -238,7 +238,7 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
     for kind in ("navigation", "manipulation", "task"):
         assert kind in result.stdout
     out = run / "eval" / "step_2"
-    saved = json.loads((out / "closed_loop.json").read_text())
+    saved = json.loads((out / "closed_loop_1ep.json").read_text())
     assert saved["episodes"] == 1 and len(saved["episodes_detail"]) == 1
     assert saved["n_exec"] == 2  # half the tiny preset's horizon of 4
     assert 0.0 <= saved["success/manipulation"] <= 1.0
@@ -248,7 +248,33 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
     assert "phases failed:" in result.stdout
     assert all(p["reason"] or p["success"] for p in saved["episodes_detail"][0]["phases"])
     assert saved["gripper_hysteresis"] is None
-    assert (out / "rollouts.png").stat().st_size > 10_000
+    assert (out / "rollouts_1ep.png").stat().st_size > 10_000
+    if not saved["success/task"]:  # strict JSON: no time to success is null, not NaN
+        assert saved["seconds_to_success"] is None
+
+
+def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_path):
+    paths = {evaluate.closed_loop_paths(tmp_path, 5, episodes=e, n_exec=n, follow_tail=rtc)[0].name
+             for e, n, rtc in ((50, 0, False), (10, 0, False), (50, 4, False), (50, 0, True))}
+    assert paths == {"closed_loop_50ep.json", "closed_loop_10ep.json",
+                     "closed_loop_50ep_exec4.json", "closed_loop_50ep_rtc.json"}
+
+
+@pytest.mark.parametrize("kwargs, message", [({"episodes": 0}, "--episodes = 0 must be >= 1"),
+                                             ({"sim_seed": -1}, "--sim_seed = -1 must be >= 0")])
+def test_closed_loop_settings_are_refused_before_the_policy_loads(kwargs, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        evaluate.closed_loop(tmp_path / "no run here", **kwargs)
+
+
+def test_a_read_only_run_folder_is_refused_before_the_rollouts(run, tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(evaluate.rollout_lib, "rollout", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr(evaluate, "writable_folder", lambda folder: (_ for _ in ()).throw(
+        ValueError(f"cannot write the results into {folder}")))
+    with pytest.raises(ValueError, match="cannot write the results into .*eval/step_2"):
+        evaluate.closed_loop(run, episodes=1, progress=False)
+    assert not calls
 
 
 def test_real_time_chunking_weights_decay_over_the_overlap_to_zero():
@@ -270,9 +296,9 @@ def test_closed_loop_with_real_time_chunking_follows_the_tail(run, monkeypatch):
     _, summary = evaluate.closed_loop(run, episodes=1, follow_tail=True, progress=False)
     assert summary["follow_tail"] is True and summary["n_exec"] == 2
     assert asked[0] is None and all(f.shape == (1, 2, 23) for f in asked[1:])
-    saved = json.loads((run / "eval" / "step_2" / "closed_loop_rtc.json").read_text())
+    saved = json.loads((run / "eval" / "step_2" / "closed_loop_1ep_rtc.json").read_text())
     assert saved["follow_tail"] is True
-    assert (run / "eval" / "step_2" / "rollouts_rtc.png").exists()
+    assert (run / "eval" / "step_2" / "rollouts_1ep_rtc.png").exists()
 
 
 def test_server_latency_benchmark_prints_percentiles(run, cache_dir):  # noqa: F811
@@ -282,3 +308,10 @@ def test_server_latency_benchmark_prints_percentiles(run, cache_dir):  # noqa: F
         text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "round trip per infer: p50" in result.stdout and "p95" in result.stdout
+
+
+def test_an_unwritable_results_folder_is_named(tmp_path):
+    blocker = tmp_path / "eval"
+    blocker.write_text("a file where the folder should be")
+    with pytest.raises(ValueError, match=r"cannot write the results into .*eval/step_2"):
+        evaluate.writable_folder(blocker / "step_2")
