@@ -4,7 +4,11 @@ An experiment file (`configs/arm_focused.py`, ...) calls `get_config(arg)` and c
 `loss` (and, for a few, the `data`) section. `arg` picks the scale:
 
     ''    (no argument)  demo: the `demo` model on the embedded demo dataset, a CPU run of minutes.
-    'b1k'                full pi0 on a LeRobot BEHAVIOR-1K root given by `--config.data.root`.
+    'b1k'                full pi0 on BEHAVIOR-1K 2025 as published (LeRobot v2.1, the 256-D state)
+                         at `--config.data.root`.
+    'b1k2026'            full pi0 on BEHAVIOR-1K 2026 as published (LeRobot v3.0, the 61-D state,
+                         concatenated GOP-8 videos, prompts from meta/tasks.jsonl), the same
+                         recipe with the 2026 state preset; statistics computed from the data.
 
 The config is locked by the entrypoint: every key a run can set exists here, and an unknown key on
 the command line is an error.
@@ -15,7 +19,10 @@ from ml_collections import config_dict
 
 from pi0_armfix.action_space import ActionLayout
 
-SCALES = ("", "b1k")
+SCALES = ("", "b1k", "b1k2026")
+# The state preset of each B1K release (pi0_armfix.data.selection): its 23-D state in the action
+# order, grippers the sum of their two fingers.
+B1K_STATE_PRESETS = {"b1k": "b1k_r1pro", "b1k2026": "b1k2026_r1pro"}
 
 # The B1K R1Pro groups (pi0_armfix.action_space preset "b1k_r1pro"). Group weights name them all:
 # a missing key is an error, never a silent default.
@@ -38,7 +45,7 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
 def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Torso and arm joints as targets relative to the current state; base velocity and grippers
     stay absolute (B1K 2025's winners' representation). The state must be in the action order:
-    B1K's `b1k_r1pro` preset at the b1k scale; at the demo scale the demo's 23-D baseline-order
+    the release's preset at the b1k / b1k2026 scales; at the demo scale the demo's 23-D baseline-order
     state reordered by `b1k_baseline23` (also for a demo written elsewhere by
     `tools.make_demo_dataset`; another dataset names its own preset or `data.state_groups`)."""
     config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
@@ -48,11 +55,12 @@ def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.C
 
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
-    """All keys of a run. `arg`: '' (demo scale) or 'b1k' (full pi0 on a B1K LeRobot root)."""
+    """All keys of a run. `arg`: '' (demo scale), 'b1k' or 'b1k2026' (full pi0 on a B1K 2025 /
+    2026 LeRobot root)."""
     scale = arg or ""
     if scale not in SCALES:
-        raise ValueError(f"config argument {arg!r} is not a scale; use no argument (demo) or "
-                         "':b1k'")
+        raise ValueError(f"config argument {arg!r} is not a scale; use no argument (demo), "
+                         "':b1k' (BEHAVIOR-1K 2025) or ':b1k2026' (BEHAVIOR-1K 2026)")
 
     config = ml_collections.ConfigDict()
     config.seed = 0
@@ -113,7 +121,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.action_key = "action"  # LeRobot: the stored action feature
     config.data.state_key = "observation.state"  # LeRobot: the stored state feature
     # LeRobot: a named selection of the stored state into the action order (pi0_armfix.data.
-    # selection: 'b1k_r1pro' for B1K's 256-D state, 'b1k_baseline23' for the baseline's 23-D
+    # selection: 'b1k_r1pro' for B1K 2025's 256-D state, 'b1k2026_r1pro' for B1K 2026's 61-D,
+    # 'b1k_baseline23' for the baseline's 23-D
     # order); '' = data.state_indices, or on the embedded demo its 'b1k_baseline23'.
     config.data.state_preset = ""
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
@@ -177,13 +186,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.gripper_hysteresis = ()
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
-    if scale == "b1k":
+    if scale in B1K_STATE_PRESETS:
         config.model.preset = "pi0"
         config.model.augment.crop_scale = 0.95  # openpi's train-time augmentation
         config.model.augment.rotate_degrees = 5.0
         config.model.tokenizer = config_dict.placeholder(str)  # PaliGemma's sentencepiece model
         config.data.root = config_dict.placeholder(str)  # required: a LeRobot B1K root
-        config.data.state_preset = "b1k_r1pro"  # B1K 2025's 256-D state -> 23-D, action order
+        config.data.state_preset = B1K_STATE_PRESETS[scale]  # the release's state -> 23-D
         config.data.num_workers = 8
         config.data.prefetch = 4
         config.train.total_steps = 30_000

@@ -334,6 +334,14 @@ def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
     if loss_lib.loss_strategy(loss).config_weights == "group":
         loss += " " + ", ".join(f"{g} {w:g}" for g, w in config.loss.group_weights.items())
     axes = ", ".join(f"{name}={size}" for name, size in mesh.shape.items())
+    selection = getattr(source, "state_selection", None)
+    preset = selection.preset if selection is not None else None
+    state = (f"{selection.stored_width}-D {config.data.state_key!r} -> state preset "
+             f"{preset.name!r} ({preset.width}-D in the action order"
+             + (f"; written for {preset.dataset})" if preset.dataset else ")")
+             if preset is not None else f"{source.state_width}-D, as stored"
+             + (" (data.state_indices)" if config.data.get("state_indices") else ""))
+    video = source.video_access() if hasattr(source, "video_access") else ""
     return [
         f"run       {workdir}",
         f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "
@@ -343,6 +351,8 @@ def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
         f"data      {root}{' (the embedded demo)' if not config.data.root else ''}: "
         f"{source.num_episodes} episodes ({held_out} held out), {frames:,} frames at "
         f"{source.fps:g} fps, cameras {dict(source.cameras) or 'none'}",
+        f"state     {state}",
+        *([f"video     {video}"] if video else []),
         f"loss      {loss}",
         f"schedule  {config.train.total_steps} steps of batch {config.train.batch_size}, lr "
         f"{config.optim.lr:g}; a record every {config.train.log_every} steps, a checkpoint every "

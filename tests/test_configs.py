@@ -54,7 +54,7 @@ def test_every_config_file_is_listed():
     assert found == set(CONFIGS)
 
 
-@pytest.mark.parametrize("scale", [None, "b1k"])
+@pytest.mark.parametrize("scale", [None, "b1k", "b1k2026"])
 @pytest.mark.parametrize("name", CONFIGS)
 def test_config_has_exactly_the_keys_of_the_base(name, scale):
     assert flat_keys(load(name, scale)) == flat_keys(base.get_config(scale))
@@ -132,7 +132,8 @@ def test_only_the_balanced_curriculum_and_delta_configs_change_the_data():
         assert load(name).data == base.get_config().data
 
 
-@pytest.mark.parametrize("scale, state_preset", [(None, "b1k_baseline23"), ("b1k", "b1k_r1pro")])
+@pytest.mark.parametrize("scale, state_preset", [(None, "b1k_baseline23"), ("b1k", "b1k_r1pro"),
+                                                 ("b1k2026", "b1k2026_r1pro")])
 def test_delta_configs_make_torso_and_arms_relative_through_a_state_preset(scale, state_preset):
     for name in DELTA_CONFIGS:
         data = load(name, scale).data

@@ -8,14 +8,17 @@ camera, aliases in priority order:
 
   | batch camera        | aliases, highest priority first                                   |
   |---------------------|-------------------------------------------------------------------|
-  | left_wrist_0_rgb    | left_wrist, wrist_left, cam_left_wrist, leftwrist, left_hand       |
-  | right_wrist_0_rgb   | right_wrist, wrist_right, cam_right_wrist, rightwrist, right_hand  |
+  | left_wrist_0_rgb    | left_wrist, wrist_left, cam_left_wrist, leftwrist, left_hand,      |
+  |                     | left_realsense                                                    |
+  | right_wrist_0_rgb   | right_wrist, wrist_right, cam_right_wrist, rightwrist, right_hand, |
+  |                     | right_realsense                                                   |
   | left_wrist_0_rgb    | wrist, wrist_image, hand (a single wrist camera: openpi's DROID    |
   |                     | convention), when no left wrist matched                            |
   | base_0_rgb          | head, cam_high, ego_view, base, front, top, overhead, exterior,    |
-  |                     | scene, main, image                                                 |
+  |                     | scene, main, image, zed_link                                       |
 
-B1K (`observation.images.rgb.head` / `.left_wrist` / `.right_wrist`), ALOHA (`cam_high`,
+B1K 2025 (`observation.images.rgb.head` / `.left_wrist` / `.right_wrist`), B1K 2026
+(`observation.rgb.zed_link_camera_0`, `.left_realsense_link_camera_0`, `.right_...`), ALOHA (`cam_high`,
 `cam_left_wrist`, `cam_right_wrist`; `cam_low` is left out), GR00T-style `ego_view`, LIBERO-style
 `image` + `wrist_image` all match. For a batch camera, the stored name with the highest-priority
 alias wins; two names at the same priority are an error listing both. Names containing "depth",
@@ -40,12 +43,12 @@ _NOT_RGB = ("depth", "seg", "mask")
 # (batch camera, aliases in priority order); a later rule only fills a camera still unmatched.
 ALIASES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("left_wrist_0_rgb", ("left_wrist", "wrist_left", "cam_left_wrist", "leftwrist",
-                          "left_hand")),
+                          "left_hand", "left_realsense")),
     ("right_wrist_0_rgb", ("right_wrist", "wrist_right", "cam_right_wrist", "rightwrist",
-                           "right_hand")),
+                           "right_hand", "right_realsense")),
     ("left_wrist_0_rgb", ("wrist", "wrist_image", "hand")),
     ("base_0_rgb", ("head", "cam_high", "ego_view", "base", "front", "top", "overhead",
-                    "exterior", "scene", "main", "image")),
+                    "exterior", "scene", "main", "image", "zed_link")),
 )
 
 

@@ -35,7 +35,9 @@ episode, the row and the file otherwise (it would read the next episode's frames
 Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
 
 The reader takes an episode's prompt from the `tasks` list of its own metadata record (its first
-task); the tasks files map `task_index` to the same strings and are written but not needed to read.
+task). Where that is a task *name* rather than a prompt (B1K 2026 stores the snake_case name,
+`turning_on_radio`), `meta/tasks.jsonl` rows `{"task_name": name, "task": prompt}` give the prompt
+(B1K 2025 writes the same rows); a name without such a row is its own prompt.
 
 `pi0_armfix.data.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource` reads
 them: `iter_blocks` streams actions/state one parquet row group at a time without per-row Python
@@ -69,7 +71,7 @@ from pi0_armfix.cache import digest
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.frame_store import FrameStore, FrameColumn
 from pi0_armfix.data.files import lfs_pointer_message, unreadable
-from pi0_armfix.data.video import TIME_EPSILON_FRAMES, VideoDecoder
+from pi0_armfix.data.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
 
 ACTION = "action"
 STATE = "observation.state"
@@ -254,6 +256,20 @@ def _episodes_v3(root: Path, info: Mapping[str, Any], video_keys: Sequence[str])
     return sorted(episodes, key=lambda e: e.index)
 
 
+def _with_prompts(episodes: list[_Episode], root: Path) -> list[_Episode]:
+    """`episodes` whose task is a task name listed in `meta/tasks.jsonl` with a prompt, given
+    that prompt instead."""
+    path = root / "meta" / "tasks.jsonl"
+    if not path.is_file():
+        return episodes
+    prompts = {}
+    for row in _read_jsonl(path):
+        name, prompt = row.get("task_name"), row.get("task")
+        if isinstance(name, str) and isinstance(prompt, str) and prompt.strip():
+            prompts[name] = prompt
+    return [dataclasses.replace(e, task=prompts.get(e.task, e.task)) for e in episodes]
+
+
 class LeRobotSource:
     """A LeRobot dataset root (v2.0, v2.1 or v3.0, detected from meta/info.json).
 
@@ -338,7 +354,7 @@ class LeRobotSource:
         self._camera_kind = {name: stored[name] for name in self.cameras.values()}
         video_keys = [name for name, kind in self._camera_kind.items() if kind == "video"]
         load = _episodes_v2 if major == 2 else _episodes_v3
-        self._episodes = load(self.root, info, video_keys)
+        self._episodes = _with_prompts(load(self.root, info, video_keys), self.root)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
@@ -436,6 +452,24 @@ class LeRobotSource:
                             "set data.video_tolerance_frames=1 to read the nearest frame")
                 finally:
                     decoder.close()
+
+    def video_access(self) -> str:
+        """How the run will read its videos, for the banner: the first matched video camera's
+        codec, size and keyframe interval (demuxed from its first packets), and what that means
+        for random access; '' without video cameras."""
+        videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
+        if not videos:
+            return ""
+        path = self._episodes[0].videos[videos[0]][0]
+        if not path.is_file():
+            return f"{videos[0]}: missing file {path}"
+        codec, height, width, interval = keyframe_interval(path)
+        if interval is None:
+            access = ("one keyframe in its first 256 frames: each random read decodes from the "
+                      "episode's start (long GOP; tools.reencode_videos makes it cheap)")
+        else:
+            access = f"a keyframe every {interval} frames: random access decodes at most that many"
+        return f"{codec} {height}x{width} ({videos[0]}), {access}"
 
     def _check_row_rate(self, times: np.ndarray, episode: _Episode) -> None:
         """The declared fps against the rows' timestamps of one episode (their median step)."""

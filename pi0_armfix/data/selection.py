@@ -20,12 +20,28 @@ selection once (`data.state_preset`), with its groups, instead of hand-written i
   The gripper width is the sum of the two finger joint positions, the quantity the official
   baseline's 23-D state carries (its published stats put both widths in [0, 0.1]).
 
+`b1k2026_r1pro` (61-D B1K 2026 `observation.state`, the "compact proprio" -> 23-D, the same
+action order; its index map in `tests/reference/b1k_2026_dataset.md`):
+
+  | state dims | group         | stored dims (61-D)                                    |
+  |------------|---------------|-------------------------------------------------------|
+  | 0:3        | base          | 0:3 base_qvel (robot-local x, y, yaw velocity)        |
+  | 3:7        | torso         | 53:57 trunk_qpos                                      |
+  | 7:14       | left_arm      | 3:10 arm_left_qpos                                    |
+  | 14         | left_gripper  | 24 + 25: sum of the two finger qpos                   |
+  | 15:22      | right_arm     | 28:35 arm_right_qpos                                  |
+  | 22         | right_gripper | 49 + 50: sum of the two finger qpos                   |
+
+  This is the 23-D state the 2026 π0.5 baseline builds (each gripper the sum of its fingers).
+
 `b1k_baseline23` (a 23-D state in the official baseline's order -> the action order): the
 baseline (and the demo dataset) store base 0:3, torso 3:7, left arm 7:14, right arm 14:21 and
 both gripper widths last (21, 22); this preset moves the left gripper to 14 and the right arm to
 15:22.
 
-`data.state_indices` / `data.action_indices` are plain index selections for any other dataset.
+`data.state_indices` / `data.action_indices` are index selections for any other dataset; an
+entry of `data.state_indices` that is itself a list of dims is their sum (one state dim: a
+gripper's two fingers, say): `(0, 1, 2, (24, 25))`.
 """
 
 from __future__ import annotations
@@ -53,6 +69,7 @@ class StatePreset:
     name: str
     stored_width: int
     parts: tuple[StatePart, ...]
+    dataset: str = ""  # the dataset it was written for (the run's banner names it)
 
     @property
     def width(self) -> int:
@@ -81,7 +98,15 @@ STATE_PRESETS: dict[str, StatePreset] = {
         StatePart("left_gripper", _span(193, 195), "sum"),
         StatePart("right_arm", _span(197, 204)),
         StatePart("right_gripper", _span(232, 234), "sum"),
-    )),
+    ), "BEHAVIOR-1K 2025 (v2.1, 256-D state)"),
+    "b1k2026_r1pro": StatePreset("b1k2026_r1pro", 61, (
+        StatePart("base", _span(0, 3)),
+        StatePart("torso", _span(53, 57)),
+        StatePart("left_arm", _span(3, 10)),
+        StatePart("left_gripper", _span(24, 26), "sum"),
+        StatePart("right_arm", _span(28, 35)),
+        StatePart("right_gripper", _span(49, 51), "sum"),
+    ), "BEHAVIOR-1K 2026 (v3.0, 61-D state)"),
     "b1k_baseline23": StatePreset("b1k_baseline23", 23, (
         StatePart("base", _span(0, 3)),
         StatePart("torso", _span(3, 7)),
@@ -106,7 +131,7 @@ class Selection:
 
     field: str
     stored_width: int
-    indices: tuple[int, ...] | None = None
+    indices: tuple[int | tuple[int, ...], ...] | None = None  # a tuple entry: the sum of dims
     preset: StatePreset | None = None
 
     @property
@@ -127,7 +152,12 @@ class Selection:
                        else values[:, list(p.dims)].sum(1, keepdims=True)
                        for p in self.preset.parts]
             return np.concatenate(columns, axis=1)
-        return values if self.indices is None else values[:, list(self.indices)]
+        if self.indices is None:
+            return values
+        if all(isinstance(i, int) for i in self.indices):
+            return values[:, list(self.indices)]
+        return np.stack([values[:, list(i)].sum(1) if isinstance(i, tuple) else values[:, i]
+                         for i in self.indices], axis=1)
 
 
 def make_selection(stored_width: int, *, indices: Sequence[int] | None = None,
@@ -159,12 +189,22 @@ def make_selection(stored_width: int, *, indices: Sequence[int] | None = None,
         return Selection(field, stored_width, preset=chosen)
     if not indices:
         return Selection(field, stored_width)
-    chosen = np.asarray(indices)
-    if chosen.ndim != 1 or not np.issubdtype(chosen.dtype, np.integer) or not (
-            (chosen >= 0) & (chosen < stored_width)).all():
+
+    def dim(i):
+        if isinstance(i, (int, np.integer)) and not isinstance(i, bool) and 0 <= i < stored_width:
+            return int(i)
         raise ValueError(f"{field}={tuple(indices)} must be dims of {feature!r}, which has "
-                         f"{stored_width} dims in {where}")
-    return Selection(field, stored_width, indices=tuple(int(i) for i in chosen))
+                         f"{stored_width} dims in {where}" + (
+                             " (a list entry sums its dims: state only)"
+                             if "state" in field else ""))
+
+    chosen = []
+    for i in indices:
+        if isinstance(i, (list, tuple)) and "state" in field and len(i):
+            chosen.append(tuple(dim(j) for j in i))
+        else:
+            chosen.append(dim(i))
+    return Selection(field, stored_width, indices=tuple(chosen))
 
 
 def presets_for(stored_width: int) -> list[str]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import fractions
+import itertools
 import math
 from pathlib import Path
 
@@ -165,6 +166,22 @@ class VideoDecoder:
             start = float(stream.start_time * stream.time_base) if stream.start_time else 0.0
             return start + (stream.frames - 1) / self.fps
         return None
+
+
+def keyframe_interval(path: Path, packets: int = 256) -> tuple[str, int, int, int | None]:
+    """`(codec, height, width, frames between keyframes)` of an mp4's video stream, from its
+    first `packets` packets (demuxed, not decoded); the interval is None when they hold one
+    keyframe only (a long GOP: a random read decodes from far back)."""
+    import av
+
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        codec = stream.codec_context.name
+        height, width = stream.codec_context.height, stream.codec_context.width
+        keys = [i for i, packet in enumerate(itertools.islice(container.demux(stream), packets))
+                if packet.is_keyframe]
+    interval = int(np.median(np.diff(keys))) if len(keys) > 1 else None
+    return codec, height, width, interval
 
 
 class VideoWriter:
