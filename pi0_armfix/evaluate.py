@@ -231,6 +231,8 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     Returns `(step, metrics, layout)`."""
     run = inference.restore_run(workdir, step, params_name)
     workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
+    out = workdir / "eval" / f"step_{step}"
+    writable_folder(out)  # before the sampling, not after
     model_config, params = run.model_config, run.params
     mesh = sharding_lib.make_mesh(1)
     source = sources.open_source(config.data, layout)
@@ -241,8 +243,6 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                               source=source, noise_factor=inference.run_noise_factor(
                                   workdir, config, layout, model_config))
         metrics, predicted, true, sums = evaluator(params)
-    out = workdir / "eval" / f"step_{step}"
-    out.mkdir(parents=True, exist_ok=True)
     heldout_lib.save_chunk_sums(out / heldout_lib.CHUNK_SUMS_FILE, sums)
     # Strict JSON: a metric with nothing to measure (NaN) is null.
     (out / METRICS_FILE).write_text(json.dumps(

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -119,15 +120,33 @@ class RestoredRun:
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema"
                 ) -> RestoredRun:
     """The checkpoint of `step` (latest if None) of a run folder, on one device. `params_name`:
-    "ema" (the EMA params when the run kept them, else the params) or "params"."""
+    "ema" (the EMA params when the run kept them, else the params) or "params". Only the params
+    are read. A damaged latest checkpoint falls back to the newest older one that reads (said on
+    stderr); a damaged `step` asked for is a ValueError naming the steps that read."""
     workdir = epath.Path(workdir)
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
-    step = ckpts.latest_step() if step is None else step
-    if step is None or step not in ckpts.all_steps():
+    steps = ckpts.all_steps()
+    if step is not None and step not in steps or not steps:
         raise ValueError(f"{workdir / 'checkpoints'} has no checkpoint "
-                         f"{'at all' if step is None else f'of step {step}'} "
-                         f"(steps: {ckpts.all_steps()})")
-    state, norm_stats, config = ckpts.restore_for_eval(step, sharding_lib.make_mesh(1))
+                         f"{'at all' if not steps else f'of step {step}'} (steps: {steps})")
+    mesh = sharding_lib.make_mesh(1)
+    damaged = []
+    for candidate in ([step] if step is not None else reversed(steps)):
+        try:
+            state, norm_stats, config = ckpts.restore_for_eval(candidate, mesh)
+        except checkpoint.DamagedCheckpointError as e:
+            damaged.append(e)
+            continue
+        if damaged:
+            print(f"warning: {damaged[0]}; evaluating step {candidate}, the newest that reads",
+                  file=sys.stderr)
+        step = candidate
+        break
+    else:
+        readable = "" if step is None else " (--step: another of " + str(steps) + ")"
+        raise ValueError("; ".join(str(e) for e in damaged)
+                         + f": no checkpoint to evaluate{readable}. Restore the files or "
+                         "train on to write a new one")
     use_ema = params_name == "ema" and bool(state.get("ema_params"))
     return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
                        model_config_lib.from_model_config(config.model),

@@ -14,8 +14,8 @@ import pytest
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from configs import base
-from pi0_armfix import train
-from pi0_armfix.training import checkpoint, fingerprint, preemption
+from pi0_armfix import inference, train
+from pi0_armfix.training import checkpoint, fingerprint, preemption, sharding
 
 
 def _config(config_module=base, **overrides):
@@ -391,3 +391,26 @@ def test_an_arm_heavy_list_with_ids_the_dataset_lacks_is_refused_naming_them(tmp
                        match=rf"data.arm_heavy_episodes \({listed}\) lists 2 episode\(s\) that .* "
                              r"does not have \(ids 41, 97\): it was made for other data"):
         train.train_and_evaluate(config, str(tmp_path / "run"))
+
+
+# ---------------------------------------------------------------- evaluation of a damaged run
+
+def _damage_state(step_dir):
+    next(p for p in (step_dir / "state" / "d").iterdir()).unlink()
+
+
+def test_evaluation_of_a_damaged_latest_checkpoint_falls_back_to_the_previous_step(
+        finished_run, tmp_path, capsys):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    _damage_state(workdir / "checkpoints" / "4")
+    run = inference.restore_run(workdir)
+    assert run.step == 2
+    assert "checkpoints/4 is damaged" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"checkpoints/4 is damaged .*--step: another of \[2, 4\]"):
+        inference.restore_run(workdir, step=4)
+
+
+def test_evaluation_restores_the_params_and_not_the_optimizer_state(finished_run):
+    ckpts = checkpoint.Checkpoints(finished_run[0] / "checkpoints", read_only=True)
+    state, _, _ = ckpts.restore_for_eval(4, sharding.make_mesh(1))
+    assert set(state) <= set(checkpoint.EVAL_ITEMS) and "params" in state

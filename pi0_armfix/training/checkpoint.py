@@ -101,6 +101,9 @@ def drop_closed_loop_noise() -> None:
     sys.excepthook, sys.unraisablehook = quiet_excepthook, quiet_unraisablehook
 
 
+EVAL_ITEMS = ("params", "ema_params")  # what an evaluation restores of a train state
+
+
 class Checkpoints:
     """The checkpoints of one run folder.
 
@@ -282,18 +285,37 @@ class Checkpoints:
 
     def restore_for_eval(self, step: int, mesh: jax.sharding.Mesh
                          ) -> tuple[dict[str, Any], dict[str, Any], ml_collections.ConfigDict]:
-        """The saved state tree (as nested dicts, sharded by the rule table on `mesh`), norm stats
-        and config of `step`, without a run's model or data to build a target from."""
-        metadata = self._manager.item_metadata(step)["state"]
-        abstract = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype), metadata)
-        abstract = jax.tree.map(
-            lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
-            abstract, sharding_lib.tree_shardings(abstract, mesh))
-        restored = self._manager.restore(step, args=ocp.args.Composite(
-            state=ocp.args.StandardRestore(abstract),
-            norm_stats=ocp.args.JsonRestore(),
-            config=ocp.args.JsonRestore(),
-        ))
+        """The params (and EMA params, when kept) of `step` as nested dicts sharded by the rule
+        table on `mesh`, its norm stats and config, without a run's model or data to build a
+        target from, and without the optimizer state an evaluation never uses.
+
+        Raises:
+          DamagedCheckpointError: a file of the checkpoint is missing or unreadable.
+        """
+        try:
+            # The state item read as a plain PyTree (the format the train state is saved in),
+            # so that only the params are restored.
+            reader = ocp.CheckpointManager(
+                self.directory, options=ocp.CheckpointManagerOptions(read_only=True,
+                                                                     create=False),
+                item_handlers={"state": ocp.PyTreeCheckpointHandler(),
+                               "norm_stats": ocp.JsonCheckpointHandler(),
+                               "config": ocp.JsonCheckpointHandler()})
+            metadata = reader.item_metadata(step)["state"]
+            wanted = {k: metadata[k] for k in EVAL_ITEMS if k in metadata and metadata[k]}
+            abstract = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype), wanted)
+            abstract = jax.tree.map(
+                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                abstract, sharding_lib.tree_shardings(abstract, mesh))
+            restored = reader.restore(step, args=ocp.args.Composite(
+                state=ocp.args.PyTreeRestore(
+                    abstract, restore_args=ocp.checkpoint_utils.construct_restore_args(abstract),
+                    partial_restore=True),
+                norm_stats=ocp.args.JsonRestore(),
+                config=ocp.args.JsonRestore(),
+            ))
+        except Exception as e:  # noqa: BLE001 - tensorstore, json and os errors alike
+            raise DamagedCheckpointError(self.directory / str(step), e) from e
         return (restored["state"], restored["norm_stats"],
                 ml_collections.ConfigDict(restored["config"]))
 
