@@ -2,6 +2,7 @@
 
 import os
 import pickle
+import shutil
 
 import numpy as np
 import pyarrow as pa
@@ -275,3 +276,17 @@ def test_nan_in_the_actions_is_named_when_the_frame_store_is_built(tmp_path):
         source.load_table(images=False)
     assert not [p for p in (tmp_path / "cache" / "frames").iterdir()
                 if not p.name.startswith(".")]
+
+
+def test_a_killed_builds_staging_folder_is_removed_by_the_next_build(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3, cameras={}), "v2.1")
+    source = LeRobotSource(root, LAYOUT)
+    store = FrameStore.open(source, progress=False)
+    # What SIGKILL during a first build leaves beside the store (no finally ran).
+    stale = store.root.parent / f".{store.root.name}.partial-killed"
+    stale.mkdir()
+    (stale / "state.npy").write_bytes(b"\0" * 1024)
+    shutil.rmtree(store.root)
+    FrameStore.open(LeRobotSource(root, LAYOUT), progress=False)
+    assert not stale.exists()
+    assert [p.name for p in store.root.parent.iterdir() if ".partial-" in p.name] == []

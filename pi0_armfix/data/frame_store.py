@@ -23,6 +23,7 @@ selected dim per frame plus 8 per frame for timestamps (B1K 2025, 23 + 23 dims: 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -217,6 +218,11 @@ def _build(source, identity: dict[str, Any], root: Path, progress: bool) -> None
     total = int(lengths.sum())
     keys = [k for k in COLUMNS if k in source.block_keys]
     root.parent.mkdir(parents=True, exist_ok=True)
+    # Under the build lock no other process builds this store: a staging folder of it is what a
+    # killed build left (as large as the store itself).
+    for stale in root.parent.glob(f".{root.name}.partial-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+        logging.warning("removed %s, a frame cache a killed build left unfinished", stale)
     staging = Path(tempfile.mkdtemp(prefix=f".{root.name}.partial-", dir=root.parent))
     files: dict[str, Any] = {}
     try:
