@@ -188,9 +188,11 @@ class RunPolicy:
                                    else source.state_width)
         state_width = self.selection.width if self.selection is not None else source.state_width
         norm_mode = model_config_lib.norm_mode(config)
-        self.state_norm = transforms.Normalizer.from_stats(
-            stats_lib.fit_width(run.norm_stats["state"], state_width, "norm stats 'state'"),
-            norm_mode)
+        state_stats = stats_lib.fit_width(run.norm_stats["state"], state_width,
+                                          "norm stats 'state'")
+        self.state_norm = transforms.Normalizer.from_stats(state_stats, norm_mode)
+        self.token_state = functools.partial(transforms.openpi_normalize, stats=state_stats,
+                                             mode=norm_mode)
         self.action_norm = batching.action_normalizer(run.norm_stats, layout.real_dim, norm_mode,
                                                       self.horizon)
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
@@ -270,7 +272,9 @@ class RunPolicy:
         stored = np.stack([self._state(o) for o in observations])
         state = self.selection(stored) if self.selection is not None else stored
         normalized = self.state_norm(state)
-        tokens, masks = self.tokens([self._prompt(o) for o in observations], normalized)
+        tokens, masks = self.tokens([self._prompt(o) for o in observations],
+                                    self.token_state(state) if self.tokens.state_in_prompt
+                                    else normalized)
         batch_size = len(observations)
         images = {camera: self._fit(np.stack([self._image(o, key) for o in observations]))
                   for key, camera in self.keys.cameras.items()}

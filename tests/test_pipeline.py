@@ -20,6 +20,7 @@ from pi0_armfix.data import batching, pipeline, sources, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.model import tokenizer as tokenizer_lib
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 REPO = Path(__file__).resolve().parents[1]
@@ -444,6 +445,25 @@ def test_a_state_in_prompt_tokenizer_gets_each_samples_normalized_state():
                                         action_horizon=4, tokenize=tokenizer)
     batch = transform(np.array([0, 5, 9]))
     assert len(tokenizer.states) == 3
+    # The same normalization, in float64 for the tokens (openpi's arithmetic, next test).
     np.testing.assert_allclose(np.stack(tokenizer.states),
-                               batch["state"][:, :table.state.shape[1]], rtol=1e-6)
+                               batch["state"][:, :table.state.shape[1]], atol=1e-6)
     assert tokenizer.states[0].shape == (table.state.shape[1],)  # real dims, not padded
+
+
+def test_a_state_in_prompt_tokenizer_gets_openpis_float64_normalization_exactly():
+    table = frame_table()
+    stats = table_stats(table)
+    stats["state"] = stats["state"].replace(q99=stats["state"].q01.copy())  # constant dims too
+    tokenizer = StateTokenizer()
+    transform = batching.BatchTransform(table, LAYOUT, norm_stats=stats, norm_mode="quantile",
+                                        action_horizon=4, tokenize=tokenizer)
+    frames = np.array([0, 5, 9])
+    transform(frames)
+    x = np.asarray(table.state[frames], np.float64)
+    q01, q99 = stats["state"].q01, stats["state"].q99
+    openpi = (x - q01) / (q99 - q01 + 1e-6) * 2.0 - 1.0  # openpi's Normalize, quantile
+    got = np.stack(tokenizer.states)
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, openpi)
+    np.testing.assert_array_equal(tokenizer_lib.state_bins(got), tokenizer_lib.state_bins(openpi))

@@ -7,6 +7,7 @@ batch needs), the chunk gather, delta actions, normalization and padding; then t
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -64,11 +65,12 @@ class PromptTokens:
 
     def __init__(self, tokenize: Tokenize):
         self.tokenize = tokenize
+        self.state_in_prompt = bool(getattr(tokenize, "state_in_prompt", False))
         self._cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, prompts: Sequence[str], state: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-        if getattr(self.tokenize, "state_in_prompt", False):
+        if self.state_in_prompt:
             tokens, masks = zip(*map(self.tokenize, prompts, state))
         else:
             tokens, masks = zip(*map(self._cached, prompts))
@@ -123,16 +125,18 @@ class BatchTransform:
         self.action_norm = action_normalizer(norm_stats, layout.real_dim, norm_mode,
                                              self.horizon)
         self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)
+        self.token_state = functools.partial(transforms.openpi_normalize, stats=state,
+                                             mode=norm_mode)
 
     def __call__(self, frames: np.ndarray) -> dict[str, Any]:
         """frames: `[b]` frame indices of the table -> batch (docs/design.md §4)."""
         frames = np.asarray(frames, np.int64)
         index, is_pad = transforms.chunk_indices(frames, self.table.episode_starts, self.horizon)
         actions = self.table.actions[index]  # [b, H, A]
-        state = self.table.state[frames]  # [b, S]
+        raw_state = self.table.state[frames]  # [b, S]
         if self.delta_mask is not None:
-            actions = transforms.to_delta(actions, state, self.delta_mask)
-        state = self.state_norm(state)
+            actions = transforms.to_delta(actions, raw_state, self.delta_mask)
+        state = self.state_norm(raw_state)
         batch = {
             "state": transforms.pad_last(state, self.action_dim),
             "actions": transforms.pad_last(self.action_norm(actions), self.action_dim),
@@ -140,7 +144,8 @@ class BatchTransform:
         }
         if not self.actions_only:
             prompts = [self.table.tasks[e] for e in self.table.episode_of_frame(frames)]
-            batch["tokenized_prompt"], batch["tokenized_prompt_mask"] = self.tokens(prompts, state)
+            batch["tokenized_prompt"], batch["tokenized_prompt_mask"] = self.tokens(
+                prompts, self.token_state(raw_state) if self.tokens.state_in_prompt else state)
             batch["image"], batch["image_mask"] = self._images(frames)
         return batch
 

@@ -66,6 +66,19 @@ class Normalizer:
         return (y - self.shift) / self.scale + self.offset
 
 
+def openpi_normalize(x: np.ndarray, stats: NormStats, mode: str) -> np.ndarray:
+    """`[..., D]` raw -> normalized exactly as openpi computes it: float64, `(x - q01) / (q99 -
+    q01 + 1e-6) * 2 - 1` or `(x - mean) / (std + 1e-6)`, with no constant-dim rule (a constant
+    dim lands where openpi's arithmetic puts it). What pi0.5 digitizes into 256 bins for its
+    prompt's state tokens, where float32 rounding moves values across a bin edge."""
+    x = np.asarray(x, np.float64)
+    if mode == "quantile":
+        return (x - stats.q01) / (stats.q99 - stats.q01 + EPS) * 2.0 - 1.0
+    if mode == "zscore":
+        return (x - stats.mean) / (stats.std + EPS)
+    raise ValueError(f"data.norm must be one of {NORM_MODES}, got {mode!r}")
+
+
 def pad_last(x: np.ndarray, width: int) -> np.ndarray:
     """Zero-pads the last axis of `x` `[..., D]` to `[..., width]`."""
     x = np.asarray(x)
