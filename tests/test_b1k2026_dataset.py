@@ -5,6 +5,8 @@ evaluates on it with a banner that names the release, the state preset and the v
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -105,3 +107,15 @@ def test_the_b1k2026_scale_is_the_b1k_recipe_with_the_2026_state_preset():
     assert selection.state_preset(new.data) == "b1k2026_r1pro"
     new.data.state_preset = old.data.state_preset
     assert new == old
+
+
+def test_a_download_of_a_few_tasks_reads_just_those_tasks_episodes(b1k2026, tmp_path):
+    root, _ = b1k2026
+    subset = shutil.copytree(root, tmp_path / "two-tasks")
+    for folder in (subset / "data" / "chunk-001", subset / "meta" / "episodes" / "chunk-001",
+                   *subset.glob("videos/*/chunk-001")):
+        shutil.rmtree(folder)
+    source = LeRobotSource(subset, LAYOUT, state_preset="b1k2026_r1pro")
+    assert list(source.episode_index) == [0, 1, 2]
+    source.probe(3)
+    assert source.load_table().num_episodes == 3
