@@ -99,8 +99,10 @@ class ActionLayout:
                 raise ValueError(f"{field} must be a positive int, got {value!r}")
         if self.real_dim > self.action_dim:
             raise ValueError(
-                f"real_dim {self.real_dim} > action_dim {self.action_dim}: the real actions do not "
-                "fit into the model's action vector")
+                f"layout.real_dim {self.real_dim} > layout.action_dim {self.action_dim}: the real "
+                "actions do not fit into the model's action vector; set layout.action_dim and "
+                f"model.action_dim to {self.real_dim} or more (pretrained pi0 params need 32: "
+                "keep fewer dims with data.action_indices)")
         if not groups:
             raise ValueError("groups is empty: a layout needs at least one group")
         for name, (start, stop) in groups.items():

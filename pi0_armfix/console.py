@@ -1,8 +1,11 @@
-"""What the command-line entrypoints print: quiet library logging unless asked for."""
+"""What the command-line entrypoints print: quiet library logging unless asked for, and a user's
+error as one line."""
 
 from __future__ import annotations
 
+import contextlib
 import logging as std_logging
+from collections.abc import Iterator
 
 from absl import flags, logging
 
@@ -16,3 +19,13 @@ def quiet_library_logging() -> None:
         return
     logging.set_verbosity(logging.WARNING)
     std_logging.getLogger("absl").addFilter(lambda record: "/orbax/" not in record.pathname)
+
+
+@contextlib.contextmanager
+def user_errors(program: str) -> Iterator[None]:
+    """A ValueError (every user-caused error of the library: config, layout, data, checkpoint)
+    ends `program` with its one-line message, not a traceback."""
+    try:
+        yield
+    except ValueError as e:
+        raise SystemExit(f"{program}: {e}") from None

@@ -72,7 +72,8 @@ def test_empty_slice_names_the_group():
 
 
 def test_real_dim_above_action_dim_names_both():
-    _raises(r"real_dim 40 > action_dim 32", lambda: ActionLayout({"a": (0, 3)}, real_dim=40))
+    _raises(r"layout.real_dim 40 > layout.action_dim 32.*set layout.action_dim and model.action_dim",
+            lambda: ActionLayout({"a": (0, 3)}, real_dim=40))
 
 
 def test_unknown_preset_names_it():

@@ -7,14 +7,18 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
+import subprocess
+import sys
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 import b1k_fixture
 import train_fixtures as tf
 from train_fixtures import cache_dir  # noqa: F401  (pytest fixture)
-from configs import base
+from configs import arm_curriculum, base
 from data_fixtures import identify_frame, make_episodes, write_dataset
 from pi0_armfix import evaluate, train
 from pi0_armfix.action_space import ActionLayout
@@ -253,16 +257,32 @@ def test_missing_cameras_are_named_with_the_datasets_own_cameras():
 
 @pytest.mark.parametrize("target", ["data/task-0000/episode_00000010.parquet",
                                     "videos/task-0000/observation.images.rgb.head/"
-                                    "episode_00000010.mp4"])
+                                    "episode_00000010.mp4", "meta/episodes.jsonl"])
 def test_git_lfs_pointer_files_are_named_as_such(tmp_path, target):
     root = tmp_path / "b1k"
     b1k_fixture.write_b1k_dataset(root, lengths=(6, 6, 6, 6, 6, 6))
     (root / target).write_text("version https://git-lfs.github.com/spec/v1\n"
                                "oid sha256:4d7a2146\nsize 1234567\n")
     config = config_for(root, data__state_preset="b1k_r1pro")
-    source = sources.open_source(config.data, LAYOUT)
-    with pytest.raises(ValueError, match=r"is a git-LFS pointer file.*git lfs pull"):
-        dataset_lib.check_data(config, LAYOUT, source)
+    with pytest.raises(ValueError, match=rf"{target} is a git-LFS pointer file.*git lfs pull"):
+        dataset_lib.check_data(config, LAYOUT, sources.open_source(config.data, LAYOUT))
+
+
+def test_a_nan_in_a_selected_state_dim_is_named_by_its_stored_dim(tmp_path):
+    root = tmp_path / "b1k"
+    b1k_fixture.write_b1k_dataset(root, lengths=(6, 6, 6, 6, 6, 6))
+    path = root / "data/task-0000/episode_00000010.parquet"
+    table = pq.read_table(path)
+    state = [list(row) for row in table.column("observation.state").to_pylist()]
+    state[2][160] = float("nan")  # arm_left_qpos, dim 9 of the 23 the preset selects
+    table = table.set_column(table.schema.get_field_index("observation.state"),
+                             "observation.state", pa.array(state, pa.list_(pa.float32())))
+    pq.write_table(table, path)
+    config = config_for(root, data__state_preset="b1k_r1pro")
+    with pytest.raises(ValueError, match=r"state of episode 10 .* holds nan in dim 9 \(stored "
+                                         r"'observation.state' dim 160\)"):
+        dataset_lib.dataset_norm_stats(config, LAYOUT, action_horizon=4,
+                                       source=sources.open_source(config.data, LAYOUT))
 
 
 # ---------------------------------------------------------------------- 7: tools
@@ -277,3 +297,25 @@ def test_stats_tool_says_which_episodes_it_reads_and_can_read_all(tmp_path, caps
     all_stats = compute_norm_stats.run(config, tmp_path / "all.json", episodes="all")
     assert "reading 12 of 12 episodes" in capsys.readouterr().out
     assert not np.allclose(train_stats["actions"].mean, all_stats["actions"].mean)
+
+
+def test_a_curriculum_phase_longer_than_the_run_is_said_before_training(tmp_path):
+    config = arm_curriculum.get_config()
+    config.update_from_flattened_dict(tf.tiny_overrides(
+        write_dataset(tmp_path / "ds", make_episodes(12, cameras={}), "v2.1"),
+        train__total_steps=10))
+    source = sources.open_source(config.data, LAYOUT)
+    warnings = dataset_lib.check_data(config, LAYOUT, source, images=False)
+    assert any("phase 0 lasts until step 300, but train.total_steps = 10" in w for w in warnings)
+
+
+def test_a_tools_user_error_is_one_line_without_a_traceback(tmp_path, cache_dir):  # noqa: F811
+    result = subprocess.run(
+        [sys.executable, "-m", "pi0_armfix.tools.compute_norm_stats",
+         "--config=configs/uniform.py", f"--config.data.root={tmp_path / 'nowhere'}",
+         f"--output={tmp_path / 'stats.json'}"], env=tf.env(cache_dir), cwd=tf.REPO_ROOT,
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1].startswith(
+        "pi0_armfix.tools.compute_norm_stats: ")
+    assert "nowhere" in result.stderr.strip().splitlines()[-1]

@@ -120,7 +120,8 @@ def training_blocks(config: ConfigLike, layout: ActionLayout,
     source = _source(config, layout, source)
     if episodes is None:
         episodes = training_episodes(config, source)
-    return (stats_lib.checked_blocks(source.iter_blocks(keys, episodes), source.episode_file),
+    return (stats_lib.checked_blocks(source.iter_blocks(keys, episodes), source.episode_file,
+                                     getattr(source, "dim_name", None)),
             num_frames(source, episodes))
 
 
@@ -194,6 +195,15 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
         else:
             motion_lib.arm_heavy_groups(layout)
     warnings = []
+    total_steps = int((config.get("train") or {}).get("total_steps", 0))
+    for number, phase in enumerate(curriculum.phases[:-1]):
+        if total_steps and phase.until_step >= total_steps:
+            warnings.append(
+                f"data.curriculum: phase {number} lasts until step {phase.until_step}, but "
+                f"train.total_steps = {total_steps}: the run never leaves it (its sources "
+                f"{list(phase.sources)} only); shorten the phases with the run (the config file "
+                "sets them from its own total_steps)")
+            break
     if images:
         missing = cameras_lib.missing_cameras_message(
             source.cameras, getattr(source, "camera_names", ()), where)

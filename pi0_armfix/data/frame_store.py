@@ -230,7 +230,8 @@ def _build(source, identity: dict[str, Any], root: Path, progress: bool) -> None
         bar = tqdm(total=total, unit="frame", unit_scale=True, disable=not progress, delay=1.0,
                    desc=f"frame cache {root.name}")
         for block in stats_lib.checked_blocks(source.iter_blocks(tuple(keys)),
-                                              source.episode_file):
+                                              source.episode_file,
+                                              getattr(source, "dim_name", None)):
             n = len(block["episode_index"])
             for key in keys:
                 values = np.ascontiguousarray(block[key], _DTYPES[key])

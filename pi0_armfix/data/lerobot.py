@@ -127,7 +127,7 @@ def _read_jsonl(path: Path) -> list[dict[str, Any]]:
         with open(path) as f:
             return [json.loads(line) for line in f if line.strip()]
     except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"cannot read {path}: {err}") from err
+        raise ValueError(lfs_pointer_message(path) or f"cannot read {path}: {err}") from err
 
 
 def _matrix(column: pa.ChunkedArray | pa.Array, name: str, path: Path) -> np.ndarray:
@@ -470,6 +470,16 @@ class LeRobotSource:
         else:
             access = f"a keyframe every {interval} frames: random access decodes at most that many"
         return f"{codec} {height}x{width} ({videos[0]}), {access}"
+
+    def dim_name(self, key: str, dim: int) -> str:
+        """`dim N` of the selected `key` ("actions" / "state"), with the stored dims it is read
+        from when a selection moved it (`dim 9 (stored 'observation.state' dim 160)`)."""
+        selection = self.action_selection if key == "actions" else self.state_selection
+        stored = selection.stored_dims(dim)
+        if stored == (dim,):
+            return f"dim {dim}"
+        return (f"dim {dim} (stored {self._columns[key]!r} dim"
+                + (f"s {' + '.join(map(str, stored))})" if len(stored) > 1 else f" {stored[0]})"))
 
     def _check_row_rate(self, times: np.ndarray, episode: _Episode) -> None:
         """The declared fps against the rows' timestamps of one episode (their median step)."""

@@ -145,6 +145,21 @@ class Selection:
         """The selected vector's groups when a preset defines them."""
         return None if self.preset is None else self.preset.groups
 
+    def stored_dims(self, dim: int) -> tuple[int, ...]:
+        """The stored dims selected dim `dim` is read from (several for a sum)."""
+        if self.preset is not None:
+            start = 0
+            for part in self.preset.parts:
+                width = len(part.dims) if part.reduce == "select" else 1
+                if dim < start + width:
+                    return (part.dims[dim - start],) if part.reduce == "select" else part.dims
+                start += width
+            raise IndexError(f"dim {dim} outside the {self.width} selected dims")
+        if self.indices is None:
+            return (dim,)
+        chosen = self.indices[dim]
+        return chosen if isinstance(chosen, tuple) else (chosen,)
+
     def __call__(self, values: np.ndarray) -> np.ndarray:
         """`[n, W]` -> `[n, S]`."""
         if self.preset is not None:

@@ -269,10 +269,11 @@ class StreamingStats:
 Block = Mapping[str, np.ndarray]
 
 
-def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str]) -> Iterator[Block]:
+def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str],
+                   name_dim: Callable[[str, int], str] | None = None) -> Iterator[Block]:
     """The blocks, checked as they stream: a NaN or infinite value is a ValueError naming the
-    feature, the episode, the dim, and (`locate(episode id)`) the file, before any
-    statistic or weight is computed from it."""
+    feature, the episode, the dim (`name_dim(key, dim)`: where it is stored, for a selection),
+    and (`locate(episode id)`) the file, before any statistic or weight is computed from it."""
     for block in blocks:
         for key, values in block.items():
             values = np.asarray(values)
@@ -284,7 +285,8 @@ def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str]) -> Ite
                 episode = int(block["episode_index"][row])
                 raise ValueError(
                     f"{key} of episode {episode} ({locate(episode)}) holds {values[(row, *dim)]}"
-                    + (f" in dim {dim[0]}" if dim else "")
+                    + ((f" in {name_dim(key, dim[0])}" if name_dim else f" in dim {dim[0]}")
+                       if dim else "")
                     + f" ({int(bad[block['episode_index'] == episode].sum())} non-finite "
                     "value(s) in this part of it): repair the file or leave the episode out of "
                     "the dataset root")

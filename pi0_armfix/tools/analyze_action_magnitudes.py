@@ -44,6 +44,7 @@ from absl import app, flags
 from matplotlib.figure import Figure  # pyplot-free: renders with Agg, no display needed
 from ml_collections import config_flags
 
+from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import mechanism as mechanism_lib
@@ -234,7 +235,8 @@ def format_report(report: dict[str, Any]) -> str:
 def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    report = run(flags.FLAGS.config, flags.FLAGS.output)
+    with console.user_errors("pi0_armfix.tools.analyze_action_magnitudes"):
+        report = run(flags.FLAGS.config, flags.FLAGS.output)
     print(format_report(report))
     print(f"wrote {flags.FLAGS.output} and {Path(flags.FLAGS.output).with_suffix('.png')}")
 

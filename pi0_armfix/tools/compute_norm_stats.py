@@ -22,6 +22,7 @@ import ml_collections
 from absl import app, flags
 from ml_collections import config_flags
 
+from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import sources
@@ -47,7 +48,8 @@ def run(config: ml_collections.ConfigDict, output: str | Path, episodes: str = "
 def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    stats = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.episodes)
+    with console.user_errors("pi0_armfix.tools.compute_norm_stats"):
+        stats = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.episodes)
     for key, value in stats.items():
         print(f"{key} ({value.width} dims)")
         for name in stats_lib.FIELDS:

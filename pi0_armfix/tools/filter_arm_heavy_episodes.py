@@ -33,6 +33,7 @@ import ml_collections
 from absl import app, flags
 from ml_collections import config_flags
 
+from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
@@ -70,7 +71,8 @@ def main(argv: list[str]) -> None:
         arm_ratio_threshold=flags.FLAGS.arm_ratio_threshold,
         min_arm_movement=flags.FLAGS.min_arm_movement,
         max_base_movement=flags.FLAGS.max_base_movement)
-    result = run(flags.FLAGS.config, flags.FLAGS.output, thresholds, flags.FLAGS.episodes)
+    with console.user_errors("pi0_armfix.tools.filter_arm_heavy_episodes"):
+        result = run(flags.FLAGS.config, flags.FLAGS.output, thresholds, flags.FLAGS.episodes)
     total = len(result["per_episode"])
     print(f"{len(result['episodes'])} of the {total} episodes read are arm-heavy "
           f"({thresholds.to_json()}); wrote {flags.FLAGS.output}")

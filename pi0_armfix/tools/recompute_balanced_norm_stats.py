@@ -21,6 +21,7 @@ import ml_collections
 from absl import app, flags
 from ml_collections import config_flags
 
+from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
@@ -63,8 +64,9 @@ def format_reports(reports: list[motion_lib.BalanceReport]) -> str:
 def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    _, reports = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.max_scale,
-                     flags.FLAGS.episodes)
+    with console.user_errors("pi0_armfix.tools.recompute_balanced_norm_stats"):
+        _, reports = run(flags.FLAGS.config, flags.FLAGS.output, flags.FLAGS.max_scale,
+                         flags.FLAGS.episodes)
     print(format_reports(reports))
     print(f"wrote {flags.FLAGS.output}")
 
