@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import logging as std_logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from absl import flags, logging
 
@@ -29,3 +29,23 @@ def user_errors(program: str) -> Iterator[None]:
         yield
     except ValueError as e:
         raise SystemExit(f"{program}: {e}") from None
+
+
+HELP_FLAGS = ("--help", "-?", "--helpshort", "--helpfull", "--helpxml")
+
+
+def flags_parser(program: str) -> Callable[[list[str]], list[str]]:
+    """absl's flag parsing for `app.run(main, flags_parser=...)`: `--help` exits 0 (absl's exits
+    1, which scripts read as a failure), a bad flag is one line naming it."""
+
+    def parse(argv: list[str]) -> list[str]:
+        try:
+            return flags.FLAGS(argv)
+        except SystemExit as e:
+            if e.code == 1 and any(a.split("=")[0] in HELP_FLAGS for a in argv[1:]):
+                raise SystemExit(0) from None
+            raise
+        except flags.Error as e:
+            raise SystemExit(f"{program}: {e} (--help lists the flags)") from None
+
+    return parse

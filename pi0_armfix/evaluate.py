@@ -469,7 +469,7 @@ def cli() -> None:
     flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "
                       "(e.g. 1,2,4: the same episodes with the world's tolerances doubled and "
                       "quadrupled; empty: the world as it is only)")
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.evaluate"))
 
 
 if __name__ == "__main__":

@@ -222,7 +222,7 @@ def cli() -> None:
                          "larger one closes that client's connection; the server keeps serving)")
     flags.DEFINE_integer("n_exec", 0, "actions a client executes of each chunk, for the "
                          "gripper hysteresis' held commands (0: the whole chunk)")
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.serve"))
 
 
 if __name__ == "__main__":

@@ -825,7 +825,7 @@ def cli() -> None:
     flags.DEFINE_multi_string("override", [], "key=value passed to every run as --config.key")
     flags.DEFINE_integer("closed_loop_episodes", 50, "episodes of the demo world each run's "
                          "final checkpoint drives (0: no closed-loop evaluation)")
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.study"))
 
 
 if __name__ == "__main__":

@@ -593,8 +593,15 @@ def parse_flags(argv: Sequence[str]) -> list[str]:
     """absl's flag parsing, with a bad flag and an override of a key the (locked) config lacks
     reported as one line naming the flag instead of a traceback."""
     argv = [_installed_config(a) for a in argv]
+    for arg in argv[1:]:  # before parsing: an override of a missing file would raise from it
+        if arg.startswith("--config="):
+            _check_config_file(arg.partition("=")[2].partition(":")[0])
     try:
         rest = FLAGS(argv)
+    except SystemExit as e:  # absl's --help exits 1: a help asked for is no failure
+        if e.code == 1 and any(a.split("=")[0] in console.HELP_FLAGS for a in argv[1:]):
+            raise SystemExit(0) from None
+        raise
     except flags.Error as e:
         message = str(e)
         if "Error whilst parsing config file" in message:  # get_config raised: its last line
@@ -613,14 +620,15 @@ def parse_flags(argv: Sequence[str]) -> list[str]:
         culprit = [a for a in overrides if set(missing) & set(a.split("."))] or overrides
         raise SystemExit(f"pi0_armfix.train: {', '.join(culprit)}: the config has no key "
                          f"{message}") from None
-    if FLAGS["config"].present:
-        path = config_flags.get_config_filename(FLAGS["config"]).partition(":")[0]
-        if not os.path.isfile(path):
-            known = ", ".join(sorted(p.stem for p in _configs_dir().glob("*.py")
-                                     if p.stem not in ("__init__", "base")))
-            raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file; give a "
-                             f"path or the name of an installed config: {known}")
     return rest
+
+
+def _check_config_file(path: str) -> None:
+    if not os.path.isfile(path):
+        known = ", ".join(sorted(p.stem for p in _configs_dir().glob("*.py")
+                                 if p.stem not in ("__init__", "base")))
+        raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file; give a "
+                         f"path or the name of an installed config: {known}")
 
 
 def _configs_dir() -> epath.Path:

@@ -4,6 +4,7 @@ weights."""
 import json
 import os
 import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -147,13 +148,14 @@ def test_a_mistyped_key_is_one_readable_line_with_the_suggestion(tmp_path, cache
                     "'totl_steps'; Did you mean \"total_steps\" instead of \"totl_steps\"?")
 
 
-@pytest.mark.parametrize("config, message", [
-    ("configs/nope.py", "nope.py: no such config file; give a path or the name of an installed "
-                        "config: arm_curriculum, arm_delta, arm_delta_correlated_noise,"),
-    ("configs/arm_focused.py:foo", "arm_focused.py:foo: config argument 'foo' is not a scale"),
+@pytest.mark.parametrize("config, overrides, message", [
+    ("configs/nope.py", {}, "nope.py: no such config file; give a path or the name of an "
+                            "installed config: arm_curriculum, arm_delta, arm_delta_correlated_noise,"),
+    ("configs/nope.py", {"seed": 3}, "nope.py: no such config file"),
+    ("configs/arm_focused.py:foo", {}, "arm_focused.py:foo: config argument 'foo' is not a scale"),
 ])
-def test_a_bad_config_file_or_scale_is_one_line(config, message, tmp_path, cache_dir):
-    result = tf.run_train(config, tmp_path / "run", {}, cache_dir)
+def test_a_bad_config_file_or_scale_is_one_line(config, overrides, message, tmp_path, cache_dir):
+    result = tf.run_train(config, tmp_path / "run", overrides, cache_dir)
     assert result.returncode != 0 and "Traceback" not in result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("pi0_armfix.train: --config=")
@@ -314,3 +316,11 @@ def test_print_config_shows_the_resolved_keys_and_help_points_to_them(tmp_path, 
     helped = subprocess.run([*command[:4], "--help"], env=tf.env(cache_dir), cwd=tmp_path,
                             capture_output=True, text=True, timeout=300)
     assert "configs/base.py" in helped.stdout and "--print_config" in helped.stdout
+
+
+@pytest.mark.parametrize("module", ["pi0_armfix.train", "pi0_armfix.evaluate", "pi0_armfix.study",
+                                    "pi0_armfix.serve", "pi0_armfix.tools.compute_norm_stats"])
+def test_help_exits_0(module, cache_dir):
+    result = subprocess.run([sys.executable, "-m", module, "--help"], env=tf.env(cache_dir),
+                            cwd=tf.REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "--" in result.stdout

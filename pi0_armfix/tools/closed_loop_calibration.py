@@ -155,7 +155,7 @@ def cli() -> None:
                         "carries ('' = no such row)")
     flags.DEFINE_integer("hold", 16, "steps a noise draw is held (and recorded chunks executed)")
     flags.DEFINE_string("output", "results/closed_loop_calibration", "output folder")
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.closed_loop_calibration"))
 
 
 if __name__ == "__main__":

@@ -207,7 +207,7 @@ def cli() -> None:
     flags.DEFINE_integer("test", 2000, "rendered held-out scenes per camera and size")
     flags.DEFINE_integer("steps", 1500, "training steps of each probe")
     flags.DEFINE_string("output", "results/learnability", "output folder")
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.learnability_probe"))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import dataclasses
 
 from absl import app, flags
 
+from pi0_armfix import console
 from pi0_armfix.data import demo
 
 _OUTPUT = flags.DEFINE_string("output", None, "New folder to write the dataset into.",
@@ -33,7 +34,7 @@ def main(argv: list[str]) -> None:
 
 def cli() -> None:
     """The `pi0-armfix-make-demo-dataset` console script (also `python -m pi0_armfix.tools.make_demo_dataset`)."""
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.make_demo_dataset"))
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import json
 
 from absl import app, flags
 
+from pi0_armfix import console
 from pi0_armfix.model import config as model_config
 from pi0_armfix.model import policy
 from pi0_armfix.model.tree import count_params
@@ -29,7 +30,7 @@ def main(argv: list[str]) -> None:
 
 def cli() -> None:
     """The `pi0-armfix-param-tree` console script (also `python -m pi0_armfix.tools.param_tree`)."""
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.param_tree"))
 
 
 if __name__ == "__main__":

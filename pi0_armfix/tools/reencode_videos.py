@@ -36,6 +36,7 @@ from pathlib import Path
 from absl import app, flags
 from tqdm import tqdm
 
+from pi0_armfix import console
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data.video import VideoDecoder, VideoWriter
 
@@ -198,7 +199,7 @@ def cli() -> None:
                         "video features to keep: matched (the cameras training reads), all, or a "
                         "comma-separated list")
     flags.DEFINE_integer("workers", 0, "files encoded at once (0: every core)")
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.reencode_videos"))
 
 
 if __name__ == "__main__":

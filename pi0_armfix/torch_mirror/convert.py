@@ -50,7 +50,7 @@ def main(argv: Sequence[str]) -> None:
 def cli() -> None:
     """The `pi0-armfix-convert` console script (also `python -m pi0_armfix.torch_mirror.convert`)."""
     flags.mark_flags_as_required(["checkpoint", "output"])
-    app.run(main)
+    app.run(main, flags_parser=console.flags_parser("pi0_armfix.torch_mirror.convert"))
 
 
 if __name__ == "__main__":
