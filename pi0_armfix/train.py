@@ -290,6 +290,13 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
                                        every=config.train.checkpoint_every,
                                        keep=config.train.keep_checkpoints)
+        latest = ckpts.latest_step()
+        if latest is not None and latest > config.train.total_steps:
+            raise ConfigurationError(
+                f"workdir {workdir} holds a run at step {latest}, past train.total_steps = "
+                f"{config.train.total_steps}: nothing to train. Evaluate it (python -m "
+                f"pi0_armfix.evaluate --workdir={workdir}), or set train.total_steps above "
+                f"{latest} to train on")
         with jax.set_mesh(mesh):
             restored = ckpts.restore_latest(jax.tree.map(
                 lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
@@ -503,8 +510,11 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
 
 
 def _postfix(record: Mapping[str, float], layout: ActionLayout, phase: int) -> str:
-    """The bar's summary of a record: the weighted loss, then each group's unweighted loss."""
-    groups = " ".join(f"{g} {record[f'loss/{g}']:.3f}" for g in layout.group_names)
+    """The bar's summary of a record: the weighted loss, then each group's unweighted loss, the
+    arms and grippers first (a narrow terminal cuts the line's end)."""
+    first = layout.groups_with_role("arm", "gripper")
+    ordered = [*first, *(g for g in layout.group_names if g not in first)]
+    groups = " ".join(f"{g} {record[f'loss/{g}']:.3f}" for g in ordered)
     return f"loss {record['loss']:.4f} | {groups} | phase {phase}"
 
 

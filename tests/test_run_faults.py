@@ -414,3 +414,12 @@ def test_evaluation_restores_the_params_and_not_the_optimizer_state(finished_run
     ckpts = checkpoint.Checkpoints(finished_run[0] / "checkpoints", read_only=True)
     state, _, _ = ckpts.restore_for_eval(4, sharding.make_mesh(1))
     assert set(state) <= set(checkpoint.EVAL_ITEMS) and "params" in state
+
+
+def test_a_run_past_a_lowered_total_steps_says_so_instead_of_finishing(finished_run, tmp_path):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    with pytest.raises(train.ConfigurationError,
+                       match=r"holds a run at step 4, past train.total_steps = 2: nothing to "
+                             r"train.*pi0_armfix.evaluate"):
+        train.train_and_evaluate(_config(**{**finished_run[1], "train.total_steps": 2}),
+                                 str(workdir))
