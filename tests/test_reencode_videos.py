@@ -97,3 +97,25 @@ def test_the_command_line_prints_what_it_did(b1k, tmp_path):
          f"--output={tmp_path / 'other'}"], capture_output=True, text=True, cwd=REPO)
     assert bad.returncode != 0 and "is not a LeRobot dataset root" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_a_dataset_assembled_from_symlinked_folders_is_carried_over_whole(tmp_path):
+    source = write_dataset(tmp_path / "elsewhere", make_episodes(2), "v2.1", image_format="video")
+    linked = tmp_path / "linked"
+    linked.mkdir()
+    for name in ("meta", "data", "videos"):
+        (linked / name).symlink_to(source / name, target_is_directory=True)
+    out = tmp_path / "out"
+    done = reencode_dataset(linked, out, size=16, gop=2, workers=1, progress=False)
+    assert done["files"] == 2 * 3  # episodes x cameras, found through the links
+    assert sorted(p.name for p in (out / "data").rglob("*.parquet")) == [
+        "episode_000000.parquet", "episode_000001.parquet"]
+
+
+def test_an_input_without_rows_is_refused_before_any_encoding(tmp_path):
+    source = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
+    for path in (source / "data").rglob("*.parquet"):
+        path.unlink()
+    with pytest.raises(ValueError, match="holds no parquet file to carry over"):
+        reencode_dataset(source, tmp_path / "out", size=16, gop=2, workers=1, progress=False)
+    assert not (tmp_path / "out").exists()

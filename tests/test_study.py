@@ -255,3 +255,11 @@ def test_ctrl_c_or_kill_stops_the_study_and_its_children_and_says_how_to_resume(
     with pytest.raises(ProcessLookupError):
         os.kill(child, 0)
     assert len(list(workdir.glob("*/seed_*/pid"))) == 1  # no run started after the signal
+
+
+def test_a_torn_result_json_is_named_with_the_fix(tmp_path):
+    folder = study.run_folder(tmp_path, "uniform", 0)
+    folder.mkdir(parents=True)
+    (folder / study.RESULT_FILE).write_text('{"config": "uniform", "se')
+    with pytest.raises(ValueError, match=r"uniform/seed_0/result.json is not JSON .*delete it"):
+        study.load_result(folder)

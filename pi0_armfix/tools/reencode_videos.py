@@ -30,7 +30,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from absl import app, flags
@@ -62,9 +62,17 @@ def video_features(info: dict, chosen: str, root: Path) -> list[str]:
     return names
 
 
+def _walk(folder: Path) -> Iterator[Path]:
+    """Every file under `folder`, following symlinked folders (a dataset assembled from links)."""
+    for parent, _, names in os.walk(folder, followlinks=True):
+        for name in names:
+            yield Path(parent) / name
+
+
 def _files_of(root: Path, feature: str) -> list[Path]:
     """Every mp4 of a feature: its name is a folder of the path in every LeRobot layout."""
-    return sorted(p for p in (root / "videos").rglob("*.mp4") if feature in p.parts)
+    return sorted(p for p in _walk(root / "videos")
+                  if p.suffix == ".mp4" and feature in p.relative_to(root).parts)
 
 
 def reencode_file(source: str, target: str, size: int, gop: int, codec: str, crf: int,
@@ -85,8 +93,8 @@ def reencode_file(source: str, target: str, size: int, gop: int, codec: str, crf
 
 def _link_tree(source: Path, target: Path, skip: Path) -> None:
     """Hard-links (or copies, across file systems) every file under `source` but `skip`."""
-    for path in source.rglob("*"):
-        if path.is_dir() or skip in path.parents:
+    for path in _walk(source):
+        if skip in path.parents:
             continue
         destination = target / path.relative_to(source)
         destination.parent.mkdir(parents=True, exist_ok=True)
@@ -124,6 +132,10 @@ def reencode_dataset(input_root: str | Path, output_root: str | Path, *, size: i
     start, frames, shapes = time.perf_counter(), 0, {}
     try:
         _link_tree(input_root, staging, skip=input_root / "videos")
+        if not any(p.suffix == ".parquet" for p in _walk(staging / "data")):
+            raise ValueError(f"{input_root / 'data'} holds no parquet file to carry over: the "
+                             "output would have videos without rows; point --input at a "
+                             "complete dataset root")
         workers = workers or os.cpu_count() or 1
         # Spawned, not forked: the caller may hold threads (JAX, Grain) that fork would copy.
         with concurrent.futures.ProcessPoolExecutor(
