@@ -28,7 +28,7 @@ def _overrides(tmp_path, demo_root):
 
 def _final_state(workdir):
     state, _, _ = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).restore_for_eval(
-        2 * N, sharding.make_mesh(1))
+        2 * N, sharding.make_mesh(1), items=None)
     return jax.device_get(state)
 
 

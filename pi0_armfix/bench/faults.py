@@ -127,7 +127,7 @@ def _state(workdir: Path, step: int):
     from pi0_armfix.training import checkpoint, sharding
 
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
-    state, _, _ = ckpts.restore_for_eval(step, sharding.make_mesh(1))
+    state, _, _ = ckpts.restore_for_eval(step, sharding.make_mesh(1), items=None)
     return jax.device_get(state)
 
 

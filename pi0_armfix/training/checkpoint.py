@@ -26,7 +26,7 @@ import errno
 import json
 import shutil
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -283,11 +283,13 @@ class Checkpoints:
                              + ". Restore the files, or start over with --config.train.resume=new")
         return None
 
-    def restore_for_eval(self, step: int, mesh: jax.sharding.Mesh
+    def restore_for_eval(self, step: int, mesh: jax.sharding.Mesh,
+                         items: Sequence[str] | None = EVAL_ITEMS
                          ) -> tuple[dict[str, Any], dict[str, Any], ml_collections.ConfigDict]:
-        """The params (and EMA params, when kept) of `step` as nested dicts sharded by the rule
-        table on `mesh`, its norm stats and config, without a run's model or data to build a
-        target from, and without the optimizer state an evaluation never uses.
+        """The `items` of the train state of `step` (default: the params, and the EMA params when
+        kept; None: all of it) as nested dicts sharded by the rule table on `mesh`, its norm stats and config,
+        without a run's model or data to build a target from, and without the optimizer state
+        an evaluation never uses.
 
         Raises:
           DamagedCheckpointError: a file of the checkpoint is missing or unreadable.
@@ -302,7 +304,8 @@ class Checkpoints:
                                "norm_stats": ocp.JsonCheckpointHandler(),
                                "config": ocp.JsonCheckpointHandler()})
             metadata = reader.item_metadata(step)["state"]
-            wanted = {k: metadata[k] for k in EVAL_ITEMS if k in metadata and metadata[k]}
+            wanted = {k: metadata[k] for k in (metadata if items is None else items)
+                      if k in metadata and metadata[k]}
             abstract = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype), wanted)
             abstract = jax.tree.map(
                 lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
