@@ -28,7 +28,7 @@ import numpy as np
 from etils import epath
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import batching, sources, transforms
+from pi0_armfix.data import batching, run_inputs, sources, transforms
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
@@ -171,7 +171,9 @@ class RunPolicy:
     Args:
       run: the restored run.
       source: the run's opened data source (its state selection and, for the offline demo
-        tokenizer, its prompts); None opens the one `run.config.data` names.
+        tokenizer, its prompts); None reads what the run folder keeps of it
+        (`data.run_inputs`), or, for a run trained before it kept them, opens the one
+        `run.config.data` names.
       keys: where observations keep their inputs.
       num_steps: Euler steps of the sampler (None: the run's `eval.num_steps`).
       seed: of the sampling noise (draw i of the policy uses fold_in(seed, i)).
@@ -180,7 +182,7 @@ class RunPolicy:
     def __init__(self, run: RestoredRun, *, source=None, keys: ObservationKeys = B1K_KEYS,
                  num_steps: int | None = None, seed: int = 0):
         config, layout = run.config, run.layout
-        source = source or sources.open_source(config.data, layout)
+        source = source or run_inputs.load(run.workdir) or sources.open_source(config.data, layout)
         self.run, self.keys, self.layout = run, keys, layout
         self.horizon = run.model_config.action_horizon
         self.selection = getattr(source, "state_selection", None)
@@ -196,7 +198,10 @@ class RunPolicy:
         self.action_norm = batching.action_normalizer(run.norm_stats, layout.real_dim, norm_mode,
                                                       self.horizon)
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
-        self.tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
+        model_cfg, own = config.model, run_inputs.tokenizer_path(run.workdir)
+        if own is not None:  # the tokenizer it trained with, wherever model.tokenizer pointed
+            model_cfg = {**model_cfg.to_dict(), "tokenizer": str(own)}
+        self.tokenize = tokenizer_lib.make_tokenizer(model_cfg, prompts=source.tasks)
         self.tokens = batching.PromptTokens(self.tokenize)
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
         self._sample = functools.partial(
@@ -305,9 +310,13 @@ class RunPolicy:
             raise ValueError(f"observation[{key!r}] must be {self.stored_state_width} finite "
                              f"numbers (the dataset's state), got {type(observation[key]).__name__}"
                              ) from None
-        if state.shape != (self.stored_state_width,) or not np.isfinite(state).all():
+        if state.shape != (self.stored_state_width,):
             raise ValueError(f"observation[{key!r}] must be {self.stored_state_width} finite "
                              f"numbers (the dataset's state), got shape {np.shape(observation[key])}")
+        if not np.isfinite(state).all():
+            bad = np.flatnonzero(~np.isfinite(state))
+            raise ValueError(f"observation[{key!r}] is not finite in dim(s) {bad[:8].tolist()}"
+                             f"{' ...' if len(bad) > 8 else ''} (NaN or inf)")
         return state
 
     def _prompt(self, observation: Mapping[str, Any]) -> str:

@@ -70,6 +70,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import batching, pipeline, sources
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import dataset as dataset_lib
+from pi0_armfix.data import run_inputs
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.model import config as model_config_lib
@@ -255,6 +256,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
             multihost_utils.sync_global_devices("workdir checked")
         if is_main:
             (workdir / fingerprint.CONFIG_FILE).write_text(config.to_json_best_effort(indent=2))
+            # What serving the run needs of its data: a run folder serves without it.
+            run_inputs.save(workdir, source, tokenize.model_proto)
         resuming = checkpoint.has_checkpoints(workdir / "checkpoints")
         norm_stats = dataset_lib.load_or_compute_norm_stats(
             config, layout, action_horizon=model_config.action_horizon,

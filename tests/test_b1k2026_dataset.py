@@ -13,7 +13,7 @@ import pytest
 import b1k2026_fixture as fixture
 from configs import arm_focused
 from data_fixtures import identify_frame
-from pi0_armfix import evaluate, train
+from pi0_armfix import evaluate, inference, train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import selection
 from pi0_armfix.data.lerobot import LeRobotSource
@@ -119,3 +119,17 @@ def test_a_download_of_a_few_tasks_reads_just_those_tasks_episodes(b1k2026, tmp_
     assert list(source.episode_index) == [0, 1, 2]
     source.probe(3)
     assert source.load_table().num_episodes == 3
+
+
+def test_a_b1k2026_run_serves_61d_proprio_without_its_data(b1k2026, tmp_path):
+    root, data = b1k2026
+    copy = shutil.copytree(root, tmp_path / "data")
+    workdir = tmp_path / "run"
+    train.train_and_evaluate(b1k2026_config(copy, **{"eval.every": 0}), str(workdir))
+    shutil.rmtree(copy)
+    policy = inference.RunPolicy.from_workdir(workdir)
+    observation = {**{key: np.zeros((24, 24, 3), np.uint8) for key in inference.B1K_KEYS.cameras},
+                   inference.B1K_KEYS.state: data[0]["state"][0],
+                   inference.B1K_KEYS.prompt: "turn on the radio"}
+    assert policy.infer([observation]).shape == (1, policy.horizon, 23)
+    assert policy.stored_state_width == 61

@@ -3,6 +3,7 @@ malformed requests, the closed-loop evaluation and the latency benchmark."""
 
 import asyncio
 import json
+import shutil
 import socket
 import subprocess
 import sys
@@ -161,6 +162,9 @@ def test_an_empty_image_and_a_text_state_are_refused_by_key(server):
         client.infer({**observation, "observation/wrist_image_left": np.zeros((0, 8, 3), np.uint8)})
     with pytest.raises(RuntimeError, match="'observation/state'.* got str"):
         client.infer({**observation, "observation/state": "twenty-three numbers"})
+    with pytest.raises(RuntimeError, match=r"'observation/state'\] is not finite in dim\(s\) "
+                                           r"\[0, 1, 2"):
+        client.infer({**observation, "observation/state": np.full(23, np.nan, np.float32)})
 
 
 def test_a_request_over_the_size_cap_closes_only_that_connection(run):
@@ -315,3 +319,17 @@ def test_an_unwritable_results_folder_is_named(tmp_path):
     blocker.write_text("a file where the folder should be")
     with pytest.raises(ValueError, match=r"cannot write the results into .*eval/step_2"):
         evaluate.writable_folder(blocker / "step_2")
+
+
+def test_a_run_folder_serves_without_its_data(tmp_path, cache_dir, demo_root):  # noqa: F811
+    data = shutil.copytree(demo_root, tmp_path / "data")
+    workdir = tmp_path / "run"
+    trained = tf.run_train(CONFIG, workdir, tf.tiny_overrides(data), cache_dir)
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    assert (workdir / "policy_inputs.json").is_file() and (workdir / "tokenizer.model").is_file()
+    twin = inference.RunPolicy.from_workdir(workdir)
+    observation = _observation()
+    expected = twin.infer([observation])
+    shutil.rmtree(data)  # the robot-side machine has the run folder only
+    policy = inference.RunPolicy.from_workdir(workdir)
+    np.testing.assert_allclose(policy.infer([observation]), expected, atol=1e-6)

@@ -63,6 +63,7 @@ class Tokenizer:
           state_in_prompt: pi0.5: the data pipeline passes each sample's normalized state.
         """
         self.state_in_prompt = state_in_prompt
+        self.model_proto = model_proto
         self._processor = sentencepiece.SentencePieceProcessor(model_proto=model_proto)
         if self._processor.vocab_size() > vocab_size:
             raise ValueError(f"tokenizer {source} has {self._processor.vocab_size()} pieces but "
