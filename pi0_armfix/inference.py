@@ -203,6 +203,7 @@ class RunPolicy:
             model_cfg = {**model_cfg.to_dict(), "tokenizer": str(own)}
         self.tokenize = tokenizer_lib.make_tokenizer(model_cfg, prompts=source.tasks)
         self.tokens = batching.PromptTokens(self.tokenize)
+        self.task_prompts = dict(getattr(source, "task_prompts", {}) or {})
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
         self._sample = functools.partial(
             policy.sample_actions, config=run.model_config,
@@ -213,6 +214,22 @@ class RunPolicy:
         # per batch size, not once per camera resolution a client sends.
         self._to_model_images = jax.jit(functools.partial(
             model_inputs_lib.model_image, resolution=run.model_config.image_resolution))
+
+    def warm_up(self) -> None:
+        """Compiles the sampler for one observation at the model's image size (what a server
+        does before it says it is ready)."""
+        height, width = self.run.model_config.image_resolution
+        observation = {**{key: np.zeros((height, width, 3), np.uint8) for key in self.keys.cameras},
+                       self.keys.state: np.zeros(self.stored_state_width, np.float32),
+                       self.keys.prompt: ""}
+        draws = self._draws
+        self.infer([observation])
+        self._draws = draws  # the warm-up is no draw of a client's
+
+    def reseed(self, seed: int) -> None:
+        """Restarts the sampling noise from `seed` (draw i uses fold_in(seed, i)): an episode
+        served again from the same seed gets the same actions."""
+        self._key, self._draws = jax.random.key(seed), 0
 
     def _fit(self, images: np.ndarray) -> np.ndarray:
         """uint8 `[B, h, w, 3]` -> float32 `[B, *image_resolution, 3]` in [-1, 1] (the model's

@@ -24,6 +24,7 @@ import http
 import logging
 import math
 import socket
+import threading
 import time
 import traceback
 from collections.abc import Sequence
@@ -35,7 +36,7 @@ from absl import app, flags
 from websockets import exceptions as websockets_exceptions
 from websockets.asyncio import server as ws_server
 
-from pi0_armfix import console, hysteresis, inference
+from pi0_armfix import console, harness, hysteresis, inference
 
 
 # ---------------------------------------------------------------------- openpi's msgpack encoding
@@ -94,6 +95,7 @@ def _unpack_array(obj: dict) -> Any:
 
 
 MAX_MESSAGE_MB = 64  # three 720p RGBA images and a state are ~11 MiB
+PROTOCOLS = ("openpi", "b1k")  # openpi's request/reply; B1K's evaluation harness (harness.py)
 pack = functools.partial(msgpack.packb, default=_pack_array)
 unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
 
@@ -108,14 +110,29 @@ class PolicyServer:
     def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000,
                  latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None, *,
                  sock: socket.socket | None = None,
-                 max_message_bytes: int = MAX_MESSAGE_MB << 20):
+                 max_message_bytes: int = MAX_MESSAGE_MB << 20, protocol: str = "openpi",
+                 seed: int = 0, prompt: str = ""):
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"--protocol={protocol!r}: choose one of {PROTOCOLS}")
         self.policy, self.host, self.port = policy, host, port
         self.latch, self.n_exec = latch, n_exec
         self.sock, self.max_message_bytes = sock, max_message_bytes
+        self.protocol, self.seed, self.prompt = protocol, seed, prompt
+        self.sessions: dict[Any, harness.HarnessSession] = {}
+        self.warm = threading.Event()  # /healthz answers 200 once set (the sampler compiled)
         self._metadata = pack(policy.metadata())
 
-    def answer(self, message: bytes | str, client: Any = None) -> bytes | str:
-        """One request of `client` -> the packed actions, or the error text (never raises)."""
+    def session(self, client: Any) -> harness.HarnessSession:
+        """The harness session of `client` (`--protocol=b1k`), made on its first message."""
+        if client not in self.sessions:
+            n_exec = self.n_exec or max(self.policy.horizon // 2, 1)
+            self.sessions[client] = harness.HarnessSession(self.policy, n_exec, self.seed,
+                                                           self.prompt)
+        return self.sessions[client]
+
+    def answer(self, message: bytes | str, client: Any = None) -> bytes | str | None:
+        """One request of `client` -> the packed reply, the error text, or None where the
+        protocol sends none (B1K's reset). Never raises."""
         try:
             if isinstance(message, str):
                 raise ValueError("requests are binary msgpack messages, got a text message")
@@ -128,6 +145,13 @@ class PolicyServer:
             if not isinstance(observation, dict):
                 raise ValueError(f"the request must be an observation dict, got "
                                  f"{type(observation).__name__}")
+            if self.protocol == "b1k":
+                start = time.monotonic()
+                reply = self.session(client).answer(observation)
+                if reply is None:
+                    return None
+                return pack({**reply, "server_timing": {
+                    "infer_ms": 1000 * (time.monotonic() - start)}})
             start = time.monotonic()
             actions = self.policy.infer([observation])[0]
             if self.latch is not None:
@@ -143,17 +167,21 @@ class PolicyServer:
         try:
             await websocket.send(self._metadata)
             async for message in websocket:
-                await websocket.send(self.answer(message, client=websocket.id))
+                reply = self.answer(message, client=websocket.id)
+                if reply is not None:
+                    await websocket.send(reply)
         except websockets_exceptions.ConnectionClosed:
             pass  # the client left (or sent more than --max_message_mb): nothing to answer
         finally:
             if self.latch is not None:
                 self.latch.forget(websocket.id)
+            self.sessions.pop(websocket.id, None)
 
-    @staticmethod
-    def _health(connection, request):
+    def _health(self, connection, request):
         if request.path == "/healthz":
-            return connection.respond(http.HTTPStatus.OK, "OK\n")
+            if self.warm.is_set():
+                return connection.respond(http.HTTPStatus.OK, "OK\n")
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, "compiling\n")
         return None
 
     async def serve(self, ready: asyncio.Event | None = None) -> None:
@@ -167,6 +195,10 @@ class PolicyServer:
             self.port = server.sockets[0].getsockname()[1]
             if ready is not None:
                 ready.set()
+            warm_up = getattr(self.policy, "warm_up", None)
+            if warm_up is not None:  # compiled before /healthz says the server is ready
+                await asyncio.to_thread(warm_up)
+            self.warm.set()
             await server.serve_forever()
 
 
@@ -194,7 +226,8 @@ def main(argv: Sequence[str]) -> None:
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.serve: {e}") from None
     server = PolicyServer(policy, FLAGS.host, FLAGS.port, latch, FLAGS.n_exec or None,
-                          sock=sock, max_message_bytes=FLAGS.max_message_mb << 20)
+                          sock=sock, max_message_bytes=FLAGS.max_message_mb << 20,
+                          protocol=FLAGS.protocol, seed=FLAGS.seed, prompt=FLAGS.prompt)
     meta = policy.metadata()
     print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
           f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "
@@ -218,10 +251,18 @@ def cli() -> None:
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
                       "hysteresis (pi0_armfix.hysteresis), in action units; unset: the run's "
                       "eval.gripper_hysteresis; empty: none")
+    flags.DEFINE_enum("protocol", "openpi", PROTOCOLS, "openpi: a chunk per request "
+                      "({'actions': [H, A]}); b1k: BEHAVIOR-1K's evaluation harness (one action "
+                      "per request from a server-side queue, resets, its keys; "
+                      "pi0_armfix/harness.py)")
+    flags.DEFINE_integer("seed", 0, "b1k: noise seed of the first episode (episode e: seed + e)")
+    flags.DEFINE_string("prompt", "", "b1k: the prompt of every task ('' = the run's prompt of "
+                        "the request's task_id)")
     flags.DEFINE_integer("max_message_mb", MAX_MESSAGE_MB, "largest request accepted, MiB (a "
                          "larger one closes that client's connection; the server keeps serving)")
-    flags.DEFINE_integer("n_exec", 0, "actions a client executes of each chunk, for the "
-                         "gripper hysteresis' held commands (0: the whole chunk)")
+    flags.DEFINE_integer("n_exec", 0, "actions executed of each chunk: openpi, what a client "
+                         "executes (for the gripper hysteresis' held commands; 0: the whole "
+                         "chunk); b1k, the server-side queue's replanning (0: half the horizon)")
     app.run(main, flags_parser=console.flags_parser("pi0_armfix.serve"))
 
 

@@ -256,6 +256,16 @@ def _episodes_v3(root: Path, info: Mapping[str, Any], video_keys: Sequence[str])
     return sorted(episodes, key=lambda e: e.index)
 
 
+def _task_prompts(root: Path) -> dict[int, str]:
+    """`{task_index: prompt}` of `meta/tasks.jsonl` (B1K's: the task ids its evaluation harness
+    sends as `task_id`); {} without the file."""
+    path = root / "meta" / "tasks.jsonl"
+    if not path.is_file():
+        return {}
+    return {int(row["task_index"]): row["task"] for row in _read_jsonl(path)
+            if isinstance(row.get("task_index"), int) and isinstance(row.get("task"), str)}
+
+
 def _with_prompts(episodes: list[_Episode], root: Path) -> list[_Episode]:
     """`episodes` whose task is a task name listed in `meta/tasks.jsonl` with a prompt, given
     that prompt instead."""
@@ -360,6 +370,7 @@ class LeRobotSource:
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
+        self.task_prompts = _task_prompts(self.root)
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
 
     block_keys = BLOCK_KEYS

@@ -33,6 +33,7 @@ class PolicyInputs:
     tasks: tuple[str, ...]
     cameras: dict[str, str]
     fps: float
+    task_prompts: dict[int, str]  # {task id: prompt} where the dataset lists them (B1K)
 
 
 def _selection_json(selection: selection_lib.Selection | None) -> dict[str, Any] | None:
@@ -54,6 +55,7 @@ def save(workdir: Path, source: Any, tokenizer_model: bytes) -> None:
         "tasks": sorted(set(source.tasks)),
         "cameras": dict(getattr(source, "cameras", {}) or {}),
         "fps": float(getattr(source, "fps", 0.0)),
+        "task_prompts": {str(k): v for k, v in getattr(source, "task_prompts", {}).items()},
     })
     partial = workdir / (TOKENIZER_FILE + ".partial")
     partial.write_bytes(tokenizer_model)
@@ -76,7 +78,8 @@ def load(workdir: Path) -> PolicyInputs | None:
             preset=chosen["preset"], field=chosen["field"], feature="the stored state",
             where=str(path))
         return PolicyInputs(selection, int(saved["state_width"]), tuple(saved["tasks"]),
-                            dict(saved["cameras"]), float(saved["fps"]))
+                            dict(saved["cameras"]), float(saved["fps"]),
+                            {int(k): v for k, v in saved.get("task_prompts", {}).items()})
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{path} cannot be read ({e}): restore it from the run's training "
                          "machine, or serve the run where its data.root is") from None
