@@ -233,16 +233,23 @@ study.cli()
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_or_kill_stops_the_study_and_its_children_and_says_how_to_resume(tmp_path,
-                                                                                 signum):
+                                                                                 signum,
+                                                                                 cache_dir):  # noqa: F811
     script = tmp_path / "sleeping_study.py"
     script.write_text(SLEEPING_STUDY)
     workdir = tmp_path / "study"
     process = subprocess.Popen([sys.executable, str(script), str(workdir)], cwd=tf.REPO_ROOT,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    while not list(workdir.glob("*/seed_*/pid")) and time.monotonic() < deadline:
+                               env=tf.env(cache_dir), stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while (not list(workdir.glob("*/seed_*/pid")) and time.monotonic() < deadline
+           and process.poll() is None):
         time.sleep(0.1)
-    [pid_file] = list(workdir.glob("*/seed_*/pid"))
+    found = list(workdir.glob("*/seed_*/pid"))
+    if not found:
+        process.kill()
+        pytest.fail(f"the study started no run: {process.communicate()[1][-3000:]}")
+    [pid_file] = found
     time.sleep(0.2)  # the pid is written before the child sleeps
     child = int(pid_file.read_text())
     process.send_signal(signum)
