@@ -247,7 +247,7 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     # Strict JSON: a metric with nothing to measure (NaN) is null.
     (out / METRICS_FILE).write_text(json.dumps(
         {"step": step, "params": run.params_name,
-         **{k: float(v) if np.isfinite(v) else None for k, v in metrics.items()}},
+         **strict_json({k: float(v) for k, v in metrics.items()})},
         indent=2, allow_nan=False) + "\n")
     evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
                    "vs true (solid)")

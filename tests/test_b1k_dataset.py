@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import b1k_fixture
+import train_fixtures as tf
 from configs import arm_curriculum, arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import evaluate, train
@@ -27,14 +28,7 @@ def b1k(tmp_path_factory):
 
 def b1k_config(root, **overrides):
     """`configs/arm_focused.py:b1k` shrunk to the tiny preset on the fixture."""
-    config = arm_focused.get_config("b1k")
-    config.update_from_flattened_dict({
-        "model.preset": "tiny", "model.tokenizer": "", "data.root": str(root),
-        "data.num_workers": 0, "train.total_steps": 2, "train.batch_size": 8,
-        "train.log_every": 1, "train.checkpoint_every": 2, "optim.warmup_steps": 1,
-        "sharding.fsdp": 1, "eval.every": 2, "eval.episodes": 2, "eval.batch_size": 8,
-        "eval.max_chunks": 16, **overrides})
-    return config
+    return tf.tiny_b1k_config("b1k", root, **overrides)
 
 
 def expected_state(state: np.ndarray) -> np.ndarray:

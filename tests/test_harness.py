@@ -18,7 +18,7 @@ from websockets.sync.client import connect
 
 import b1k2026_fixture
 import b1k_fixture
-from configs import arm_focused
+import train_fixtures as tf
 from pi0_armfix import harness, inference, serve, train
 
 CAMERAS = list(harness.CAMERAS)
@@ -27,12 +27,7 @@ CAMERAS = list(harness.CAMERAS)
 def _train_without_data(tmp_path_factory, scale, write):
     root = tmp_path_factory.mktemp(scale) / "data"
     data = write(root)
-    config = arm_focused.get_config(scale)
-    config.update_from_flattened_dict({
-        "model.preset": "tiny", "model.tokenizer": "", "data.root": str(root),
-        "data.num_workers": 0, "train.total_steps": 2, "train.batch_size": 8,
-        "train.log_every": 1, "train.checkpoint_every": 2, "optim.warmup_steps": 1,
-        "sharding.fsdp": 1, "eval.every": 0, "eval.episodes": 2})
+    config = tf.tiny_b1k_config(scale, root, **{"eval.every": 0})
     workdir = root.parent / "run"
     train.train_and_evaluate(config, str(workdir))
     shutil.rmtree(root)  # the serving machine has the run folder only

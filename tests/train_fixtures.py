@@ -96,3 +96,18 @@ def records(workdir: Path) -> list[dict]:
     """`metrics.jsonl` records without the timing fields (which no two runs share)."""
     lines = (workdir / "metrics.jsonl").read_text().splitlines()
     return [{k: v for k, v in json.loads(line).items() if k not in TIMING_KEYS} for line in lines]
+
+
+def tiny_b1k_config(scale: str, root: Path, **overrides: Any):
+    """`configs/arm_focused.py:<scale>` (`b1k` or `b1k2026`) shrunk to the tiny preset on a
+    B1K-layout fixture at `root`: two steps of batch 8, an evaluation on 2 held-out episodes."""
+    from configs import arm_focused
+
+    config = arm_focused.get_config(scale)
+    config.update_from_flattened_dict({
+        "model.preset": "tiny", "model.tokenizer": "", "data.root": str(root),
+        "data.num_workers": 0, "train.total_steps": 2, "train.batch_size": 8,
+        "train.log_every": 1, "train.checkpoint_every": 2, "optim.warmup_steps": 1,
+        "sharding.fsdp": 1, "eval.every": 2, "eval.episodes": 2, "eval.batch_size": 8,
+        "eval.max_chunks": 16, **overrides})
+    return config

@@ -256,24 +256,25 @@ def _episodes_v3(root: Path, info: Mapping[str, Any], video_keys: Sequence[str])
     return sorted(episodes, key=lambda e: e.index)
 
 
-def _task_prompts(root: Path) -> dict[int, str]:
-    """`{task_index: prompt}` of `meta/tasks.jsonl` (B1K's: the task ids its evaluation harness
-    sends as `task_id`); {} without the file."""
+def _task_rows(root: Path) -> list[dict[str, Any]]:
+    """The rows of `meta/tasks.jsonl` ([] without the file)."""
     path = root / "meta" / "tasks.jsonl"
-    if not path.is_file():
-        return {}
-    return {int(row["task_index"]): row["task"] for row in _read_jsonl(path)
+    return _read_jsonl(path) if path.is_file() else []
+
+
+def _task_prompts(rows: Sequence[Mapping[str, Any]]) -> dict[int, str]:
+    """`{task_index: prompt}` of the tasks rows (B1K's: the task ids its evaluation harness
+    sends as `task_id`)."""
+    return {int(row["task_index"]): row["task"] for row in rows
             if isinstance(row.get("task_index"), int) and isinstance(row.get("task"), str)}
 
 
-def _with_prompts(episodes: list[_Episode], root: Path) -> list[_Episode]:
-    """`episodes` whose task is a task name listed in `meta/tasks.jsonl` with a prompt, given
-    that prompt instead."""
-    path = root / "meta" / "tasks.jsonl"
-    if not path.is_file():
-        return episodes
+def _with_prompts(episodes: list[_Episode], rows: Sequence[Mapping[str, Any]]
+                  ) -> list[_Episode]:
+    """`episodes` whose task is a task name listed in the tasks rows with a prompt, given that
+    prompt instead."""
     prompts = {}
-    for row in _read_jsonl(path):
+    for row in rows:
         name, prompt = row.get("task_name"), row.get("task")
         if isinstance(name, str) and isinstance(prompt, str) and prompt.strip():
             prompts[name] = prompt
@@ -364,13 +365,14 @@ class LeRobotSource:
         self._camera_kind = {name: stored[name] for name in self.cameras.values()}
         video_keys = [name for name, kind in self._camera_kind.items() if kind == "video"]
         load = _episodes_v2 if major == 2 else _episodes_v3
-        self._episodes = _with_prompts(load(self.root, info, video_keys), self.root)
+        task_rows = _task_rows(self.root)
+        self._episodes = _with_prompts(load(self.root, info, video_keys), task_rows)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
-        self.task_prompts = _task_prompts(self.root)
+        self.task_prompts = _task_prompts(task_rows)
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
 
     block_keys = BLOCK_KEYS
