@@ -12,7 +12,8 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import study
+from pi0_armfix import study, study_aggregate
+from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import metrics as eval_metrics
 
 LAYOUT = {"preset": "b1k_r1pro", "action_dim": 32}
@@ -35,7 +36,7 @@ def test_aggregate_reports_mean_and_spread_over_seeds_and_the_difference_to_the_
     results = [_result("uniform", s, g) for s, g in enumerate((0.0, 0.1, 0.2))]
     results += [_result("arm_delta", s, g, base_skill=0.19, f1=0.7, arm_skill=0.3 + 0.02 * s)
                 for s, g in enumerate((0.5, 0.6, 0.7))]
-    agg = study.aggregate(results)
+    agg = study_aggregate.aggregate(results)
     delta = agg["configs"]["arm_delta"]
     assert delta["mean"]["arm_gain"] == pytest.approx(0.6)
     assert delta["std"]["arm_gain"] == pytest.approx(0.1)
@@ -52,7 +53,7 @@ def test_aggregate_reports_mean_and_spread_over_seeds_and_the_difference_to_the_
 
 
 def test_do_nothing_rows_come_from_the_runs_baseline_metrics():
-    agg = study.aggregate([_result("uniform", s, 0.1) for s in range(2)])
+    agg = study_aggregate.aggregate([_result("uniform", s, 0.1) for s in range(2)])
     persistence = agg["do_nothing"]["persistence"]
     assert persistence["motion_gain/base"] == 0.95 and persistence["arm_gain"] == 0.0
 
@@ -60,15 +61,15 @@ def test_do_nothing_rows_come_from_the_runs_baseline_metrics():
 def test_arm_gain_target_follows_the_ceiling_where_the_ceiling_is_low():
     results = [_result("uniform", s, 0.0) for s in range(3)]
     results += [_result("fix", s, 0.4 + 0.01 * s) for s in range(3)]
-    assert not study.aggregate(results)["configs"]["fix"]["targets"]["arm_gain"]
+    assert not study_aggregate.aggregate(results)["configs"]["fix"]["targets"]["arm_gain"]
     ceiling = {"motion_gain/left_arm": 0.55, "motion_gain/right_arm": 0.55}
-    assert study.aggregate(results, ceiling=ceiling)["configs"]["fix"]["targets"]["arm_gain"]
+    assert study_aggregate.aggregate(results, ceiling=ceiling)["configs"]["fix"]["targets"]["arm_gain"]
 
 
 def test_secondary_comparisons_get_bonferroni_corrected_intervals():
     results = [_result(c, s, g + 0.05 * s) for c, g in (("uniform", 0.0), ("a", 0.3), ("b", 0.3),
                                                          ("c", 0.3)) for s in range(5)]
-    agg = study.aggregate(results, primary="a")
+    agg = study_aggregate.aggregate(results, primary="a")
     primary, secondary = agg["configs"]["a"], agg["configs"]["b"]
     assert primary["confidence"] == 0.95 and secondary["confidence"] == pytest.approx(0.975)
     width = lambda c: c["vs_baseline"]["arm_gain"][2] - c["vs_baseline"]["arm_gain"][1]  # noqa
@@ -85,24 +86,92 @@ def test_reports_are_written_and_name_every_config(tmp_path):
     assert (tmp_path / "study.png").stat().st_size > 10_000
 
 
+def _closed_loop_result(config, seed, manipulation, outcomes=None):
+    result = _result(config, seed, 0.1)
+    result["metrics"] |= {"closed_loop/episodes": 50, "closed_loop/success/task": manipulation / 2,
+                          "closed_loop/success/navigation": 0.9,
+                          "closed_loop/success/manipulation": manipulation,
+                          "closed_loop/phase_success/navigation": 0.95,
+                          "closed_loop/phase_success/manipulation": manipulation,
+                          "closed_loop/curve/2x/phase_success/manipulation": manipulation + 0.1,
+                          "closed_loop/curve/2x/phase_success/navigation": 1.0}
+    if outcomes is not None:
+        result["closed_loop_episodes"] = outcomes
+    return result
+
+
 def test_closed_loop_success_gets_its_own_table_with_the_difference_to_the_baseline(tmp_path):
-    results = []
-    for config, manipulation in (("uniform", (0.1, 0.2)), ("arm_focused", (0.5, 0.6))):
-        for seed, rate in enumerate(manipulation):
-            result = _result(config, seed, 0.1)
-            result["metrics"] |= {"closed_loop/episodes": 50, "closed_loop/success/task": rate / 2,
-                                  "closed_loop/success/navigation": 0.9,
-                                  "closed_loop/success/manipulation": rate,
-                                  "closed_loop/phase_success/manipulation": rate}
-            results.append(result)
+    results = [_closed_loop_result(config, seed, rate)
+               for config, rates in (("uniform", (0.1, 0.2)), ("arm_focused", (0.5, 0.6)))
+               for seed, rate in enumerate(rates)]
     agg = study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
-    diff = agg["configs"]["arm_focused"]["vs_baseline"]["closed_loop/success/manipulation"]
-    assert diff[0] == pytest.approx(0.4)
+    diff = agg["configs"]["arm_focused"]["vs_baseline"]["closed_loop/phase_success/manipulation"]
+    assert diff[0] == pytest.approx(0.4) and diff[1] > 0  # 2 seeds apart, no overlap
     text = (tmp_path / "study.md").read_text()
     assert "## Closed loop in the demo world" in text and "50 episodes per seed" in text
-    assert "| arm_focused | 0.900 ± 0.000 | 0.550 ± 0.071 | 0.275 ± 0.035 | n/a |" in text
-    assert agg["configs"]["arm_focused"]["vs_baseline"][
-        "closed_loop/success/manipulation"][1] > 0  # 2 seeds apart, no overlap
+    assert ("| arm_focused | 0.950 ± 0.000 | 0.550 ± 0.071 | 0.900 ± 0.000 | 0.550 ± 0.071 | "
+            "0.275 ± 0.035 | n/a | n/a | +0.000 [+0.000, +0.000] | +0.400 [") in text
+
+
+def test_the_success_curve_is_tabled_per_tolerance_factor(tmp_path):
+    results = [_closed_loop_result(c, s, 0.2) for c in ("uniform", "fix") for s in range(2)]
+    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    text = (tmp_path / "study.md").read_text()
+    assert "| config | navigation phases at 2x | manipulation phases at 2x |" in text
+    assert "| fix | 1.000 ± 0.000 | 0.300 ± 0.000 |" in text
+
+
+def test_closed_loop_targets_need_thirty_points_more_manipulation_with_an_interval_above_zero():
+    results = [_closed_loop_result("uniform", s, r) for s, r in enumerate((0.1, 0.2))]
+    results += [_closed_loop_result("fix", s, r) for s, r in enumerate((0.5, 0.6))]
+    results += [_closed_loop_result("small", s, r) for s, r in enumerate((0.3, 0.4))]
+    for r in results:
+        r["metrics"]["gripper_switch/precision"] = 0.7
+    met = {c: e["targets"] for c, e in study_aggregate.aggregate(results)["configs"].items()}
+    assert met["fix"]["closed_loop_manipulation"] and met["fix"]["closed_loop_navigation"]
+    assert met["fix"]["switch_precision"]
+    assert not met["small"]["closed_loop_manipulation"]  # +0.2: below the 30 points
+
+
+def test_closed_loop_outcomes_count_each_episodes_phases():
+    detail = [{"task": False, "navigation": True, "manipulation": False, "phases": [
+        {"kind": "navigation", "success": True}, {"kind": "manipulation", "success": True},
+        {"kind": "navigation", "success": True}, {"kind": "manipulation", "success": False}]},
+        {"task": True, "navigation": True, "manipulation": True, "phases": [
+            {"kind": "navigation", "success": True}, {"kind": "manipulation", "success": True}]}]
+    out = study_aggregate.closed_loop_outcomes(detail)
+    assert out["success/task"] == [0, 1] and out["success/manipulation"] == [0, 1]
+    assert out["phases/manipulation"] == [2, 1] and out["phase_successes/manipulation"] == [1, 1]
+
+
+def test_closed_loop_replicates_are_the_rate_on_each_resample_of_the_episodes():
+    outcomes = {"success/task": [1, 0, 0, 1], "success/manipulation": [1, 0, 0, 1],
+                "phases/manipulation": [2, 2, 1, 1], "phase_successes/manipulation": [2, 1, 0, 1]}
+    counts = study_aggregate.study_stats.episode_counts(4)
+    rates = study_aggregate.closed_loop_replicates(outcomes, "phase_success/manipulation")
+    expected = counts @ np.array([2, 1, 0, 1.0]) / (counts @ np.array([2, 2, 1, 1.0]))
+    np.testing.assert_allclose(rates, expected)
+    task = study_aggregate.closed_loop_replicates(outcomes, "success/task")
+    assert task.mean() == pytest.approx(0.5, abs=0.05)
+
+
+def test_the_world_episodes_widen_the_closed_loop_interval():
+    rng = np.random.default_rng(0)
+
+    def outcomes():
+        s = rng.integers(0, 2, 50).tolist()
+        return {"success/task": s, "success/navigation": s, "success/manipulation": s,
+                "phases/navigation": [2] * 50, "phase_successes/navigation": [2] * 50,
+                "phases/manipulation": [2] * 50, "phase_successes/manipulation": s}
+    plain = [_closed_loop_result(c, s, r) for c, rates in (("uniform", (0.1, 0.2, 0.15)),
+                                                            ("fix", (0.5, 0.6, 0.55)))
+             for s, r in enumerate(rates)]
+    resampled = [{**r, "closed_loop_episodes": outcomes()} for r in plain]
+    key = "closed_loop/phase_success/manipulation"
+    narrow = study_aggregate.aggregate(plain)["configs"]["fix"]["vs_baseline"][key]
+    wide = study_aggregate.aggregate(resampled)["configs"]["fix"]["vs_baseline"][key]
+    assert narrow[0] == pytest.approx(wide[0])
+    assert wide[2] - wide[1] > narrow[2] - narrow[1]
 
 
 def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir, demo_root):
@@ -158,9 +227,9 @@ def test_closed_loop_failure_reasons_get_a_table_of_mean_fractions(tmp_path):
 
 def _with_replicates(result, spread, rng):
     """`result` with episode replicates spread around its own headline numbers."""
-    summary = study.run_summary(result["metrics"], study.ActionLayout.from_config(LAYOUT))
+    summary = study_aggregate.run_summary(result["metrics"], ActionLayout.from_config(LAYOUT))
     result["episode_replicates"] = {"episodes": 20, **{
-        k: list(summary[k] + spread * rng.standard_normal(200)) for k in study.COMPARED}}
+        k: list(summary[k] + spread * rng.standard_normal(200)) for k in study_aggregate.COMPARED}}
     return result
 
 
@@ -169,12 +238,12 @@ def test_intervals_widen_by_the_held_out_episodes_sampling_error_when_every_run_
     plain = [_result(c, s, g + 0.01 * s) for c, g in (("uniform", 0.0), ("fix", 0.3))
              for s in range(5)]
     resampled = [_with_replicates(dict(r), 0.2, rng) for r in plain]
-    narrow = study.aggregate(plain)["configs"]["fix"]["vs_baseline"]["arm_gain"]
-    agg = study.aggregate(resampled)
+    narrow = study_aggregate.aggregate(plain)["configs"]["fix"]["vs_baseline"]["arm_gain"]
+    agg = study_aggregate.aggregate(resampled)
     wide = agg["configs"]["fix"]["vs_baseline"]["arm_gain"]
     assert wide[0] == narrow[0] and wide[2] - wide[1] > 2 * (narrow[2] - narrow[1])
     assert agg["episode_resampling"] == {"episodes": 20, "replicates": 200}
-    assert study.aggregate(resampled[:-1] + plain[-1:])["episode_resampling"] is None
+    assert study_aggregate.aggregate(resampled[:-1] + plain[-1:])["episode_resampling"] is None
 
 
 def test_the_report_says_which_errors_its_intervals_hold(tmp_path):
@@ -190,7 +259,7 @@ def test_the_report_says_which_errors_its_intervals_hold(tmp_path):
 
 def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluations_numbers(
         monkeypatch):
-    layout = study.ActionLayout.preset("b1k_r1pro")
+    layout = ActionLayout.preset("b1k_r1pro")
     rng = np.random.default_rng(1)
     true = rng.normal(size=(6, 5, 23))
     true[..., [14, 22]] = np.sign(rng.normal(size=(6, 5, 2)))
@@ -205,13 +274,13 @@ def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluati
             **{f"persistence/{k}": v for k, v in eval_metrics.chunk_sums(
                 persistence, true, valid, **kwargs).items()}}
     monkeypatch.setattr(study.study_stats, "episode_counts", lambda e: np.ones((2, e)))
-    replicates = study.episode_replicates(sums, layout)
+    replicates = study_aggregate.episode_replicates(sums, layout)
     metrics = eval_metrics.chunk_metrics(predicted, true, valid, **kwargs)
     metrics |= eval_metrics.skill_scores(
         metrics, eval_metrics.chunk_metrics(persistence, true, valid, **kwargs), layout)
-    expected = study.run_summary(metrics, layout)
+    expected = study_aggregate.run_summary(metrics, layout)
     assert replicates["episodes"] == 3
-    for k in study.COMPARED:
+    for k in study_aggregate.COMPARED:
         assert replicates[k] == pytest.approx([expected[k]] * 2)
 
 

@@ -57,7 +57,7 @@ def _episode_study_miss_rate(effect: float, seed_spread: float, interaction: flo
     """Share of simulated studies whose interval excludes 0. Each run's metric is its mean over
     the same held-out episodes of seed effect + episode effect (shared) + config x episode effect
     (the part a comparison keeps: on other episodes the difference changes), 5 seeds per config;
-    the episode variance comes from the study's resamples, as in `study.aggregate`."""
+    the episode variance comes from the study's resamples, as in `study_aggregate.aggregate`."""
     rng = np.random.default_rng(seed)
     counts = study_stats.episode_counts(EPISODES)
     misses = 0

@@ -1,0 +1,294 @@
+"""A study's numbers: per config, mean and spread over seeds of every metric, each config's
+difference to the baseline with intervals over seeds and held-out episodes (`study_stats`), the
+do-nothing rows, and the targets a config meets (docs/evaluation.md).
+
+Pure functions of the runs' `result.json` contents; `pi0_armfix.study` runs the study,
+`pi0_armfix.study_report` writes what this module computes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from pi0_armfix import study_stats
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.evaluation import baselines as baselines_lib
+from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import metrics as eval_metrics
+
+SWITCH_METRICS = ("precision", "recall", "f1")
+SWITCH_COUNTS = ("tp", "fp", "fn")
+CLOSED_LOOP = "closed_loop/"  # prefix of the closed-loop metrics of a run
+CLOSED_LOOP_KINDS = ("navigation", "manipulation", "task")
+PHASE_KINDS = CLOSED_LOOP_KINDS[:2]
+# Compared with the baseline: episodes whose every phase of a kind succeeded, and the share of
+# phases that succeeded (the seed's claim is about phases).
+CLOSED_LOOP_COMPARED = (*(f"success/{k}" for k in CLOSED_LOOP_KINDS),
+                        *(f"phase_success/{k}" for k in PHASE_KINDS))
+CLOSED_LOOP_TOLERANCES = (1.0, 2.0, 4.0)  # the success curve: the world's tolerances times these
+EPISODE_REPLICATES = "episode_replicates"  # result.json: headline numbers per episode resample
+CLOSED_LOOP_EPISODES = "closed_loop_episodes"  # result.json: per-episode closed-loop outcomes
+
+
+@dataclasses.dataclass(frozen=True)
+class Targets:
+    """The bar for a config that fixes stagnation (reported, never tuned to)."""
+
+    arm_gain: float = 0.5  # each arm's mean held-out motion gain over seeds ...
+    ceiling_share: float = 0.7  # ... or this share of the ceiling's gain ...
+    ceiling_below: float = 0.7  # ... where the ceiling's gain is below this
+    base_skill_drop: float = 0.10  # base skill at most 10 % below the baseline config's
+    switch_f1: float = 0.6
+    # closed loop: manipulation phases succeeded, at least this many points above the baseline
+    # (interval above 0) ...
+    manipulation_gain: float = 0.30
+    navigation_drop: float = 0.10  # ... navigation phases at most this many points below it ...
+    switch_precision: float = 0.6  # ... and the held-out gripper switch precision
+
+
+
+
+def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
+                       ) -> dict[str, Any]:
+    """A run's headline numbers (`COMPARED`) on each of the study's resamples of its held-out
+    episodes (`study_stats.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
+    `{"episodes": E, <name>: [B] values}`."""
+    _, episode = np.unique(sums[heldout_lib.EPISODE], return_inverse=True)
+    num_episodes = int(episode.max()) + 1
+    onehot = np.zeros((len(episode), num_episodes))
+    onehot[np.arange(len(episode)), episode] = 1.0
+    counts = study_stats.episode_counts(num_episodes)
+    totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in sums.items()
+              if k != heldout_lib.EPISODE}  # [B] each
+
+    def part(prefix, b):
+        return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
+
+    replicates = {k: [] for k in COMPARED}
+    for b in range(len(counts)):
+        metrics = eval_metrics.metrics_from_sums(part("policy/", b), layout)
+        persistence = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
+        metrics.update(eval_metrics.skill_scores(metrics, persistence, layout))
+        for k, v in run_summary(metrics, layout).items():
+            if k in replicates:
+                replicates[k].append(v if math.isfinite(v) else None)
+    return {"episodes": num_episodes, **replicates}
+
+
+
+def closed_loop_outcomes(detail: Sequence[Mapping[str, Any]]) -> dict[str, list[int]]:
+    """Per closed-loop episode (`closed_loop.json`'s `episodes_detail`), what the study resamples:
+    `success/<kind>` 0/1, and per phase kind the phases and the phases that succeeded."""
+    out = {f"success/{k}": [int(bool(e[k])) for e in detail] for k in CLOSED_LOOP_KINDS}
+    for kind in PHASE_KINDS:
+        out[f"phases/{kind}"] = [sum(p["kind"] == kind for p in e["phases"]) for e in detail]
+        out[f"phase_successes/{kind}"] = [sum(p["kind"] == kind and bool(p["success"])
+                                              for p in e["phases"]) for e in detail]
+    return out
+
+
+def closed_loop_replicates(outcomes: Mapping[str, Sequence[int]], key: str) -> np.ndarray:
+    """`[B]`: a run's closed-loop rate `key` (one of `CLOSED_LOOP_COMPARED`) on each of the
+    study's resamples of its episodes (`study_stats.episode_counts`, the same for every run of
+    that many episodes)."""
+    kind, name = key.split("/")[1], key.split("/")[0]
+    counts = study_stats.episode_counts(len(outcomes[f"success/{kind}"]))  # [B, E]
+    if name == "success":
+        return counts @ np.asarray(outcomes[key], np.float64) / counts.sum(axis=1)
+    phases = counts @ np.asarray(outcomes[f"phases/{kind}"], np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(phases > 0, counts @ np.asarray(outcomes[f"phase_successes/{kind}"],
+                                                        np.float64) / phases, np.nan)
+
+
+def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
+    return layout.groups_with_role("arm")
+
+
+def run_summary(metrics: Mapping[str, Any], layout: ActionLayout, prefix: str = ""
+                ) -> dict[str, float]:
+    """The headline numbers of one run (or, with `prefix` "persistence/" or "state_copy/", of a
+    do-nothing predictor scored beside it): the arms' mean skill over persistence and motion
+    gain, the base's skill and error, gripper switch F1."""
+    arms = arm_groups(layout)
+    base = layout.groups_with_role("base")
+
+    def get(key):
+        return as_number(metrics.get(prefix + key))
+
+    def arms_mean(name):
+        return float(np.mean([get(f"{name}/{g}") for g in arms])) if arms else math.nan
+
+    return {"arm_skill": arms_mean("skill"), "arm_gain": arms_mean("motion_gain"),
+            "base_skill": get(f"skill/{base[0]}") if base else math.nan,
+            "base_err": get(f"err/{base[0]}") if base else math.nan,
+            "switch_f1": get("gripper_switch/f1")}
+
+
+def as_number(value: Any) -> float:
+    return math.nan if value is None else float(value)
+
+
+COMPARED = ("arm_skill", "arm_gain", "base_skill", "switch_f1")  # vs the baseline config
+
+
+def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets(),
+              primary: str | None = None, ceiling: Mapping[str, float] | None = None
+              ) -> dict[str, Any]:
+    """Mean and std over seeds of every metric per config, the headline numbers with their
+    per-seed values, each config's difference to the first config (the baseline) with Welch t
+    intervals (95 % for the `primary` config, Bonferroni-corrected for the others), the
+    do-nothing rows, and the targets each config meets. `ceiling`: metrics of a perfect sampler
+    on the same chunks (`evaluation.ceiling`), where known."""
+    configs = list(dict.fromkeys(r["config"] for r in results))
+    layout = ActionLayout.from_config(results[0]["layout"])
+    baseline = configs[0]
+    if primary is None:
+        primary = configs[1] if len(configs) > 1 else baseline
+    if primary not in configs:
+        raise ValueError(f"--primary={primary!r} is not one of the study's configs {configs}")
+    secondary = [c for c in configs if c not in (baseline, primary)]
+    resampled = _episode_resamples(results)
+    episodes = resampled["episodes"] if resampled else 0
+
+    def replicates(config: str, key: str) -> np.ndarray | None:
+        if not resampled:
+            return None
+        return np.asarray([[math.nan if v is None else v
+                            for v in r[EPISODE_REPLICATES][key]]
+                           for r in results if r["config"] == config], np.float64)
+
+    per_config: dict[str, Any] = {}
+    for config in configs:
+        runs = [r for r in results if r["config"] == config]
+        names = sorted({k for r in runs for k in r["metrics"]
+                        if isinstance(r["metrics"][k], (int, float)) or r["metrics"][k] is None})
+        values = {k: np.asarray([as_number(r["metrics"].get(k)) for r in runs]) for k in names}
+        summary = [run_summary(r["metrics"], layout) for r in runs]
+        headline = {k: np.asarray([s[k] for s in summary]) for k in summary[0]}
+        per_config[config] = {
+            "seeds": [r["seed"] for r in runs],
+            "mean": {k: _nanmean(v) for k, v in {**values, **headline}.items()},
+            "std": {k: _nanstd(v) for k, v in {**values, **headline}.items()},
+            "headline": {k: v.tolist() for k, v in headline.items()},
+            "arm_skill_interval": study_stats.mean_interval(
+                headline["arm_skill"], episodes=episodes, episode_variance=(
+                    study_stats.episode_variance(replicates(config, "arm_skill"), episodes)
+                    if resampled else 0.0)),
+        }
+    base_values = per_config[baseline]["headline"]
+    base_runs = [r for r in results if r["config"] == baseline]
+    for config in configs:
+        entry = per_config[config]
+        confidence = study_stats.comparison_confidence(config in (primary, baseline),
+                                                       len(secondary))
+        entry["comparison"] = ("baseline" if config == baseline else
+                               "primary" if config == primary else "secondary")
+        entry["confidence"] = confidence
+        entry["vs_baseline"] = {k: study_stats.welch_interval(
+            entry["headline"][k], base_values[k], confidence, episodes=episodes,
+            episode_variance=(study_stats.episode_variance(
+                replicates(config, k), episodes, replicates(baseline, k))
+                if resampled and config != baseline else 0.0))
+            for k in COMPARED}
+        runs = [r for r in results if r["config"] == config]
+        entry["vs_baseline"].update(closed_loop_comparisons(runs, base_runs, confidence))
+        entry["targets"] = meets_targets(entry, per_config[baseline], layout, targets, ceiling)
+    reference = results[0]["metrics"]
+    do_nothing = {name: {k[len(name) + 1:]: v for k, v in reference.items()
+                         if k.startswith(name + "/")} for name in baselines_lib.BASELINES}
+    seeds = min(len(c["seeds"]) for c in per_config.values())
+    return {"baseline": baseline, "primary": primary, "configs": per_config,
+            "groups": list(layout.group_names), "arm_groups": list(arm_groups(layout)),
+            "do_nothing": {name: {**m, **run_summary(m, layout)} for name, m in do_nothing.items()
+                           if m},
+            "ceiling": dict(ceiling) if ceiling else None,
+            "min_seeds": seeds, "anecdotal": seeds < study_stats.MIN_SEEDS,
+            "episode_resampling": resampled, "targets": dataclasses.asdict(targets)}
+
+
+def closed_loop_comparisons(runs: Sequence[Mapping[str, Any]],
+                            base_runs: Sequence[Mapping[str, Any]], confidence: float
+                            ) -> dict[str, tuple[float, float, float]]:
+    """A config's closed-loop rates minus the baseline's (Welch t interval over seeds), widened
+    by the world episodes' sampling error where every run kept its per-episode outcomes on the
+    same number of episodes (the episodes are a sample too, the same for every run)."""
+    out = {}
+    both = list(runs) + list(base_runs)
+    found = [r.get(CLOSED_LOOP_EPISODES) for r in both]
+    episodes = (len(found[0]["success/task"])
+                if all(found) and len({len(f["success/task"]) for f in found}) == 1 else 0)
+    for key in CLOSED_LOOP_COMPARED:
+        if not all(CLOSED_LOOP + key in r["metrics"] for r in both):
+            continue
+        variance = 0.0
+        if episodes:
+            variance = study_stats.episode_variance(
+                [closed_loop_replicates(r[CLOSED_LOOP_EPISODES], key) for r in runs], episodes,
+                [closed_loop_replicates(r[CLOSED_LOOP_EPISODES], key) for r in base_runs])
+        out[CLOSED_LOOP + key] = study_stats.welch_interval(
+            [r["metrics"][CLOSED_LOOP + key] for r in runs],
+            [r["metrics"][CLOSED_LOOP + key] for r in base_runs], confidence,
+            episodes=episodes, episode_variance=variance)
+    return out
+
+
+def _episode_resamples(results: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:
+    """`{"episodes", "replicates"}` when every run has its `episode_replicates` on the same
+    number of held-out episodes (the same resamples), else None."""
+    found = [r.get(EPISODE_REPLICATES) for r in results]
+    if not all(found) or len({f["episodes"] for f in found}) != 1:
+        return None
+    return {"episodes": found[0]["episodes"], "replicates": len(found[0][COMPARED[0]])}
+
+
+def meets_targets(entry: Mapping[str, Any], baseline: Mapping[str, Any], layout: ActionLayout,
+                  targets: Targets, ceiling: Mapping[str, float] | None) -> dict[str, bool]:
+    """Which of `Targets` a config meets (means over seeds; the arm skill by its interval)."""
+    mean = entry["mean"]
+    _, low, _ = entry["arm_skill_interval"]
+    gains = []
+    for g in arm_groups(layout):
+        bar = targets.arm_gain
+        top = (ceiling or {}).get(f"motion_gain/{g}")
+        if top is not None and top < targets.ceiling_below:
+            bar = targets.ceiling_share * top
+        gains.append(mean.get(f"motion_gain/{g}") is not None
+                     and mean[f"motion_gain/{g}"] >= bar)
+    base, own = baseline["mean"].get("base_skill"), mean.get("base_skill")
+    met = {
+        "arm_skill": bool(np.isfinite(low) and low > 0),
+        "arm_gain": bool(gains) and all(gains),
+        "base_skill": bool(base is not None and own is not None
+                           and own >= base - targets.base_skill_drop * abs(base)),
+        "switch_f1": bool(mean.get("switch_f1") is not None
+                          and mean["switch_f1"] >= targets.switch_f1),
+    }
+    manipulation = entry["vs_baseline"].get(f"{CLOSED_LOOP}phase_success/manipulation")
+    navigation = entry["vs_baseline"].get(f"{CLOSED_LOOP}phase_success/navigation")
+    if manipulation is not None and navigation is not None:
+        precision = mean.get("gripper_switch/precision")
+        met |= {
+            "closed_loop_manipulation": bool(manipulation[0] >= targets.manipulation_gain
+                                             and np.isfinite(manipulation[1])
+                                             and manipulation[1] > 0),
+            "closed_loop_navigation": bool(navigation[0] >= -targets.navigation_drop),
+            "switch_precision": bool(precision is not None
+                                     and precision >= targets.switch_precision),
+        }
+    return met
+
+
+def _nanmean(v: np.ndarray) -> float | None:
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if len(v) else None
+
+
+def _nanstd(v: np.ndarray) -> float | None:
+    v = v[np.isfinite(v)]
+    return float(v.std(ddof=1)) if len(v) > 1 else (0.0 if len(v) else None)

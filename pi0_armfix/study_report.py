@@ -1,0 +1,299 @@
+"""A study's report: `study.md` (every table beside the do-nothing rows) and `study.png`, from
+`study_aggregate.aggregate`."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pi0_armfix import study_stats  # noqa: E402
+from pi0_armfix.sim.world import FAILURE_REASONS  # noqa: E402
+from pi0_armfix.study_aggregate import (  # noqa: E402
+    CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, PHASE_KINDS, SWITCH_COUNTS,
+    SWITCH_METRICS, as_number)
+
+GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
+    ("skill", "Skill over persistence (1 - err / persistence err; > 0: better than holding the "
+     "previous action, 1: perfect)", 3),
+    ("motion_gain", "Motion gain (1 = moves like the data, 0 = still, or moving in unrelated "
+     "directions)", 3),
+    ("motion_ratio", "Motion ratio (magnitude only: 1 = moves as much as the data, in any "
+     "direction)", 3),
+    ("err", "Error (MSE of the sampled chunk)", 4),
+)
+
+
+
+def _cell(summary: Mapping[str, Any], key: str, digits: int = 3) -> str:
+    mean, std = summary["mean"].get(key), summary["std"].get(key)
+    if mean is None:
+        return "n/a"
+    return f"{mean:.{digits}f} ± {std:.{digits}f}"
+
+
+def _value(metrics: Mapping[str, Any] | None, key: str, digits: int = 3) -> str:
+    value = None if metrics is None else metrics.get(key)
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _interval(d: Sequence[float]) -> str:
+    """`+0.123 [+0.010, +0.200]`."""
+    if not np.isfinite(d[0]):
+        return "n/a"
+    if not np.isfinite(d[1]):
+        return f"{d[0]:+.3f} [n/a: 1 seed]"
+    return f"{d[0]:+.3f} [{d[1]:+.3f}, {d[2]:+.3f}]"
+
+
+def _reference_rows(study: Mapping[str, Any], key_of_group, digits: int = 3) -> list[str]:
+    """The do-nothing rows (and the ceiling, where known) of a per-group table, in italics."""
+    rows = []
+    named = [(f"*{name.replace('_', ' ')} (do nothing)*", m)
+             for name, m in study["do_nothing"].items()]
+    if study.get("ceiling"):
+        named.append(("*ceiling: the expert re-run (perfect sampler)*", study["ceiling"]))
+    for label, m in named:
+        cells = [_value(m, key_of_group(g), digits) for g in study["groups"]]
+        rows.append(f"| {label} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
+    """`study.md`: the tables of `aggregate`, every one with the do-nothing rows."""
+    groups, configs = study["groups"], study["configs"]
+    seeds = study["min_seeds"]
+    targets = study["targets"]
+    header = "| config | " + " | ".join(groups) + " |"
+    rule = "|---" * (len(groups) + 1) + "|"
+    lines = [f"# Study: {len(configs)} configs x {seeds} seeds, {steps} steps", "",
+             f"`{command}`", ""]
+    if study["anecdotal"]:
+        lines += [f"**{seeds} seed(s) per config, fewer than {study_stats.MIN_SEEDS}: the "
+                  "intervals below are anecdotes, not results.**", ""]
+    lines += ["Held-out chunks sampled by the policy, mean ± std over seeds, every seed on the "
+              "same chunks (evaluation units: absolute actions over each dim's training std). "
+              "Rows in italics are the do-nothing predictors on the same chunks: *persistence* "
+              "holds the previous action, *state copy* repeats the current state where it maps "
+              "to the actions (see docs/evaluation.md).", ""]
+    for metric, title, digits in GROUP_TABLES:
+        lines += [f"## {title}", "", header, rule]
+        lines += [f"| {name} | " + " | ".join(_cell(c, f"{metric}/{g}", digits) for g in groups)
+                  + " |" for name, c in configs.items()]
+        lines += _reference_rows(study, lambda g, m=metric: f"{m}/{g}", digits) + [""]
+    lines = lines[:-1]
+    lines += ["", "## Gripper switches (each event of the held-out timeline once, matched within "
+              "the tolerance)", "",
+              "| config | precision | recall | F1 | TP / FP / FN (mean over seeds) |",
+              "|---|---|---|---|---|"]
+    for name, c in configs.items():
+        counts = " / ".join(_value(c["mean"], f"gripper_switch/{k}", 1) for k in SWITCH_COUNTS)
+        lines.append(f"| {name} | " + " | ".join(_cell(c, f"gripper_switch/{k}")
+                                                 for k in SWITCH_METRICS) + f" | {counts} |")
+    for label, m in [(f"*{n.replace('_', ' ')} (do nothing)*", m)
+                     for n, m in study["do_nothing"].items()]:
+        counts = " / ".join(_value(m, f"gripper_switch/{k}", 0) for k in SWITCH_COUNTS)
+        lines.append(f"| {label} | " + " | ".join(_value(m, f"gripper_switch/{k}")
+                                                 for k in SWITCH_METRICS) + f" | {counts} |")
+    resampled = study.get("episode_resampling")
+    sampling = (f"the seeds' spread and the held-out episodes' sampling error "
+                f"({resampled['episodes']} episodes, {resampled['replicates']} bootstrap resamples shared by every run)"
+                if resampled else "the seeds' spread only: some runs lack their per-chunk sums, "
+                "so the interval speaks for these held-out episodes alone")
+    lines += ["", f"## Against `{study['baseline']}` (difference of means over seeds, Welch t "
+              "interval)", "",
+              f"Primary comparison: `{study['primary']}` (95 % interval); the others are "
+              "secondary, their intervals Bonferroni-corrected so that together they hold at "
+              f"95 %. The intervals hold {sampling}. An interval that excludes 0 is a "
+              "difference these seeds and episodes can tell.", "",
+              "| config | comparison | arms' skill | arms' gain | base skill | switch F1 |",
+              "|---|---|---|---|---|---|"]
+    for name, c in configs.items():
+        if c["comparison"] == "baseline":
+            lines.append(f"| {name} | the baseline | " + " | ".join("—" for _ in COMPARED) + " |")
+            continue
+        vs = c["vs_baseline"]
+        level = f"{c['comparison']} ({c['confidence']:.1%})"
+        lines.append(f"| {name} | {level} | " + " | ".join(_interval(vs[k]) for k in COMPARED)
+                     + " |")
+    lines += ["", "## Targets", "",
+              f"Arms' skill over persistence > 0 with its 95 % interval above 0; each arm's "
+              f"motion gain >= {targets['arm_gain']} (or >= {targets['ceiling_share']:.0%} of the "
+              f"ceiling where that is below {targets['ceiling_below']}); base skill at most "
+              f"{targets['base_skill_drop']:.0%} below `{study['baseline']}`'s; gripper switch "
+              f"F1 >= {targets['switch_f1']}.", "",
+              "| config | arms' skill [95 %] | arm skill | arm gain | base skill | switch F1 |",
+              "|---|---|---|---|---|---|"]
+    for name, c in configs.items():
+        met = c["targets"]
+        lines.append(f"| {name} | {_interval(c['arm_skill_interval'])} | "
+                     + " | ".join("met" if met[k] else "missed" for k in
+                                  ("arm_skill", "arm_gain", "base_skill", "switch_f1")) + " |")
+    if has_closed_loop(configs):
+        lines += closed_loop_table(study)
+    return "\n".join(lines) + "\n"
+
+
+def has_closed_loop(configs: Mapping[str, Any]) -> bool:
+    """Whether any config of an aggregate has closed-loop metrics."""
+    return any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values())
+
+
+def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
+    """study.md's closed-loop section: success per kind, mean ± std over seeds, vs the baseline;
+    the success curve; the closed-loop targets."""
+    configs = study["configs"]
+    episodes = {c["mean"].get(CLOSED_LOOP + "episodes") for c in configs.values()}
+    compared = [f"phase_success/{k}" for k in PHASE_KINDS] + ["success/task"]
+    lines = ["", "## Closed loop in the demo world (`pi0_armfix.sim`)", "",
+             f"{', '.join(str(int(e)) for e in sorted(e for e in episodes if e))} episodes per "
+             "seed (world seed 1000, never trained on), the world's tolerances (what each means "
+             "physically: docs/evaluation.md). Phases: the share of a kind's phases that "
+             "succeeded; episodes: the share of episodes whose every phase of that kind "
+             "succeeded; mean ± std over seeds. Then the difference to the baseline "
+             "[Welch t interval over seeds, widened by the world episodes' sampling error]. "
+             "Progress: how far a phase got, 1 - closest approach / start distance, mean over "
+             "phases.", "",
+             "| config | navigation phases | manipulation phases | navigation episodes | "
+             "manipulation episodes | task | navigation progress | manipulation progress | "
+             "vs baseline: navigation phases | manipulation phases | task |", "|---" * 11 + "|"]
+    for name, c in configs.items():
+        vs = c["vs_baseline"]
+        diffs = [_interval(vs[CLOSED_LOOP + k]) if CLOSED_LOOP + k in vs else "n/a"
+                 for k in compared]
+        lines.append(f"| {name} | " + " | ".join(
+            [_cell(c, f"{CLOSED_LOOP}phase_success/{k}") for k in PHASE_KINDS]
+            + [_cell(c, f"{CLOSED_LOOP}success/{k}") for k in CLOSED_LOOP_KINDS]
+            + [_cell(c, f"{CLOSED_LOOP}progress/{k}") for k in PHASE_KINDS] + diffs) + " |")
+    return (lines + failure_table(configs) + success_curve_table(configs)
+            + closed_loop_targets(study))
+
+
+def success_curve_table(configs: Mapping[str, Any]) -> list[str]:
+    """The share of phases that succeeded with the world's tolerances times 1, 2 and 4."""
+    factors = [f for f in CLOSED_LOOP_TOLERANCES
+               if any(f"{CLOSED_LOOP}curve/{f:g}x/phase_success/manipulation" in c["mean"]
+                      for c in configs.values())]
+    if not factors:
+        return []
+    columns = [(k, f) for k in PHASE_KINDS for f in factors]
+    lines = ["", "Success curve: the share of phases that succeeded when every tolerance of the "
+             "world (radius, heading, stopped, reach) is multiplied by the factor, the same "
+             "episodes, mean ± std over seeds.", "",
+             "| config | " + " | ".join(f"{k} phases at {f:g}x" for k, f in columns) + " |",
+             "|---" * (len(columns) + 1) + "|"]
+    for name, c in configs.items():
+        lines.append(f"| {name} | " + " | ".join(
+            _cell(c, f"{CLOSED_LOOP}curve/{f:g}x/phase_success/{k}") for k, f in columns) + " |")
+    return lines
+
+
+def closed_loop_targets(study: Mapping[str, Any]) -> list[str]:
+    """Which config meets the closed-loop targets (`study_aggregate.Targets`)."""
+    targets = study["targets"]
+    rows = [(n, c["targets"]) for n, c in study["configs"].items()
+            if "closed_loop_manipulation" in c["targets"]]
+    if not rows:
+        return []
+    lines = ["", f"Closed-loop targets: manipulation phases at least "
+             f"{targets['manipulation_gain']:.0%} points above `{study['baseline']}`'s with the "
+             f"interval above 0; navigation phases at most {targets['navigation_drop']:.0%} "
+             f"points below; held-out gripper switch precision >= "
+             f"{targets['switch_precision']}.", "",
+             "| config | manipulation phases | navigation phases | switch precision |",
+             "|---|---|---|---|"]
+    for name, met in rows:
+        lines.append(f"| {name} | " + " | ".join(
+            "met" if met[k] else "missed" for k in
+            ("closed_loop_manipulation", "closed_loop_navigation", "switch_precision")) + " |")
+    return lines
+
+
+def failure_table(configs: Mapping[str, Any]) -> list[str]:
+    """Why the phases failed: per config, the fraction of its phases that failed for each reason
+    (`sim.world.FAILURE_REASONS`, mean over seeds), and the gripper switches per phase."""
+    reasons = [(kind, reason) for kind in PHASE_KINDS
+               for reason in FAILURE_REASONS[kind]]
+    if not any(f"{CLOSED_LOOP}failure/{k}/{r}" in c["mean"] for c in configs.values()
+               for k, r in reasons):
+        return []
+    lines = ["", "Why phases failed: the fraction of a kind's phases that failed for each reason "
+             "(the furthest stage the phase reached; see docs/evaluation.md), mean over seeds; "
+             "gripper switches: open/close commands per phase.", "",
+             "| config | " + " | ".join(f"{k[:3]}: {r}" for k, r in reasons)
+             + " | switches per navigation phase | per manipulation phase |",
+             "|---" * (len(reasons) + 3) + "|"]
+    for name, c in configs.items():
+        cells = [c["mean"].get(f"{CLOSED_LOOP}failure/{k}/{r}") for k, r in reasons]
+        cells += [c["mean"].get(f"{CLOSED_LOOP}gripper_switches/{k}")
+                  for k in PHASE_KINDS]
+        lines.append(f"| {name} | " + " | ".join(
+            "n/a" if v is None or not math.isfinite(v) else f"{v:.2f}" for v in cells) + " |")
+    return lines
+
+
+CLOSED_LOOP_PANEL = ("phase_success/navigation", "phase_success/manipulation", "success/task")
+
+
+def plot_study(study: Mapping[str, Any], path: Path) -> None:
+    """`study.png`: per group, each config's skill over persistence and motion gain (mean, std
+    over seeds as error bars), the do-nothing predictors as black markers (and the ceiling, where
+    known, as grey ones); closed-loop success beside them when the runs have it."""
+    groups, configs = study["groups"], study["configs"]
+    width = 0.8 / len(configs)
+    closed = has_closed_loop(configs)
+    panels = [("skill", "skill over persistence (> 0: better than doing nothing)"),
+              ("motion_gain", "motion gain (1 = moves like the data)")]
+    fig, axes = plt.subplots(1, len(panels) + closed, squeeze=False, gridspec_kw={
+        "width_ratios": [len(groups)] * len(panels)
+        + ([len(CLOSED_LOOP_PANEL)] if closed else [])},
+        figsize=(2 * max(7, 1.4 * len(groups) + 0.25 * len(configs)) + (4 if closed else 0), 5))
+    x = np.arange(len(groups))
+    references = [(name, m, "k", marker) for (name, m), marker
+                  in zip(study["do_nothing"].items(), ("_", "x"))]
+    if study.get("ceiling"):
+        references.append(("ceiling (expert re-run)", study["ceiling"], "gray", "*"))
+    for ax, (metric, title) in zip(axes[0], panels):
+        for i, (name, c) in enumerate(configs.items()):
+            means = [c["mean"].get(f"{metric}/{g}") for g in groups]
+            stds = [c["std"].get(f"{metric}/{g}") for g in groups]
+            ax.bar(x + (i - (len(configs) - 1) / 2) * width,
+                   [np.nan if m is None else m for m in means], width,
+                   yerr=[0 if s is None else s for s in stds], capsize=2, label=name)
+        for name, m, color, marker in references:
+            ax.scatter(x, [as_number(m.get(f"{metric}/{g}")) for g in groups], color=color,
+                       marker=marker, s=160 if marker == "_" else 50, zorder=3, label=name)
+        ax.axhline(0.0, color="black", lw=0.8)
+        if metric == "motion_gain":
+            ax.axhline(1.0, color="gray", lw=0.8)
+        else:
+            ax.set_ylim(max(ax.get_ylim()[0], -3.0), 1.1)  # skill is at most 1
+        ax.set_xticks(x, groups, rotation=20)
+        ax.set(title=title)
+        ax.grid(axis="y", alpha=0.3)
+    if closed:
+        ax = axes[0, -1]
+        x = np.arange(len(CLOSED_LOOP_PANEL))
+        for i, (name, c) in enumerate(configs.items()):
+            keys = [CLOSED_LOOP + k for k in CLOSED_LOOP_PANEL]
+            ax.bar(x + (i - (len(configs) - 1) / 2) * width,
+                   [np.nan if c["mean"].get(k) is None else c["mean"][k] for k in keys], width,
+                   yerr=[c["std"].get(k) or 0 for k in keys], capsize=2, label=name)
+        ax.set_xticks(x, ["navigation\nphases", "manipulation\nphases", "task"])
+        ax.set(ylim=(0, 1.05), ylabel="success rate", title="closed loop (demo world)")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0, -1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    seeds = study["min_seeds"]
+    fig.suptitle(f"held-out evaluation, mean ± std over {seeds} seed(s) per config "
+                 f"(baseline: {study['baseline']})"
+                 + (" - fewer than 5 seeds: an anecdote" if study["anecdotal"] else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
