@@ -219,8 +219,7 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
 def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict[str, Any]:
     """The result with the closed-loop metrics and per-episode outcomes of `episodes` episodes
     (measured now when it has none of that many; `result.json` rewritten)."""
-    if episodes <= 0 or (result["metrics"].get(CLOSED_LOOP + "episodes") == episodes
-                         and CLOSED_LOOP_EPISODES in result):
+    if episodes <= 0 or has_closed_loop(result, episodes):
         return result
     metrics, outcomes = closed_loop_metrics(folder, result["steps"], episodes)
     result = {**result, CLOSED_LOOP_EPISODES: outcomes, "metrics": {
@@ -228,6 +227,12 @@ def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict
         **metrics}}
     stats_lib.write_json_atomic(folder / RESULT_FILE, result)
     return result
+
+
+def has_closed_loop(result: Mapping[str, Any], episodes: int) -> bool:
+    """Whether a run's result holds the closed-loop metrics and outcomes of `episodes` episodes."""
+    return (result["metrics"].get(CLOSED_LOOP + "episodes") == episodes
+            and CLOSED_LOOP_EPISODES in result)
 
 
 def load_result(folder: Path) -> dict[str, Any] | None:
@@ -247,18 +252,20 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
     """Every (config, seed) run, the finished ones read back (and evaluated in closed loop when
     they were not), the others trained; with `train=False`, only the finished ones (a partial
     study's tables, labelled by their seed counts)."""
-    results, todo = {}, []
+    results, todo, unmeasured = {}, [], []
     for seed in seeds:  # seed-major: an interrupted study has every config's first seeds
         for config in configs:
-            result = load_result(run_folder(workdir, config, seed))
+            folder = run_folder(workdir, config, seed)
+            result = load_result(folder)
             if result is not None and result["steps"] == steps:
-                folder = run_folder(workdir, config, seed)
                 result = add_episode_replicates(result, folder, evaluate_missing=train)
-                results[config, seed] = add_closed_loop(result, folder,
-                                                        closed_loop_episodes if train else 0)
+                results[config, seed] = result
+                if train and closed_loop_episodes > 0 and not has_closed_loop(
+                        result, closed_loop_episodes):
+                    unmeasured.append((config, seed))
             elif result is not None:
-                raise ValueError(f"{run_folder(workdir, config, seed)} finished {result['steps']} "
-                                 f"steps, not --steps={steps}: use another --workdir")
+                raise ValueError(f"{folder} finished {result['steps']} steps, not "
+                                 f"--steps={steps}: use another --workdir")
             else:
                 todo.append((config, seed))
     if not train:
@@ -267,13 +274,15 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
         print(f"study: reporting the {len(results)} finished runs of {len(results) + len(todo)}",
               flush=True)
         return [results[c, s] for c in configs for s in seeds if (c, s) in results]
-    if todo:
+    if todo or unmeasured:
         print(f"study: {len(results)} of {len(results) + len(todo)} runs finished; training "
-              f"{len(todo)} ({parallel} at a time), logs in {workdir}/<config>/seed_<s>/train.log",
-              flush=True)
+              f"{len(todo)}, closed loop for {len(unmeasured)} finished ({parallel} at a time), "
+              f"logs in {workdir}/<config>/seed_<s>/train.log", flush=True)
     with concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool:
-        futures = {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes):
-                   (c, s) for c, s in todo}
+        futures = {pool.submit(add_closed_loop, results[c, s], run_folder(workdir, c, s),
+                               closed_loop_episodes): (c, s) for c, s in unmeasured}
+        futures |= {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes):
+                    (c, s) for c, s in todo}
         try:
             for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures),
                                desc="study runs", unit="run"):

@@ -206,6 +206,26 @@ def test_report_only_tables_the_finished_runs_and_trains_nothing(tmp_path):
     assert not study.run_folder(tmp_path, "arm_focused", 0).exists()
 
 
+def test_finished_runs_without_the_closed_loop_get_it_once_in_the_pool(tmp_path, monkeypatch):
+    for seed in (0, 1):
+        folder = study.run_folder(tmp_path, "uniform", seed)
+        folder.mkdir(parents=True)
+        (folder / study.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
+    measured = []
+
+    def fake(folder, steps, episodes):
+        measured.append(folder.name)
+        return {"closed_loop/episodes": episodes}, {"success/task": [1] * episodes}
+    monkeypatch.setattr(study, "closed_loop_metrics", fake)
+    for _ in range(2):
+        results = study.run_study(["uniform"], [0, 1], 10, tmp_path, parallel=2,
+                                  closed_loop_episodes=3)
+    assert sorted(measured) == ["seed_0", "seed_1"]
+    assert all(r["closed_loop_episodes"] == {"success/task": [1, 1, 1]} for r in results)
+    saved = study.load_result(study.run_folder(tmp_path, "uniform", 1))
+    assert saved["metrics"]["closed_loop/episodes"] == 3
+
+
 def test_closed_loop_failure_reasons_get_a_table_of_mean_fractions(tmp_path):
     results = []
     for seed, never_reached in enumerate((0.5, 0.7)):
