@@ -213,3 +213,20 @@ def test_cli_writes_a_demo_anywhere(tmp_path):
 def test_cli_refuses_an_existing_output(tmp_path):
     result = _cli(f"--output={tmp_path}", "--episodes=1")
     assert result.returncode != 0 and "already exists" in result.stderr
+
+
+def test_the_demo_in_lerobot_v30_holds_the_same_frames(tmp_path):
+    result = _cli(f"--output={tmp_path / 'v30'}", "--episodes=2", "--version=v3.0")
+    assert result.returncode == 0, result.stderr
+    assert "LeRobot v3.0" in result.stdout
+    demo.write_demo_dataset(tmp_path / "v21", dataclasses.replace(demo.DemoSpec(),
+                                                                  num_episodes=2))
+    v30, v21 = LeRobotSource(tmp_path / "v30", LAYOUT), LeRobotSource(tmp_path / "v21", LAYOUT)
+    assert v30.version == "v3.0" and v21.version == "v2.1"
+    first, second = (np.concatenate([b["actions"] for b in s.iter_blocks(("actions",))])
+                     for s in (v30, v21))
+    np.testing.assert_array_equal(first, second)
+    images, expected = v30.load_table().images(7), v21.load_table().images(7)
+    assert images.keys() == expected.keys()
+    for camera in images:
+        np.testing.assert_array_equal(images[camera], expected[camera])

@@ -68,9 +68,9 @@ def generate_episode(spec: DemoSpec, index: int) -> dict:
                        CAMERAS[2]: images["right_wrist"]}}
 
 
-def _write(root: Path, spec: DemoSpec) -> None:
+def _write(root: Path, spec: DemoSpec, version: str) -> None:
     size = (spec.image_size, spec.image_size)
-    with LeRobotWriter(root, version="v2.1", fps=spec.fps, cameras={c: size for c in CAMERAS},
+    with LeRobotWriter(root, version=version, fps=spec.fps, cameras={c: size for c in CAMERAS},
                        image_format="png") as writer:
         for index in tqdm(range(spec.num_episodes), desc="demo episodes", unit="ep"):
             episode = generate_episode(spec, index)
@@ -78,16 +78,18 @@ def _write(root: Path, spec: DemoSpec) -> None:
                                episode["images"])
 
 
-def write_demo_dataset(output: str | Path, spec: DemoSpec = DemoSpec()) -> Path:
-    """Writes the demo as a LeRobot v2.1 root at `output` (which must not exist), atomically:
-    into a temporary sibling folder first, renamed when complete."""
+def write_demo_dataset(output: str | Path, spec: DemoSpec = DemoSpec(), version: str = "v2.1"
+                       ) -> Path:
+    """Writes the demo as a LeRobot root of `version` (the cached default demo: v2.1) at `output`
+    (which must not exist), atomically: into a temporary sibling folder first, renamed when
+    complete."""
     output = Path(output)
     if output.exists():
         raise ValueError(f"{output} already exists; choose a new output folder")
     output.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
     try:
-        _write(staging / "dataset", spec)
+        _write(staging / "dataset", spec, version)
         os.rename(staging / "dataset", output)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

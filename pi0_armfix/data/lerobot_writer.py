@@ -1,7 +1,19 @@
 """`LeRobotWriter`: writes LeRobot dataset roots (v2.0, v2.1, v3.0) one episode at a time.
 
 The demo dataset, the benchmarks, the re-encode tool and the tests write with it; what the three
-layouts hold is described in `pi0_armfix.data.lerobot`, which reads them.
+layouts hold is described in `pi0_armfix.data.lerobot`, which reads them. The metadata is written
+as LeRobot's own writer writes it, so that LeRobot's loader and tools take the root as their own:
+  - every data parquet file declares its features in the schema metadata (`huggingface`:
+    `{"info": {"features": ...}}` in Hugging Face `datasets`' form, cameras stored in the
+    parquet as `Image`), without which LeRobot 0.3 reads an image column as `{bytes, path}` dicts;
+  - statistics of every feature, cameras per channel (`data.lerobot_stats`): v2.1
+    `meta/episodes_stats.jsonl`, v3.0 `meta/stats.json` and the `stats/<feature>/<stat>` columns
+    of `meta/episodes`, v2.0 `meta/stats.json`;
+  - v3.0 `meta/tasks.parquet` as pandas writes a frame indexed by the task string (LeRobot reads
+    the task from the index), `task_index` its column;
+  - a video feature's `info`: `video.height`, `video.width`, `video.codec` (the codec, `h264`, not
+    the encoder), `video.pix_fmt`, `video.fps`, `video.channels`, `video.is_depth_map`,
+    `has_audio`; v3.0's file-size settings are LeRobot's defaults (100 MB data, 200 MB video).
 """
 
 from __future__ import annotations
@@ -13,11 +25,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import av
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data import lerobot_stats
 from pi0_armfix.data.lerobot import (ACTION, STATE, V2_DATA_PATH, V2_VIDEO_PATH,
                                      V3_DATA_PATH, V3_EPISODES_PATH, V3_VIDEO_PATH, VERSIONS)
 from pi0_armfix.data.video import write_video
@@ -30,22 +44,24 @@ def _list_array(values: np.ndarray) -> pa.Array:
     return pa.ListArray.from_arrays(offsets, pa.array(values.reshape(-1)))
 
 
-def _feature_stats(x: np.ndarray) -> dict[str, list]:
-    x = x.astype(np.float64)
-    return {"min": x.min(0).tolist(), "max": x.max(0).tolist(), "mean": x.mean(0).tolist(),
-            "std": x.std(0).tolist(), "count": [len(x)]}
+def codec_name(encoder: str) -> str:
+    """The codec an encoder writes (`libx264` -> `h264`), as LeRobot records `video.codec`."""
+    try:
+        return av.Codec(encoder, "w").canonical_name
+    except Exception:  # noqa: BLE001 - an encoder this PyAV build lacks keeps its own name
+        return {"libaom-av1": "av1"}.get(encoder, encoder)
 
 
-def _merge_stats(parts: Sequence[Mapping[str, list]]) -> dict[str, list]:
-    """Pooled statistics of several parts (count-weighted mean and variance)."""
-    counts = np.array([p["count"][0] for p in parts], np.float64)[:, None]
-    means = np.array([p["mean"] for p in parts])
-    second = np.array([p["std"] for p in parts]) ** 2 + means ** 2
-    mean = (counts * means).sum(0) / counts.sum()
-    var = np.maximum((counts * second).sum(0) / counts.sum() - mean ** 2, 0.0)
-    return {"min": np.min([p["min"] for p in parts], 0).tolist(),
-            "max": np.max([p["max"] for p in parts], 0).tolist(),
-            "mean": mean.tolist(), "std": np.sqrt(var).tolist(), "count": [int(counts.sum())]}
+def hf_feature(feature: Mapping[str, Any]) -> dict[str, Any]:
+    """A LeRobot feature (`info.json` form) as Hugging Face `datasets` declares it in a parquet
+    schema (what LeRobot's `get_hf_features_from_features` makes of it; `Sequence`, which every
+    `datasets` version reads)."""
+    if feature["dtype"] == "image":
+        return {"_type": "Image"}
+    value = {"dtype": feature["dtype"], "_type": "Value"}
+    if list(feature["shape"]) == [1]:
+        return value
+    return {"feature": value, "length": int(feature["shape"][0]), "_type": "Sequence"}
 
 
 @dataclasses.dataclass
@@ -157,11 +173,19 @@ class LeRobotWriter:
         episode = _PendingEpisode(len(self._records), task, task_index,
                                   actions.astype(self.float_dtype), state.astype(self.float_dtype),
                                   encoded)
+        frame = np.arange(n)
+        columns = {self.action_key: episode.actions, self.state_key: episode.state,
+                   "timestamp": (frame / self.fps).astype(np.float32)}
+        if self.frame_index:
+            columns["frame_index"] = frame
+        columns |= {"episode_index": np.full(n, episode.index),
+                    "index": self._num_frames + frame, "task_index": np.full(n, task_index)}
+        stats = {key: lerobot_stats.feature_stats(values) for key, values in columns.items()}
+        stats |= {name: lerobot_stats.image_stats(frames) for name, frames in images.items()}
         self._records.append({
             "episode_index": episode.index, "tasks": [task], "length": n,
             "dataset_from_index": self._num_frames, "dataset_to_index": self._num_frames + n,
-            "stats": {self.action_key: _feature_stats(actions),
-                      self.state_key: _feature_stats(state)},
+            "stats": stats,
         })
         self._num_frames += n
         if self.version == "v3.0":
@@ -192,7 +216,11 @@ class LeRobotWriter:
         columns["episode_index"] = pa.array(np.repeat([e.index for e in episodes], lengths))
         columns["index"] = pa.array(np.arange(first, first + sum(lengths), dtype=np.int64))
         columns["task_index"] = pa.array(np.repeat([e.task_index for e in episodes], lengths))
-        return pa.table(columns)
+        table = pa.table(columns)
+        features = {name: hf_feature(f) for name, f in self._features().items()
+                    if f["dtype"] != "video"}
+        return table.replace_schema_metadata({"huggingface": json.dumps(
+            {"info": {"features": {name: features[name] for name in table.column_names}}})})
 
     def _write_table(self, table: pa.Table, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -237,8 +265,8 @@ class LeRobotWriter:
 
     # ------------------------------------------------------------------ metadata
 
-    def _info(self) -> dict[str, Any]:
-        num_episodes = len(self._records)
+    def _features(self) -> dict[str, Any]:
+        """`info.json`'s features, in the parquet's column order."""
         action_width, state_width = self._widths or (0, 0)
         dtype = self.float_dtype.name
         scalar = lambda d: {"dtype": d, "shape": [1], "names": None}  # noqa: E731
@@ -250,21 +278,29 @@ class LeRobotWriter:
             feature = {"dtype": "video" if self.image_format == "video" else "image",
                        "shape": [height, width, 3], "names": ["height", "width", "channels"]}
             if self.image_format == "video":
-                feature["info"] = {"video.fps": self.fps, "video.codec": self.video_codec,
-                                   "video.pix_fmt": "yuv420p", "has_audio": False}
+                feature["info"] = {"video.height": height, "video.width": width,
+                                   "video.codec": codec_name(self.video_codec),
+                                   "video.pix_fmt": "yuv420p", "video.fps": self.fps,
+                                   "video.channels": 3, "video.is_depth_map": False,
+                                   "has_audio": False}
             features[name] = feature
         features["timestamp"] = scalar("float32")
         if self.frame_index:
             features["frame_index"] = scalar("int64")
         for name in ("episode_index", "index", "task_index"):
             features[name] = scalar("int64")
+        return features
+
+    def _info(self) -> dict[str, Any]:
+        num_episodes = len(self._records)
+        features = self._features()
         video = self.image_format == "video" and self.cameras
         info: dict[str, Any] = {"codebase_version": self.version, "robot_type": self.robot_type,
                                 "total_episodes": num_episodes, "total_frames": self._num_frames,
                                 "total_tasks": len(self._tasks)}
         if self.version == "v3.0":
             info.update(chunks_size=self.chunks_size, data_files_size_in_mb=100,
-                        video_files_size_in_mb=500, fps=self.fps,
+                        video_files_size_in_mb=200, fps=self.fps,
                         splits={"train": f"0:{num_episodes}"}, data_path=V3_DATA_PATH,
                         video_path=V3_VIDEO_PATH if video else None)
         else:
@@ -289,8 +325,8 @@ class LeRobotWriter:
         (meta / "info.json").write_text(json.dumps(self._info(), indent=4))
         tasks = sorted(self._tasks.items(), key=lambda kv: kv[1])
         if self.version != "v2.1":  # v2.1 replaced stats.json by per-episode statistics
-            stats = {key: _merge_stats([r["stats"][key] for r in self._records])
-                     for key in (self.action_key, self.state_key)}
+            stats = {key: lerobot_stats.merge_stats([r["stats"][key] for r in self._records])
+                     for key in self._records[0]["stats"]}
             (meta / "stats.json").write_text(json.dumps(stats, indent=4))
         if self.version == "v3.0":
             self._write_v3_meta(tasks)
@@ -320,6 +356,21 @@ class LeRobotWriter:
         columns["meta/episodes/file_index"] = [0] * len(self._records)
         self._write_table(pa.table(columns),
                           self.root / V3_EPISODES_PATH.format(chunk_index=0, file_index=0))
-        self._write_table(pa.table({"task_index": [i for _, i in tasks],
-                                    "task": [t for t, _ in tasks]}),
-                          self.root / "meta" / "tasks.parquet")
+        self._write_table(tasks_table(tasks), self.root / "meta" / "tasks.parquet")
+
+
+def tasks_table(tasks: Sequence[tuple[str, int]]) -> pa.Table:
+    """v3.0's `meta/tasks.parquet` as pandas writes LeRobot's frame: `task_index` a column, the
+    task string its index (a `task` column named as the index in the `pandas` schema metadata)."""
+    table = pa.table({"task_index": pa.array([i for _, i in tasks], pa.int64()),
+                      "task": pa.array([t for t, _ in tasks], pa.string())})
+    pandas = {"index_columns": ["task"],
+              "column_indexes": [{"name": None, "field_name": None, "pandas_type": "unicode",
+                                  "numpy_type": "object", "metadata": {"encoding": "UTF-8"}}],
+              "columns": [{"name": "task_index", "field_name": "task_index",
+                           "pandas_type": "int64", "numpy_type": "int64", "metadata": None},
+                          {"name": "task", "field_name": "task", "pandas_type": "unicode",
+                           "numpy_type": "object", "metadata": None}],
+              "creator": {"library": "pyarrow", "version": pa.__version__},
+              "pandas_version": "2.2.3"}
+    return table.replace_schema_metadata({"pandas": json.dumps(pandas)})

@@ -1,6 +1,10 @@
-"""Writes the B1K-like demo dataset (LeRobot v2.1, see `pi0_armfix.data.demo`) to a new folder.
+"""Writes the B1K-like demo dataset (see `pi0_armfix.data.demo`) to a new folder.
 
-  python -m pi0_armfix.tools.make_demo_dataset --output=/tmp/demo [--episodes=100] [--seed=0]
+  python -m pi0_armfix.tools.make_demo_dataset --output=/tmp/demo [--episodes=100] [--seed=0] \
+      [--version=v2.1|v3.0]
+
+`--version=v3.0` writes LeRobot's current layout (LeRobot 0.4 reads it); the default, v2.1, is
+the layout of the cached demo the study's results were measured on (LeRobot 0.3 reads it).
 
 Training on it: `--config.data.root=/tmp/demo` (an empty data.root uses the cached default demo).
 """
@@ -18,6 +22,8 @@ _OUTPUT = flags.DEFINE_string("output", None, "New folder to write the dataset i
                               required=True)
 _EPISODES = flags.DEFINE_integer("episodes", demo.DemoSpec.num_episodes, "Number of episodes.")
 _SEED = flags.DEFINE_integer("seed", demo.DemoSpec.seed, "Generator seed.")
+_VERSION = flags.DEFINE_enum("version", "v2.1", ["v2.0", "v2.1", "v3.0"],
+                             "LeRobot layout version.")
 
 
 def main(argv: list[str]) -> None:
@@ -26,9 +32,10 @@ def main(argv: list[str]) -> None:
     if _EPISODES.value < 1:
         raise ValueError(f"--episodes must be >= 1, got {_EPISODES.value}")
     spec = dataclasses.replace(demo.DemoSpec(), num_episodes=_EPISODES.value, seed=_SEED.value)
-    root = demo.write_demo_dataset(_OUTPUT.value, spec)
+    root = demo.write_demo_dataset(_OUTPUT.value, spec, _VERSION.value)
     size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
-    print(f"wrote {spec.num_episodes} episodes to {root} ({size / 2**20:.1f} MiB)")
+    print(f"wrote {spec.num_episodes} episodes to {root} (LeRobot {_VERSION.value}, "
+          f"{size / 2**20:.1f} MiB)")
 
 
 

@@ -16,7 +16,9 @@ like any other: the data parquet files and metadata are hard-linked (copied acro
 systems), `meta/info.json` gets the new video shapes and codec, and video features other than
 `--features` are left out (`matched`, the default: the cameras training reads, by the alias
 table of `pi0_armfix.data.cameras` — B1K's depth and segmentation videos are not needed; `all`;
-or a comma-separated list of feature names). Written into a staging folder renamed when
+or a comma-separated list of feature names), from the videos and from every metadata file that
+names them (`info.json`, `stats.json`, `episodes_stats.jsonl`, v3.0's `meta/episodes` columns
+`videos/<feature>/...` and `stats/<feature>/...`), so LeRobot's tools find no feature half gone. Written into a staging folder renamed when
 complete; `--workers` files are encoded at once (default: every core), with a progress bar.
 """
 
@@ -33,16 +35,14 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+import pyarrow.parquet as pq
 from absl import app, flags
 from tqdm import tqdm
 
 from pi0_armfix import console
 from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data.lerobot_writer import codec_name
 from pi0_armfix.data.video import VideoDecoder, VideoWriter
-
-
-# PyAV encoder -> the codec name LeRobot's info.json records.
-_CODEC_NAMES = {"libx264": "h264", "libx265": "hevc", "libsvtav1": "av1", "libaom-av1": "av1"}
 
 
 def video_features(info: dict, chosen: str, root: Path) -> list[str]:
@@ -154,6 +154,9 @@ def reencode_dataset(input_root: str | Path, output_root: str | Path, *, size: i
                 bar.set_postfix(frames=frames)
             bar.close()
         _rewrite_info(info, chosen, shapes, codec, gop, staging / "meta" / "info.json")
+        dropped = [name for name, f in info["features"].items()
+                   if f.get("dtype") == "video" and name not in chosen]
+        drop_from_metadata(staging / "meta", dropped)
         os.rename(staging, output_root)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -172,7 +175,7 @@ def _rewrite_info(info: dict, chosen: Sequence[str], shapes: dict, codec: str, g
             height, width = shapes[name]
             feature = {**feature, "shape": [height, width, 3]}
             feature["info"] = {**feature.get("info", {}), "video.height": height,
-                               "video.width": width, "video.codec": _CODEC_NAMES.get(codec, codec),
+                               "video.width": width, "video.codec": codec_name(codec),
                                "video.pix_fmt": "yuv420p", "video.gop": gop,
                                "video.is_depth_map": False}
         features[name] = feature
@@ -181,6 +184,40 @@ def _rewrite_info(info: dict, chosen: Sequence[str], shapes: dict, codec: str, g
         info["total_videos"] = info["total_episodes"] * len(chosen)
     path.unlink()  # a hard link to the input's info.json: never write through it
     path.write_text(json.dumps(info, indent=4))
+
+
+def _replace(path: Path, text: str | None = None, table=None) -> None:
+    """Writes a metadata file of the staging tree, never through its hard link to the input."""
+    path.unlink()
+    if table is not None:
+        pq.write_table(table, path)
+    else:
+        path.write_text(text)
+
+
+def drop_from_metadata(meta: Path, dropped: Sequence[str]) -> None:
+    """Removes the `dropped` features from every metadata file under `meta` but `info.json`
+    (rewritten by `_rewrite_info`): `stats.json`, `episodes_stats.jsonl`, and the
+    `videos/<feature>/...` and `stats/<feature>/...` columns of v3.0's `meta/episodes`."""
+    if not dropped:
+        return
+    stats = meta / "stats.json"
+    if stats.is_file():
+        kept = {k: v for k, v in json.loads(stats.read_text()).items() if k not in dropped}
+        _replace(stats, json.dumps(kept, indent=4))
+    per_episode = meta / "episodes_stats.jsonl"
+    if per_episode.is_file():
+        rows = [json.loads(line) for line in per_episode.read_text().splitlines() if line.strip()]
+        for row in rows:
+            row["stats"] = {k: v for k, v in row.get("stats", {}).items() if k not in dropped}
+        _replace(per_episode, "".join(json.dumps(r) + "\n" for r in rows))
+    prefixes = tuple(f"{kind}/{name}/" for name in dropped for kind in ("videos", "stats"))
+    for path in sorted((meta / "episodes").rglob("*.parquet")) if (meta / "episodes").is_dir() \
+            else []:
+        table = pq.read_table(path)
+        gone = [c for c in table.column_names if c.startswith(prefixes)]
+        if gone:
+            _replace(path, table=table.drop_columns(gone))
 
 
 def main(argv: list[str]) -> None:
