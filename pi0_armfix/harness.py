@@ -17,17 +17,25 @@ server over openpi's websocket and msgpack encoding, but not openpi's request/re
 
 `HarnessSession` keeps, per env, the actions of the last sampled chunk: a step pops the next
 one and replans (one model call for every env that needs it) when the queue is empty, executing
-`n_exec` actions of each chunk (receding horizon, as the closed-loop evaluation). A reset empties
-the queues and reseeds the noise from the server's seed and the episode count, so an evaluation
-rerun with the same seed gets the same actions. The prompt is the run's own for `task_id`
-(`meta/tasks.jsonl` of its dataset, kept in the run folder), or `--prompt`.
+`n_exec` actions of each chunk (receding horizon, as the closed-loop evaluation); with `rtc`,
+each new chunk softly follows the previous chunk's unexecuted tail (real-time chunking, as
+`evaluate --closed_loop --follow_tail`), and with a gripper latch the grippers commit
+(`pi0_armfix.hysteresis`, per env). Each connection samples from its own noise stream: a reset
+empties the queues and tails and restarts the stream from the server's seed plus the episode
+count, so an evaluation rerun with the same seed gets the same actions whatever other
+connections do. The prompt is the run's own for `task_id` (`meta/tasks.jsonl` of its dataset,
+kept in the run folder; a task the run never trained on is served with one warning line); an id
+the run's table lacks falls back to B1K 2025's task table (`B1K_2025_TASKS`, prompt from the
+task name), or `--prompt` gives it.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from typing import Any
 
+import jax
 import numpy as np
 
 CAMERAS = {"robot_r1::robot_r1:zed_link:Camera:0::rgb": "base_0_rgb",
@@ -35,29 +43,74 @@ CAMERAS = {"robot_r1::robot_r1:zed_link:Camera:0::rgb": "base_0_rgb",
            "robot_r1::robot_r1:right_realsense_link:Camera:0::rgb": "right_wrist_0_rgb"}
 PROPRIO, TASK_ID, CHUNK_SIZE, RESET = ("robot_r1::proprio", "task_id", "__action_chunk_size__",
                                        "reset")
+# B1K 2025's 50 challenge tasks by task id (its evaluator's table; the 2026 release keeps ids 0-49
+# and adds 50-99, listed in its dataset's meta/tasks.jsonl, which a 2026 run keeps).
+B1K_2025_TASKS = (
+    "turning_on_radio", "picking_up_trash", "putting_away_Halloween_decorations",
+    "cleaning_up_plates_and_food", "can_meat", "setting_mousetraps", "hiding_Easter_eggs",
+    "picking_up_toys", "rearranging_kitchen_furniture", "putting_up_Christmas_decorations_inside",
+    "set_up_a_coffee_station_in_your_kitchen", "putting_dishes_away_after_cleaning",
+    "preparing_lunch_box", "loading_the_car", "carrying_in_groceries", "bringing_in_wood",
+    "moving_boxes_to_storage", "bringing_water", "tidying_bedroom", "outfit_a_basic_toolbox",
+    "sorting_vegetables", "collecting_childrens_toys", "putting_shoes_on_rack",
+    "boxing_books_up_for_storage", "storing_food", "clearing_food_from_table_into_fridge",
+    "assembling_gift_baskets", "sorting_household_items", "getting_organized_for_work",
+    "clean_up_your_desk", "setting_the_fire", "clean_boxing_gloves", "wash_a_baseball_cap",
+    "wash_dog_toys", "hanging_pictures", "attach_a_camera_to_a_tripod", "clean_a_patio",
+    "clean_a_trumpet", "spraying_for_bugs", "spraying_fruit_trees", "make_microwave_popcorn",
+    "cook_cabbage", "chop_an_onion", "slicing_vegetables", "chopping_wood", "cook_hot_dogs",
+    "cook_bacon", "freeze_pies", "canning_food", "make_pizza")
 
 
 class HarnessSession:
     """One harness connection (see the module docstring).
 
     Args:
-      policy: a `RunPolicy` (or anything with `infer`, `horizon`, `keys`, `task_prompts`,
-        `reseed`, `stored_state_width`).
+      policy: a `RunPolicy` (or anything with `infer(observations, follow=, rng=)`, `horizon`,
+        `keys`, `task_prompts`, `trained_prompts`).
       n_exec: actions executed of each sampled chunk before replanning.
       seed: the noise seed of the first episode; episode e samples from `seed + e`.
       prompt: the prompt for every task ('' = the run's prompt of the request's `task_id`).
+      rtc: each new chunk follows the last one's unexecuted tail (needs n_exec < horizon).
+      latch: a `hysteresis.GripperLatch` the commands pass, one stream per env; None: as sampled.
     """
 
-    def __init__(self, policy: Any, n_exec: int, seed: int = 0, prompt: str = ""):
+    def __init__(self, policy: Any, n_exec: int, seed: int = 0, prompt: str = "",
+                 rtc: bool = False, latch: Any = None):
+        if rtc and n_exec >= policy.horizon:
+            raise ValueError(f"RTC follows the unexecuted tail of a chunk: --n_exec={n_exec} "
+                             f"must be below the horizon {policy.horizon}")
         self.policy, self.n_exec, self.seed, self.prompt = policy, n_exec, seed, prompt
+        self.rtc, self.latch = rtc, latch
         self.episode = -1
         self._queues: dict[int, list[np.ndarray]] = {}
+        self._tails: dict[int, np.ndarray] = {}
+        self._warned: set[int] = set()
         self.reset()
 
     def reset(self) -> None:
         self.episode += 1
         self._queues.clear()
-        self.policy.reseed(self.seed + self.episode)
+        self._tails.clear()
+        if self.latch is not None:
+            self.latch.reset()
+        self._key, self._draws = jax.random.key(self.seed + self.episode), 0
+
+    def _sample(self, envs: list[int], observations: list[dict[str, Any]]) -> np.ndarray:
+        """Chunks `[len(envs), H, 23]` from this connection's noise stream, following each env's
+        tail under RTC (when every env asking has one: a chunk at an episode's start has none)."""
+        follow = None
+        if self.rtc and all(e in self._tails for e in envs):
+            follow = np.stack([self._tails[e] for e in envs])
+        rng = jax.random.fold_in(self._key, self._draws)
+        self._draws += 1
+        chunks = self.policy.infer(observations, follow=follow, rng=rng)
+        if self.latch is not None:
+            chunks = np.stack([self.latch(e, chunk, self.n_exec)
+                               for e, chunk in zip(envs, chunks)])
+        for e, chunk in zip(envs, chunks):
+            self._tails[e] = chunk[self.n_exec:]
+        return chunks
 
     def answer(self, message: Mapping[str, Any]) -> dict[str, np.ndarray] | None:
         """A harness message -> the reply (None for a reset, which gets none).
@@ -79,7 +132,7 @@ class HarnessSession:
         planning = [e for e in range(envs) if len(self._queues.get(e, ())) < wanted]
         while planning:
             observations = [self._observation(message, e, batched) for e in planning]
-            for e, actions in zip(planning, self.policy.infer(observations)):
+            for e, actions in zip(planning, self._sample(planning, observations)):
                 self._queues.setdefault(e, []).extend(actions[:self.n_exec])
             planning = [e for e in planning if len(self._queues[e]) < wanted]
         steps = np.stack([np.stack([self._queues[e].pop(0) for _ in range(wanted)])
@@ -120,8 +173,17 @@ class HarnessSession:
         ids = self._array(message, TASK_ID, np.int64).reshape(-1)
         task = int(ids[env] if batched and len(ids) > env else ids[0])
         prompts = self.policy.task_prompts
-        if task not in prompts:
+        if task in prompts:
+            prompt = prompts[task]
+        elif 0 <= task < len(B1K_2025_TASKS):
+            prompt = B1K_2025_TASKS[task].replace("_", " ")
+        else:
             raise ValueError(f"task_id {task} is not a task of the run's dataset (it knows "
-                             f"{sorted(prompts) or 'none'}); serve with --prompt='...' to give "
+                             f"{sorted(prompts) or 'none'}) nor of B1K 2025's table (0-"
+                             f"{len(B1K_2025_TASKS) - 1}); serve with --prompt='...' to give "
                              "its prompt")
-        return prompts[task]
+        if prompt not in self.policy.trained_prompts and task not in self._warned:
+            self._warned.add(task)
+            print(f"warning: task_id {task} ({prompt!r}) is not a task this run trained on; "
+                  "serving it with that prompt", file=sys.stderr, flush=True)
+        return prompt

@@ -204,6 +204,7 @@ class RunPolicy:
         self.tokenize = tokenizer_lib.make_tokenizer(model_cfg, prompts=source.tasks)
         self.tokens = batching.PromptTokens(self.tokenize)
         self.task_prompts = dict(getattr(source, "task_prompts", {}) or {})
+        self.trained_prompts = frozenset(source.tasks)
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
         self._sample = functools.partial(
             policy.sample_actions, config=run.model_config,
@@ -225,11 +226,6 @@ class RunPolicy:
         draws = self._draws
         self.infer([observation])
         self._draws = draws  # the warm-up is no draw of a client's
-
-    def reseed(self, seed: int) -> None:
-        """Restarts the sampling noise from `seed` (draw i uses fold_in(seed, i)): an episode
-        served again from the same seed gets the same actions."""
-        self._key, self._draws = jax.random.key(seed), 0
 
     def _fit(self, images: np.ndarray) -> np.ndarray:
         """uint8 `[B, h, w, 3]` -> float32 `[B, *image_resolution, 3]` in [-1, 1] (the model's
@@ -254,19 +250,22 @@ class RunPolicy:
                 "actions": "absolute, in the dataset's units"}
 
     def infer(self, observations: Sequence[Mapping[str, Any]],
-              follow: np.ndarray | None = None) -> np.ndarray:
+              follow: np.ndarray | None = None, rng: jax.Array | None = None) -> np.ndarray:
         """`observations` (one dict per robot) -> actions float32 `[B, H, real_dim]`.
 
         Args:
           follow: `[B, k, real_dim]` absolute actions (dataset units) the new chunks should start
             with, softly (`soft_mask`: real-time chunking's weights, no inference delay), e.g. the
             unexecuted tail of the previous chunks; None samples freely.
+          rng: the sampling noise's key (a caller with its own noise stream, e.g. one harness
+            connection of several); None draws the policy's next (`seed`, `reseed`).
         Raises:
           ValueError naming the key and what it should be, for a malformed observation.
         """
         observation, state = self.model_inputs(observations)
-        rng = jax.random.fold_in(self._key, self._draws)
-        self._draws += 1
+        if rng is None:
+            rng = jax.random.fold_in(self._key, self._draws)
+            self._draws += 1
         kwargs = {}
         if follow is not None:
             kwargs = self._inpaint(np.asarray(follow, np.float32), state)

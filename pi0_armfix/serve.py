@@ -111,13 +111,13 @@ class PolicyServer:
                  latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None, *,
                  sock: socket.socket | None = None,
                  max_message_bytes: int = MAX_MESSAGE_MB << 20, protocol: str = "openpi",
-                 seed: int = 0, prompt: str = ""):
+                 seed: int = 0, prompt: str = "", rtc: bool = False):
         if protocol not in PROTOCOLS:
             raise ValueError(f"--protocol={protocol!r}: choose one of {PROTOCOLS}")
         self.policy, self.host, self.port = policy, host, port
         self.latch, self.n_exec = latch, n_exec
         self.sock, self.max_message_bytes = sock, max_message_bytes
-        self.protocol, self.seed, self.prompt = protocol, seed, prompt
+        self.protocol, self.seed, self.prompt, self.rtc = protocol, seed, prompt, rtc
         self.sessions: dict[Any, harness.HarnessSession] = {}
         self.warm = threading.Event()  # /healthz answers 200 once set (the sampler compiled)
         self._metadata = pack(policy.metadata())
@@ -126,8 +126,10 @@ class PolicyServer:
         """The harness session of `client` (`--protocol=b1k`), made on its first message."""
         if client not in self.sessions:
             n_exec = self.n_exec or max(self.policy.horizon // 2, 1)
+            latch = None if self.latch is None else hysteresis.GripperLatch(
+                self.latch.dims, self.latch.open_above, self.latch.close_below)  # its own streams
             self.sessions[client] = harness.HarnessSession(self.policy, n_exec, self.seed,
-                                                           self.prompt)
+                                                           self.prompt, self.rtc, latch)
         return self.sessions[client]
 
     def answer(self, message: bytes | str, client: Any = None) -> bytes | str | None:
@@ -223,11 +225,18 @@ def main(argv: Sequence[str]) -> None:
         latch = hysteresis.run_latch(policy.run.config, policy.layout, FLAGS.gripper_hysteresis)
         if FLAGS.n_exec < 0:
             raise ValueError(f"--n_exec = {FLAGS.n_exec} must be >= 0 (0: the whole chunk)")
+        if FLAGS.rtc and FLAGS.protocol != "b1k":
+            raise ValueError("--rtc needs --protocol=b1k (an openpi client executes the chunks "
+                             "itself)")
+        if FLAGS.rtc and FLAGS.n_exec >= policy.horizon:
+            raise ValueError(f"--rtc follows the unexecuted tail of a chunk: --n_exec = "
+                             f"{FLAGS.n_exec} must be below the horizon {policy.horizon}")
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.serve: {e}") from None
     server = PolicyServer(policy, FLAGS.host, FLAGS.port, latch, FLAGS.n_exec or None,
                           sock=sock, max_message_bytes=FLAGS.max_message_mb << 20,
-                          protocol=FLAGS.protocol, seed=FLAGS.seed, prompt=FLAGS.prompt)
+                          protocol=FLAGS.protocol, seed=FLAGS.seed, prompt=FLAGS.prompt,
+                          rtc=FLAGS.rtc)
     meta = policy.metadata()
     print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
           f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "
@@ -256,6 +265,8 @@ def cli() -> None:
                       "per request from a server-side queue, resets, its keys; "
                       "pi0_armfix/harness.py)")
     flags.DEFINE_integer("seed", 0, "b1k: noise seed of the first episode (episode e: seed + e)")
+    flags.DEFINE_bool("rtc", False, "b1k: each new chunk softly follows the unexecuted tail of "
+                      "the last (real-time chunking, as evaluate --closed_loop --rtc)")
     flags.DEFINE_string("prompt", "", "b1k: the prompt of every task ('' = the run's prompt of "
                         "the request's task_id)")
     flags.DEFINE_integer("max_message_mb", MAX_MESSAGE_MB, "largest request accepted, MiB (a "

@@ -12,6 +12,7 @@ import time
 import urllib.error
 import urllib.request
 
+import jax
 import numpy as np
 import pytest
 from websockets.sync.client import connect
@@ -19,7 +20,7 @@ from websockets.sync.client import connect
 import b1k2026_fixture
 import b1k_fixture
 import train_fixtures as tf
-from pi0_armfix import harness, inference, serve, train
+from pi0_armfix import harness, hysteresis, inference, serve, train
 
 CAMERAS = list(harness.CAMERAS)
 
@@ -110,11 +111,11 @@ def test_2025_harness_steps_get_one_command_each_after_unread_resets(run2025):
 def test_an_unknown_task_id_is_one_line_naming_it_and_prompt_overrides(run2025):
     workdir, data = run2025
     client = HarnessClient(_serve(workdir).port)
-    with pytest.raises(RuntimeError, match=r"task_id 7 is not a task of the run's dataset .*"
+    with pytest.raises(RuntimeError, match=r"task_id 120 is not a task of the run's dataset .*"
                                            r"--prompt"):
-        client.act(_observation(data[10]["state"][0], task_id=7))
+        client.act(_observation(data[10]["state"][0], task_id=120))
     other = HarnessClient(_serve(workdir, prompt="turn on the radio").port)
-    assert other.act(_observation(data[10]["state"][0], task_id=7))["action"].shape == (23,)
+    assert other.act(_observation(data[10]["state"][0], task_id=120))["action"].shape == (23,)
 
 
 def test_2026_batched_envs_replay_chunks_from_a_queue_per_env(run2026):
@@ -177,3 +178,74 @@ def test_healthz_says_ready_only_once_the_sampler_is_compiled():
     release.set()
     server.warm.wait(10)
     assert urllib.request.urlopen(url, timeout=5).status == 200
+
+
+class Recorder:
+    """A policy that records what the session asks of it; its chunk's values are the draw's key
+    data, so two draws from the same stream position are equal."""
+
+    horizon = 4
+    keys = inference.B1K_KEYS
+    task_prompts = {0: "trained task", 1: "listed, never trained"}
+    trained_prompts = frozenset({"trained task"})
+
+    def __init__(self):
+        self.calls = []
+
+    def infer(self, observations, follow=None, rng=None):
+        self.calls.append({"follow": follow, "prompts": [o["prompt"] for o in observations]})
+        value = float(np.asarray(jax.random.key_data(rng)).sum() % 1000)
+        return np.stack([np.full((self.horizon, 23), value + i, np.float32)
+                         for i in range(len(observations))])
+
+
+def _step(session, task_id=0):
+    return session.answer(_observation(np.zeros(256), task_id=task_id, side=8))["action"]
+
+
+def test_rtc_follows_the_unexecuted_tail_from_the_second_chunk_of_an_episode():
+    policy = Recorder()
+    session = harness.HarnessSession(policy, n_exec=2, rtc=True)
+    for _ in range(4):
+        _step(session)
+    assert policy.calls[0]["follow"] is None
+    assert policy.calls[1]["follow"].shape == (1, 2, 23)  # H - n_exec actions of the last chunk
+    session.reset()
+    _step(session)
+    assert policy.calls[2]["follow"] is None  # a new episode starts free
+
+
+def test_each_connection_draws_its_own_noise_stream():
+    alone = harness.HarnessSession(Recorder(), n_exec=1, seed=3)
+    expected = [_step(alone) for _ in range(3)]
+    shared = Recorder()
+    first = harness.HarnessSession(shared, n_exec=1, seed=3)
+    second = harness.HarnessSession(shared, n_exec=1, seed=3)
+    got = []
+    for _ in range(3):
+        got.append(_step(first))
+        _step(second)  # another connection in between changes nothing of the first's
+    np.testing.assert_array_equal(np.stack(got), np.stack(expected))
+
+
+def test_a_task_the_run_never_trained_on_is_served_with_one_warning(capsys):
+    policy = Recorder()
+    session = harness.HarnessSession(policy, n_exec=1)
+    for _ in range(3):
+        _step(session, task_id=1)
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "task_id 1" in line]
+    assert len(warnings) == 1 and "not a task this run trained on" in warnings[0]
+    _step(session, task_id=7)  # not in the run's table: B1K 2025's task 7
+    assert policy.calls[-1]["prompts"] == ["picking up toys"]
+
+
+def test_the_harness_grippers_commit_through_the_latch():
+    class Flicker(Recorder):
+        def infer(self, observations, follow=None, rng=None):
+            chunk = np.zeros((1, self.horizon, 23), np.float32)
+            chunk[0, :, 14] = [1.0, 0.3, -0.3, -1.0]  # left gripper: open, in-band, closed
+            return chunk
+
+    session = harness.HarnessSession(Flicker(), n_exec=4,
+                                     latch=hysteresis.GripperLatch([14], 0.9, -0.98))
+    assert [float(_step(session)[14]) for _ in range(4)] == [1.0, 1.0, 1.0, -1.0]
