@@ -43,6 +43,9 @@ CAMERAS = {"robot_r1::robot_r1:zed_link:Camera:0::rgb": "base_0_rgb",
            "robot_r1::robot_r1:right_realsense_link:Camera:0::rgb": "right_wrist_0_rgb"}
 PROPRIO, TASK_ID, CHUNK_SIZE, RESET = ("robot_r1::proprio", "task_id", "__action_chunk_size__",
                                        "reset")
+# What the harness sends: 224² by default; 720² head and 480² wrists with the full-resolution
+# wrappers. The server compiles the image conversion for each before it says it is ready.
+IMAGE_SIZES = ((224, 224), (720, 720), (480, 480))
 # B1K 2025's 50 challenge tasks by task id (its evaluator's table; the 2026 release keeps ids 0-49
 # and adds 50-99, listed in its dataset's meta/tasks.jsonl, which a 2026 run keeps).
 B1K_2025_TASKS = (

@@ -216,9 +216,10 @@ class RunPolicy:
         self._to_model_images = jax.jit(functools.partial(
             model_inputs_lib.model_image, resolution=run.model_config.image_resolution))
 
-    def warm_up(self) -> None:
-        """Compiles the sampler for one observation at the model's image size (what a server
-        does before it says it is ready)."""
+    def warm_up(self, image_sizes: Sequence[tuple[int, int]] = ()) -> None:
+        """Compiles the sampler for one observation at the model's image size, and the image
+        conversion for each of `image_sizes` a client will send (what a server does before it
+        says it is ready)."""
         height, width = self.run.model_config.image_resolution
         observation = {**{key: np.zeros((height, width, 3), np.uint8) for key in self.keys.cameras},
                        self.keys.state: np.zeros(self.stored_state_width, np.float32),
@@ -226,6 +227,8 @@ class RunPolicy:
         draws = self._draws
         self.infer([observation])
         self._draws = draws  # the warm-up is no draw of a client's
+        for size in image_sizes:
+            self._fit(np.zeros((1, *size, 3), np.uint8))
 
     def _fit(self, images: np.ndarray) -> np.ndarray:
         """uint8 `[B, h, w, 3]` -> float32 `[B, *image_resolution, 3]` in [-1, 1] (the model's

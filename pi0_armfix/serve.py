@@ -199,7 +199,8 @@ class PolicyServer:
                 ready.set()
             warm_up = getattr(self.policy, "warm_up", None)
             if warm_up is not None:  # compiled before /healthz says the server is ready
-                await asyncio.to_thread(warm_up)
+                sizes = harness.IMAGE_SIZES if self.protocol == "b1k" else ()
+                await asyncio.to_thread(warm_up, *([sizes] if sizes else []))
             self.warm.set()
             await server.serve_forever()
 
