@@ -249,3 +249,11 @@ def test_the_harness_grippers_commit_through_the_latch():
     session = harness.HarnessSession(Flicker(), n_exec=4,
                                      latch=hysteresis.GripperLatch([14], 0.9, -0.98))
     assert [float(_step(session)[14]) for _ in range(4)] == [1.0, 1.0, 1.0, -1.0]
+
+
+def test_the_harness_image_sizes_are_compiled_before_healthz_says_ready(run2025):
+    workdir, _ = run2025
+    server = _serve(workdir)
+    assert server.warm.is_set()
+    compiled = server.policy._to_model_images._cache_size()
+    assert compiled >= 1 + len(harness.IMAGE_SIZES)  # the model's size and the harness's
