@@ -55,7 +55,6 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 from jax.experimental import multihost_utils
 import numpy as np
@@ -77,7 +76,7 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import policy, pretrained
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import checkpoint, fingerprint, plots, preemption
+from pi0_armfix.training import checkpoint, finite_checkpoints, fingerprint, plots, preemption
 from pi0_armfix.training import metrics as metrics_lib
 from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import sharding as sharding_lib
@@ -96,10 +95,6 @@ STEPS_IN_FLIGHT = 2
 
 class ConfigurationError(ValueError):
     """A config, layout, data or checkpoint error, found before the first step."""
-
-
-class NonFiniteLossError(RuntimeError):
-    """The loss or gradient of a step is NaN or infinite."""
 
 
 class Stopped(RuntimeError):
@@ -122,47 +117,6 @@ def check_train_config(train: Mapping[str, Any]) -> None:
     if train["resume"] not in fingerprint.RESUME_MODES:
         raise ValueError(f"train.resume = {train['resume']!r}: use one of "
                          f"{fingerprint.RESUME_MODES}")
-
-
-def _first_non_finite(window: Sequence[tuple[int, Mapping[str, jax.Array]]]
-                      ) -> tuple[int, float, float] | None:
-    """`(step, loss, grad_norm)` of the first step of `window` whose loss or gradient norm is not
-    finite (a non-finite gradient would have poisoned the params it updated), or None."""
-    values = jax.device_get([(m["loss"], m["grad_norm"]) for _, m in window])
-    for (step, _), (loss, grad_norm) in zip(window, values):
-        if not (np.isfinite(loss) and np.isfinite(grad_norm)):
-            return step, float(loss), float(grad_norm)
-    return None
-
-
-def _non_finite_error(what: str, resume_note: str,
-                      checkpoints: checkpoint.Checkpoints) -> NonFiniteLossError:
-    latest = checkpoints.latest_step()
-    resume = (f"a rerun resumes from checkpoint {latest}" if latest
-              else "no checkpoint is left: a rerun starts from step 0")
-    return NonFiniteLossError(f"{what}: stopping. {resume_note}{resume}; lower optim.lr or raise "
-                              "optim.warmup_steps first")
-
-
-def _non_finite_step(bad: tuple[int, float, float]) -> str:
-    step, loss, grad_norm = bad
-    return f"step {step} has loss {loss} and gradient norm {grad_norm}"
-
-
-@jax.jit
-def _all_finite(tree: Any) -> jax.Array:
-    """Whether every float leaf of `tree` is finite: bool `[]`."""
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)
-              if jnp.issubdtype(x.dtype, jnp.inexact)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.bool_(True)
-
-
-def _summarize(window: Sequence[tuple[int, Mapping[str, jax.Array]]]) -> dict[str, float]:
-    """Means over the window of the step metrics; `lr` of the last step."""
-    values = jax.device_get([m for _, m in window])
-    record = {name: float(np.mean([v[name] for v in values])) for name in values[-1]}
-    record["lr"] = float(values[-1]["lr"])
-    return record
 
 
 def _init_state(config: ml_collections.ConfigDict, model_config, layout: ActionLayout, tx,
@@ -376,7 +330,8 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     returns the last training record (on process 0; {} on the others).
 
     Raises:
-      NonFiniteLossError: a step's loss or gradient is not finite.
+      finite_checkpoints.NonFiniteLossError: a step's loss or gradient is not finite (the last
+        checkpoint stays the last finite one: `training/finite_checkpoints.py`).
       DataError: a dataset file could not be read.
       Stopped: `stop` was requested (SIGTERM, SIGINT): the run stopped after a step.
     """
@@ -385,12 +340,8 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     is_main = jax.process_index() == 0
     total_steps = config.train.total_steps
     ckpts = run.checkpoints
+    finite = finite_checkpoints.FiniteCheckpoints(ckpts, run.start)
     writer = metrics_lib.MetricsWriter(workdir, resume_step=run.start)
-    window: list[tuple[int, Mapping[str, jax.Array]]] = []
-    checked = 0  # window entries known to be finite
-    # The checkpoint whose next step is not checked yet (the one resumed from is checked too).
-    unconfirmed = run.start or None
-    saved = run.start  # the step of the latest checkpoint
     phase = train_iter.phase
     # The next global batches are built (host -> device included) in a background thread.
     batches = stats_lib.prefetched(_with_position(train_iter), depth=2)
@@ -400,18 +351,8 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     in_flight: collections.deque = collections.deque()  # losses of the dispatched steps
 
     def save(step: int, force: bool = False) -> None:
-        nonlocal checked, unconfirmed, saved
-        if not (force or step % config.train.checkpoint_every == 0):
-            return
-        bad = _first_non_finite(window[checked:])
-        if bad:
-            raise _non_finite_error(_non_finite_step(bad), "", ckpts)
-        checked = len(window)
-        if not bool(_all_finite(state)):
-            raise _non_finite_error(f"the update of step {step} left non-finite parameters (its "
-                                    "loss and gradient were finite)", "It was not saved; ", ckpts)
-        ckpts.save(step, state, data_state, run.norm_stats_json, config, force=True)
-        unconfirmed, saved = step, step
+        if force or step % config.train.checkpoint_every == 0:
+            finite.save(step, state, data_state, run.norm_stats_json, config)
 
     try:
         with jax.set_mesh(run.mesh), tqdm(total=total_steps, initial=run.start, desc="train",
@@ -447,41 +388,30 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     in_flight.popleft().block_until_ready()
                 ckpts.check_for_errors()
                 done = step
-                window.append((step, step_metrics))
+                finite.record(step, step_metrics)
                 bar.update()
 
-                if unconfirmed is not None:  # the step computed from the checkpoint
-                    bad = _first_non_finite(window[-1:])
-                    if bad:
-                        moved = ckpts.set_aside(unconfirmed, "nonfinite")
-                        raise _non_finite_error(
-                            _non_finite_step(bad), f"Checkpoint {unconfirmed}, the state it "
-                            f"started from, was moved to {moved}; ", ckpts)
-                    ckpts.confirm(unconfirmed)
-                    unconfirmed = None
                 last = step == total_steps
                 if step % config.train.log_every == 0 or last:
-                    bad = _first_non_finite(window[checked:])
-                    if bad:
-                        raise _non_finite_error(_non_finite_step(bad), "", ckpts)
+                    window = finite.take_window()
                     elapsed = time.perf_counter() - window_start
-                    record = {**_summarize(window), "phase": phase,
+                    record = {**finite_checkpoints.summarize(window), "phase": phase,
                               "steps_per_sec": len(window) / elapsed,
                               "data_wait": wait / elapsed}
                     writer.write(step, record)
                     bar.set_postfix_str(_postfix(record, run.layout, phase))
-                    window, checked = [], 0
                     wait, window_start = 0.0, time.perf_counter()
                 save(step, force=last)
                 if last:  # no step follows the final state: its own finiteness is the check
-                    ckpts.confirm(step)
+                    finite.confirm_final(step)
                 if run.evaluator is not None and (step % config.eval.every == 0 or last):
                     _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
         if done < total_steps:  # stopped by a signal
-            if config.train.save_on_preemption and done > saved:
+            if config.train.save_on_preemption and done > finite.saved:
                 save(done, force=True)
             ckpts.wait()  # the save in flight, if any, is finished
+            saved = finite.saved
             kept = (f"saved checkpoint {ckpts.directory / str(done)}" if saved == done
                     else f"the last checkpoint is step {saved}" if saved
                     else "no checkpoint was saved")
@@ -535,7 +465,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
 
     Raises:
       ConfigurationError: a config, layout, data or checkpoint error, before any step.
-      NonFiniteLossError: a step's loss or gradient is not finite.
+      finite_checkpoints.NonFiniteLossError: a step's loss or gradient is not finite (the last
+        checkpoint stays the last finite one: `training/finite_checkpoints.py`).
       DataError: a dataset file could not be read during training.
       checkpoint.SaveError: a checkpoint could not be written (disk full).
       Stopped: SIGTERM or SIGINT stopped the run after a step (and its save).
@@ -684,7 +615,8 @@ def main(argv: Sequence[str]) -> None:
     _say(f"config    {config_file}")
     try:
         record = train_and_evaluate(config, workdir)
-    except (ConfigurationError, NonFiniteLossError, DataError, checkpoint.SaveError) as e:
+    except (ConfigurationError, finite_checkpoints.NonFiniteLossError, DataError,
+            checkpoint.SaveError) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
     except OSError as e:  # a file the run writes (metrics, plots): a full disk, most often
         fix = ("free space on that disk" if e.errno == errno.ENOSPC

@@ -15,6 +15,7 @@ import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from configs import base
 from pi0_armfix import inference, train
+from pi0_armfix.training import finite_checkpoints
 from pi0_armfix.training import checkpoint, fingerprint, preemption, sharding
 
 
@@ -69,7 +70,7 @@ def test_a_state_with_non_finite_params_is_never_saved(tmp_path, demo_root):
         return state, metrics
 
     run.train_step = poisoned
-    with pytest.raises(train.NonFiniteLossError,
+    with pytest.raises(finite_checkpoints.NonFiniteLossError,
                        match=r"the update of step 2 left non-finite parameters \(its loss and "
                              r"gradient were finite\): stopping. It was not saved; a rerun "
                              r"resumes from checkpoint 1"):
