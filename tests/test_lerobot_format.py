@@ -4,6 +4,7 @@ LeRobot's own writer puts in a root's metadata (no `lerobot` install: the format
 import json
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -61,6 +62,9 @@ def test_data_parquet_declares_every_column_in_datasets_form(v21):
     assert declared[HEAD] == {"_type": "Image"}
     assert declared["action"] == {"feature": {"dtype": "float32", "_type": "Value"},
                                   "length": 23, "_type": "Sequence"}
+    action = table.schema.field("action").type
+    assert pa.types.is_fixed_size_list(action) and action.list_size == 23
+    assert action.value_type == pa.float32()
     assert declared["timestamp"] == {"dtype": "float32", "_type": "Value"}
     assert declared["episode_index"] == {"dtype": "int64", "_type": "Value"}
 

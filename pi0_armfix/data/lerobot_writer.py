@@ -38,10 +38,10 @@ from pi0_armfix.data.video import write_video
 
 
 def _list_array(values: np.ndarray) -> pa.Array:
-    """[n, w] numpy -> arrow list<dtype> array (what Hugging Face `datasets` writes)."""
-    n, width = values.shape
-    offsets = pa.array(np.arange(n + 1, dtype=np.int32) * width)
-    return pa.ListArray.from_arrays(offsets, pa.array(values.reshape(-1)))
+    """[n, w] numpy -> arrow fixed_size_list<dtype>[w] (what Hugging Face `datasets` stores for a
+    `Sequence` of fixed length, the type the schema metadata declares)."""
+    flat = pa.array(values.reshape(-1))
+    return pa.FixedSizeListArray.from_arrays(flat, type=pa.list_(flat.type, values.shape[1]))
 
 
 def codec_name(encoder: str) -> str:
