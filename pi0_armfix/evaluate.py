@@ -21,7 +21,6 @@ previous action. Figures: predicted vs true trajectories (data units) of the chu
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import math
@@ -39,14 +38,15 @@ from pi0_armfix import console, hysteresis, inference
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
+from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import policy
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
-from pi0_armfix.sim.world import DemoSpec
 from pi0_armfix.training import plots
 from pi0_armfix.training import metrics as metrics_lib
 from pi0_armfix.training import sharding as sharding_lib
@@ -54,8 +54,6 @@ from pi0_armfix.training import sharding as sharding_lib
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
 METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
 STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluations, in eval/
-CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_loop_paths`)
-ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
 
 def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
@@ -268,149 +266,6 @@ def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:
     return sorted(found, key=lambda r: r["step"])
 
 
-class ReplanningPolicy:
-    """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
-    `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
-    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
-    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""
-
-    def __init__(self, policy: inference.RunPolicy, n_exec: int, follow_tail: bool,
-                 latch: hysteresis.GripperLatch | None = None):
-        self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
-        self.latch = latch
-
-    def start(self, envs):
-        self._tails: dict[int, np.ndarray] = {}
-        if self.latch is not None:
-            self.latch.reset()
-
-    def __call__(self, active, observations):
-        follow = None
-        if self.follow_tail and all(i in self._tails for i in active):
-            follow = np.stack([self._tails[i] for i in active])
-        chunks = self.policy.infer(observations, follow=follow)
-        if self.latch is not None:
-            chunks = np.stack([self.latch(i, chunk, self.n_exec)
-                               for i, chunk in zip(active, chunks)])
-        for i, chunk in zip(active, chunks):
-            self._tails[i] = chunk[self.n_exec:]
-        return chunks
-
-
-def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
-                episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
-                sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
-                gripper_hysteresis: Sequence[float] | None = None,
-                tolerances: Sequence[float] = ()) -> tuple[int, dict[str, Any]]:
-    """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
-    world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
-    each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
-    the hysteresis `gripper_hysteresis` ((open_above, close_below); None: the run's
-    `eval.gripper_hysteresis`; empty: none); writes `closed_loop_<episodes>ep[...].json` and
-    `rollouts_<episodes>ep[...].png` (against the scripted expert; `closed_loop_paths`: named by
-    their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
-    `tolerances` (factors other than 1), the same episodes again in the world with its success
-    tolerances times each factor: `success_curve` in the summary, `success_curve.png`. Returns
-    `(step, summary)` (`sim.rollout.summarize`)."""
-    if episodes < 1:
-        raise ValueError(f"--episodes = {episodes} must be >= 1")
-    if sim_seed < 0:
-        raise ValueError(f"--sim_seed = {sim_seed} must be >= 0 (a world seed)")
-    if n_exec < 0:
-        raise ValueError(f"--n_exec = {n_exec} must be >= 0 (0: half the action horizon)")
-    if any(f <= 0 for f in tolerances):
-        raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
-    policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
-    run = policy_.run
-    latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
-    results_path, figure_path = closed_loop_paths(
-        run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
-        hysteresis_on=latch is not None, sim_seed=sim_seed)
-    writable_folder(results_path.parent)  # before the rollouts, not after
-    if run.layout.real_dim != 23:
-        raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
-                         "takes the 23-D B1K action (layout b1k_r1pro)")
-    n_exec = n_exec or max(policy_.horizon // 2, 1)
-    if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
-        raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
-                         "with --rtc: the tail to follow)")
-    spec = DemoSpec(seed=sim_seed)
-    replanning = ReplanningPolicy(policy_, n_exec, follow_tail, latch)
-    records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
-                                  progress=progress and jax.process_index() == 0)
-    summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
-               "follow_tail": follow_tail,
-               "gripper_hysteresis": None if latch is None else [latch.open_above,
-                                                                 latch.close_below],
-               "sim_seed": sim_seed, **rollout_lib.summarize(records),
-               "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
-                                    "seconds": r.seconds,
-                                    "phases": [dataclasses.asdict(p) for p in r.results]}
-                                   for r in records]}
-    looser = [f for f in tolerances if f != 1]
-    if looser:
-        summary["success_curve"] = {"1": {k: v for k, v in summary.items()
-                                          if k.startswith(("success/", "phase_success/"))}}
-        summary["success_curve"] |= {
-            factor: {k: v for k, v in measured.items()
-                     if k.startswith(("success/", "phase_success/"))}
-            for factor, measured in rollout_lib.success_curve(
-                replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
-                progress=progress and jax.process_index() == 0).items()}
-    stats_lib.write_json_atomic(results_path, strict_json(summary))
-    if looser:
-        rollout_lib.plot_success_curves({"policy": summary["success_curve"]},
-                                        figure_path.with_name(
-                                            figure_path.name.replace("rollouts", "success_curve")),
-                                        f"step {run.step}: {episodes} episodes")
-    shown = records[:ROLLOUT_ROWS]
-    expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
-                                 spec=spec, progress=False)
-    rollout_lib.plot_rollouts(shown, expert, figure_path,
-                              f"step {run.step}: closed loop, n_exec {n_exec}"
-                              + (", following the unexecuted tail" if follow_tail else "")
-                              + ("" if latch is None else ", gripper hysteresis "
-                                 f"({latch.open_above:g}, {latch.close_below:g})"))
-    return run.step, summary
-
-
-def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int, n_exec: int = 0,
-                      follow_tail: bool = False, hysteresis_on: bool = False,
-                      sim_seed: int = env_lib.EVAL_SEED) -> tuple[epath.Path, epath.Path]:
-    """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis].json` and the
-    `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
-    asked: 0, half the horizon, is left out; the world seed when not the evaluation's)."""
-    out = epath.Path(workdir) / "eval" / f"step_{step}"
-    tag = (f"_{episodes}ep" + (f"_exec{n_exec}" if n_exec else "")
-           + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")
-           + ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else ""))
-    return out / f"{CLOSED_LOOP_STEM}{tag}.json", out / f"rollouts{tag}.png"
-
-
-def writable_folder(folder: epath.Path) -> None:
-    """Creates `folder` and checks that a file can be written there, or raises ValueError naming
-    it (before an evaluation's work, which would otherwise be lost at its end)."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / ".write_check"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise ValueError(f"cannot write the results into {folder} ({e.strerror or e}); make the "
-                         "run folder writable (or evaluate a copy of it)") from None
-
-
-def strict_json(value: Any) -> Any:
-    """`value` with every non-finite float replaced by None (JSON has no NaN: null)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: strict_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [strict_json(v) for v in value]
-    return value
-
-
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
@@ -423,16 +278,15 @@ def main(argv: Sequence[str]) -> None:
             except ValueError:
                 raise ValueError(f"--tolerances={','.join(FLAGS.tolerances)} must be numbers "
                                  "(tolerance factors, e.g. 1,2,4)") from None
-            step, summary = closed_loop(FLAGS.workdir, FLAGS.step, FLAGS.params,
-                                        episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
-                                        follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
-                                        gripper_hysteresis=FLAGS.gripper_hysteresis,
-                                        tolerances=tolerances)
+            step, summary = closed_loop_lib.closed_loop(
+                FLAGS.workdir, FLAGS.step, FLAGS.params, episodes=FLAGS.episodes,
+                n_exec=FLAGS.n_exec, follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
+                gripper_hysteresis=FLAGS.gripper_hysteresis, tolerances=tolerances)
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
         print(rollout_lib.format_summary(summary))
-        results_path, figure_path = closed_loop_paths(
+        results_path, figure_path = closed_loop_lib.closed_loop_paths(
             FLAGS.workdir, step, episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
             follow_tail=FLAGS.rtc, hysteresis_on=summary["gripper_hysteresis"] is not None,
             sim_seed=FLAGS.sim_seed)

@@ -64,6 +64,7 @@ from tqdm import tqdm
 from pi0_armfix import console, evaluate, inference, study_stats
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.study_aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
@@ -165,7 +166,7 @@ def closed_loop_metrics(folder: Path, steps: int, episodes: int
     _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
              f"--step={steps}", "--closed_loop", f"--episodes={episodes}",
              f"--tolerances={factors}"], folder, f"the closed-loop evaluation of {folder}")
-    path, _ = evaluate.closed_loop_paths(folder, steps, episodes=episodes)
+    path, _ = closed_loop_lib.closed_loop_paths(folder, steps, episodes=episodes)
     saved = json.loads(path.read_text())
     metrics = {CLOSED_LOOP + k: v for k, v in saved.items()
                if k.startswith(("success/", "phase_success/", "progress/", "failure/",

@@ -22,6 +22,8 @@ from websockets.sync.client import connect
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import evaluate, inference, serve
+from pi0_armfix.evaluation import closed_loop as closed_loop_lib
+from pi0_armfix.evaluation import outputs
 from pi0_armfix.data import batching, sources
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
@@ -258,7 +260,7 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
 
 
 def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_path):
-    paths = {evaluate.closed_loop_paths(tmp_path, 5, episodes=e, n_exec=n, follow_tail=rtc)[0].name
+    paths = {closed_loop_lib.closed_loop_paths(tmp_path, 5, episodes=e, n_exec=n, follow_tail=rtc)[0].name
              for e, n, rtc in ((50, 0, False), (10, 0, False), (50, 4, False), (50, 0, True))}
     assert paths == {"closed_loop_50ep.json", "closed_loop_10ep.json",
                      "closed_loop_50ep_exec4.json", "closed_loop_50ep_rtc.json"}
@@ -268,16 +270,16 @@ def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_
                                              ({"sim_seed": -1}, "--sim_seed = -1 must be >= 0")])
 def test_closed_loop_settings_are_refused_before_the_policy_loads(kwargs, message, tmp_path):
     with pytest.raises(ValueError, match=message):
-        evaluate.closed_loop(tmp_path / "no run here", **kwargs)
+        closed_loop_lib.closed_loop(tmp_path / "no run here", **kwargs)
 
 
 def test_a_read_only_run_folder_is_refused_before_the_rollouts(run, tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setattr(evaluate.rollout_lib, "rollout", lambda *a, **k: calls.append(1))
-    monkeypatch.setattr(evaluate, "writable_folder", lambda folder: (_ for _ in ()).throw(
+    monkeypatch.setattr(closed_loop_lib.rollout_lib, "rollout", lambda *a, **k: calls.append(1))
+    monkeypatch.setattr(closed_loop_lib, "writable_folder", lambda folder: (_ for _ in ()).throw(
         ValueError(f"cannot write the results into {folder}")))
     with pytest.raises(ValueError, match="cannot write the results into .*eval/step_2"):
-        evaluate.closed_loop(run, episodes=1, progress=False)
+        closed_loop_lib.closed_loop(run, episodes=1, progress=False)
     assert not calls
 
 
@@ -297,7 +299,7 @@ def test_closed_loop_with_real_time_chunking_follows_the_tail(run, monkeypatch):
         return infer(self, observations, follow=follow)
 
     monkeypatch.setattr(inference.RunPolicy, "infer", recording_infer)
-    _, summary = evaluate.closed_loop(run, episodes=1, follow_tail=True, progress=False)
+    _, summary = closed_loop_lib.closed_loop(run, episodes=1, follow_tail=True, progress=False)
     assert summary["follow_tail"] is True and summary["n_exec"] == 2
     assert asked[0] is None and all(f.shape == (1, 2, 23) for f in asked[1:])
     saved = json.loads((run / "eval" / "step_2" / "closed_loop_1ep_rtc.json").read_text())
@@ -318,7 +320,7 @@ def test_an_unwritable_results_folder_is_named(tmp_path):
     blocker = tmp_path / "eval"
     blocker.write_text("a file where the folder should be")
     with pytest.raises(ValueError, match=r"cannot write the results into .*eval/step_2"):
-        evaluate.writable_folder(blocker / "step_2")
+        outputs.writable_folder(blocker / "step_2")
 
 
 def test_a_run_folder_serves_without_its_data(tmp_path, cache_dir, demo_root):  # noqa: F811

@@ -1,0 +1,150 @@
+"""A checkpoint's policy driving the demo world (`pi0_armfix.sim`): `evaluate --closed_loop`.
+
+    python -m pi0_armfix.evaluate --workdir=RUN --closed_loop [--episodes=50] [--n_exec=K] [--rtc]
+        [--gripper_hysteresis=0.9,-0.98] [--tolerances=1,2,4] [--sim_seed=S]
+
+The policy samples a chunk, the world executes `n_exec` of it, the policy replans
+(`ReplanningPolicy`); the rollouts (`sim.rollout`) record every phase's success and, for a failed
+phase, the furthest stage it reached (its failure reason). What a success means physically:
+docs/evaluation.md. Results are named by their settings (`closed_loop_paths`), never replaced by
+another evaluation's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from etils import epath
+
+from pi0_armfix import hysteresis, inference
+from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.evaluation.outputs import strict_json, writable_folder
+from pi0_armfix.sim import env as env_lib
+from pi0_armfix.sim import rollout as rollout_lib
+from pi0_armfix.sim.world import DemoSpec
+
+CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_loop_paths`)
+ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
+
+
+class ReplanningPolicy:
+    """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
+    `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
+    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
+    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""
+
+    def __init__(self, policy: inference.RunPolicy, n_exec: int, follow_tail: bool,
+                 latch: hysteresis.GripperLatch | None = None):
+        self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
+        self.latch = latch
+
+    def start(self, envs):
+        self._tails: dict[int, np.ndarray] = {}
+        if self.latch is not None:
+            self.latch.reset()
+
+    def __call__(self, active, observations):
+        follow = None
+        if self.follow_tail and all(i in self._tails for i in active):
+            follow = np.stack([self._tails[i] for i in active])
+        chunks = self.policy.infer(observations, follow=follow)
+        if self.latch is not None:
+            chunks = np.stack([self.latch(i, chunk, self.n_exec)
+                               for i, chunk in zip(active, chunks)])
+        for i, chunk in zip(active, chunks):
+            self._tails[i] = chunk[self.n_exec:]
+        return chunks
+
+
+def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
+                episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
+                sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
+                gripper_hysteresis: Sequence[float] | None = None,
+                tolerances: Sequence[float] = ()) -> tuple[int, dict[str, Any]]:
+    """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
+    world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
+    each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
+    the hysteresis `gripper_hysteresis` ((open_above, close_below); None: the run's
+    `eval.gripper_hysteresis`; empty: none); writes `closed_loop_<episodes>ep[...].json` and
+    `rollouts_<episodes>ep[...].png` (against the scripted expert; `closed_loop_paths`: named by
+    their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
+    `tolerances` (factors other than 1), the same episodes again in the world with its success
+    tolerances times each factor: `success_curve` in the summary, `success_curve.png`. Returns
+    `(step, summary)` (`sim.rollout.summarize`)."""
+    if episodes < 1:
+        raise ValueError(f"--episodes = {episodes} must be >= 1")
+    if sim_seed < 0:
+        raise ValueError(f"--sim_seed = {sim_seed} must be >= 0 (a world seed)")
+    if n_exec < 0:
+        raise ValueError(f"--n_exec = {n_exec} must be >= 0 (0: half the action horizon)")
+    if any(f <= 0 for f in tolerances):
+        raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
+    policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
+    run = policy_.run
+    latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
+    results_path, figure_path = closed_loop_paths(
+        run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
+        hysteresis_on=latch is not None, sim_seed=sim_seed)
+    writable_folder(results_path.parent)  # before the rollouts, not after
+    if run.layout.real_dim != 23:
+        raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
+                         "takes the 23-D B1K action (layout b1k_r1pro)")
+    n_exec = n_exec or max(policy_.horizon // 2, 1)
+    if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
+        raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
+                         "with --rtc: the tail to follow)")
+    spec = DemoSpec(seed=sim_seed)
+    replanning = ReplanningPolicy(policy_, n_exec, follow_tail, latch)
+    records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
+                                  progress=progress and jax.process_index() == 0)
+    summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
+               "follow_tail": follow_tail,
+               "gripper_hysteresis": None if latch is None else [latch.open_above,
+                                                                 latch.close_below],
+               "sim_seed": sim_seed, **rollout_lib.summarize(records),
+               "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
+                                    "seconds": r.seconds,
+                                    "phases": [dataclasses.asdict(p) for p in r.results]}
+                                   for r in records]}
+    looser = [f for f in tolerances if f != 1]
+    if looser:
+        summary["success_curve"] = {"1": {k: v for k, v in summary.items()
+                                          if k.startswith(("success/", "phase_success/"))}}
+        summary["success_curve"] |= {
+            factor: {k: v for k, v in measured.items()
+                     if k.startswith(("success/", "phase_success/"))}
+            for factor, measured in rollout_lib.success_curve(
+                replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
+                progress=progress and jax.process_index() == 0).items()}
+    stats_lib.write_json_atomic(results_path, strict_json(summary))
+    if looser:
+        rollout_lib.plot_success_curves({"policy": summary["success_curve"]},
+                                        figure_path.with_name(
+                                            figure_path.name.replace("rollouts", "success_curve")),
+                                        f"step {run.step}: {episodes} episodes")
+    shown = records[:ROLLOUT_ROWS]
+    expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
+                                 spec=spec, progress=False)
+    rollout_lib.plot_rollouts(shown, expert, figure_path,
+                              f"step {run.step}: closed loop, n_exec {n_exec}"
+                              + (", following the unexecuted tail" if follow_tail else "")
+                              + ("" if latch is None else ", gripper hysteresis "
+                                 f"({latch.open_above:g}, {latch.close_below:g})"))
+    return run.step, summary
+
+
+def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int, n_exec: int = 0,
+                      follow_tail: bool = False, hysteresis_on: bool = False,
+                      sim_seed: int = env_lib.EVAL_SEED) -> tuple[epath.Path, epath.Path]:
+    """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis].json` and the
+    `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
+    asked: 0, half the horizon, is left out; the world seed when not the evaluation's)."""
+    out = epath.Path(workdir) / "eval" / f"step_{step}"
+    tag = (f"_{episodes}ep" + (f"_exec{n_exec}" if n_exec else "")
+           + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")
+           + ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else ""))
+    return out / f"{CLOSED_LOOP_STEM}{tag}.json", out / f"rollouts{tag}.png"
