@@ -63,7 +63,7 @@ from tqdm import tqdm
 
 from pi0_armfix import console, evaluate, inference, study_stats
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data import json_files
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
@@ -193,7 +193,7 @@ def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missin
     layout = ActionLayout.from_config(result["layout"])
     result = {**result, EPISODE_REPLICATES: episode_replicates(
         heldout_lib.load_chunk_sums(path), layout)}
-    stats_lib.write_json_atomic(folder / RESULT_FILE, result)
+    json_files.write_json_atomic(folder / RESULT_FILE, result)
     return result
 
 
@@ -212,7 +212,7 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
     layout = json.loads((folder / "config.json").read_text())["layout"]
     result = {"config": config, "seed": seed, "steps": steps, "layout": layout,
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
-    stats_lib.write_json_atomic(folder / RESULT_FILE, result)
+    json_files.write_json_atomic(folder / RESULT_FILE, result)
     result = add_episode_replicates(result, folder, evaluate_missing=True)
     return add_closed_loop(result, folder, closed_loop_episodes)
 
@@ -226,7 +226,7 @@ def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict
     result = {**result, CLOSED_LOOP_EPISODES: outcomes, "metrics": {
         **{k: v for k, v in result["metrics"].items() if not k.startswith(CLOSED_LOOP)},
         **metrics}}
-    stats_lib.write_json_atomic(folder / RESULT_FILE, result)
+    json_files.write_json_atomic(folder / RESULT_FILE, result)
     return result
 
 
@@ -332,7 +332,7 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
     """Writes `study.md`, `study.json` and `study.png` into `workdir`; returns the aggregate."""
     study = aggregate(results, primary=primary, ceiling=ceiling)
     (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
-    stats_lib.write_json_atomic(workdir / "study.json",
+    json_files.write_json_atomic(workdir / "study.json",
                                 {"command": command, "steps": steps, "runs": list(results),
                                  **study})
     plot_study(study, workdir / "study.png")

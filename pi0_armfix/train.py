@@ -66,11 +66,10 @@ from tqdm import tqdm
 from pi0_armfix import console, evaluate
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import batching, pipeline, sources
+from pi0_armfix.data import background, batching, pipeline, sources
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import run_inputs
-from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import noise as noise_lib
@@ -344,7 +343,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     writer = metrics_lib.MetricsWriter(workdir, resume_step=run.start)
     phase = train_iter.phase
     # The next global batches are built (host -> device included) in a background thread.
-    batches = stats_lib.prefetched(_with_position(train_iter), depth=2)
+    batches = background.prefetched(_with_position(train_iter), depth=2)
     wait, window_start = 0.0, time.perf_counter()
     abandoned = failed = False
     done, data_state = run.start, None

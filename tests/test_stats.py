@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
 
@@ -217,7 +218,7 @@ def test_written_json_is_readable_by_others_as_the_umask_allows(tmp_path):
 
     previous = os.umask(0o022)
     try:
-        stats_lib.write_json_atomic(tmp_path / "norm_stats.json", {"norm_stats": {}})
+        json_files.write_json_atomic(tmp_path / "norm_stats.json", {"norm_stats": {}})
     finally:
         os.umask(previous)
     assert (tmp_path / "norm_stats.json").stat().st_mode & 0o777 == 0o644

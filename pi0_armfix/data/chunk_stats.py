@@ -37,6 +37,7 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import sources
+from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
 from pi0_armfix.data.episodes import EpisodeTable
@@ -142,13 +143,13 @@ def load_or_compute_chunk_stats(config: Mapping[str, Any], layout: ActionLayout,
         np.save(tmp, stats.correlation)
     os.chmod(tmp.name, 0o644)
     Path(tmp.name).replace(paths[1])
-    stats_lib.write_json_atomic(key_path, key)
+    json_files.write_json_atomic(key_path, key)
     return stats
 
 
 def save_per_timestep(path: str | Path, stats: stats_lib.NormStats) -> None:
     """openpi's `norm_stats.json` layout with `[H][A]` lists: `{"norm_stats": {"actions": ...}}`."""
-    stats_lib.write_json_atomic(path, {"norm_stats": {"actions": stats.to_json()}})
+    json_files.write_json_atomic(path, {"norm_stats": {"actions": stats.to_json()}})
 
 
 def load_per_timestep(path: str | Path) -> stats_lib.NormStats:

@@ -32,6 +32,7 @@ from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import sources
+from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
 from pi0_armfix.data.episodes import EpisodeTable
@@ -398,12 +399,12 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
         if keep_cached:
             logging.warning("%s: keeping the norm stats the run was trained with (differing: %s)",
                             cache_path, differing)
-            stats_lib.write_json_atomic(_key_path(cache_path), key)
+            json_files.write_json_atomic(_key_path(cache_path), key)
             return stats_lib.load_norm_stats(cache_path, widths, optional)
         if resuming:
             if cached is None:  # a run from before the key existed: keep what it trained with
                 logging.warning("%s has no key file; reusing it for the resumed run", cache_path)
-                stats_lib.write_json_atomic(_key_path(cache_path), key)
+                json_files.write_json_atomic(_key_path(cache_path), key)
                 return stats_lib.load_norm_stats(cache_path, widths, optional)
             raise ValueError(
                 f"{cache_path} was computed from other data or options than this config "
@@ -423,7 +424,7 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
                                    progress=progress, source=source, episodes=episodes)
     if cache_path is not None:
         stats_lib.save_norm_stats(cache_path, stats)
-        stats_lib.write_json_atomic(_key_path(Path(cache_path)), key)
+        json_files.write_json_atomic(_key_path(Path(cache_path)), key)
     return stats
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from pi0_armfix.data import selection as selection_lib
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data import json_files
 
 INPUTS_FILE = "policy_inputs.json"
 TOKENIZER_FILE = "tokenizer.model"
@@ -49,7 +49,7 @@ def save(workdir: Path, source: Any, tokenizer_model: bytes) -> None:
     """Writes what the policy needs of `source` into `workdir`, and the run's tokenizer
     (`tokenizer_model`: its serialized sentencepiece model)."""
     workdir = Path(workdir)
-    stats_lib.write_json_atomic(workdir / INPUTS_FILE, {
+    json_files.write_json_atomic(workdir / INPUTS_FILE, {
         "state_selection": _selection_json(getattr(source, "state_selection", None)),
         "state_width": int(source.state_width),
         "tasks": sorted(set(source.tasks)),

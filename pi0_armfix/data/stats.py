@@ -30,10 +30,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import queue
-import tempfile
-import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -41,6 +37,7 @@ from typing import Any
 import numpy as np
 import tqdm
 
+from pi0_armfix.data import background, json_files
 from pi0_armfix.data.episodes import EpisodeTable
 
 FIELDS = ("mean", "std", "q01", "q99")
@@ -325,43 +322,6 @@ def whole_episode_blocks(blocks: Iterable[Block]) -> Iterator[dict[str, np.ndarr
         yield carry
 
 
-def prefetched(blocks: Iterable[Block], depth: int = 2) -> Iterator[Block]:
-    """Reads `blocks` in a background thread, so that decoding (parquet, which releases the GIL)
-    overlaps with the numpy work of the consumer."""
-    buffer: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-    done = object()
-
-    def put(item) -> bool:
-        while not stop.is_set():
-            try:
-                buffer.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                pass
-        return False
-
-    def produce():
-        try:
-            for block in blocks:
-                if not put(block):
-                    return
-            put(done)
-        except BaseException as err:  # re-raised in the consumer
-            put(err)
-
-    thread = threading.Thread(target=produce, daemon=True)
-    thread.start()
-    try:
-        while (item := buffer.get()) is not done:
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        thread.join()
-
-
 def compute_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions", "state"), *,
                   bins: int = DEFAULT_BINS, total_frames: int | None = None,
                   transform: Callable[[Block], Block] | None = None,
@@ -377,7 +337,7 @@ def compute_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions", "st
     accumulators: dict[str, StreamingStats] = {}
     with tqdm.tqdm(total=total_frames, unit="frame", unit_scale=True, desc="norm stats",
                    disable=not progress) as bar:
-        for block in prefetched(blocks):
+        for block in background.prefetched(blocks):
             frames = len(next(iter(block.values())))
             if transform is not None:
                 block = transform(block)
@@ -406,21 +366,7 @@ def compute_norm_stats(blocks: Iterable[Block], keys: Sequence[str] = ("actions"
 def save_norm_stats(path: str | Path, stats: Mapping[str, NormStats]) -> None:
     """Writes openpi's `norm_stats.json` (real widths, no padding), atomically: several processes
     of a run may write the same file at once, and a reader never sees a partial file."""
-    write_json_atomic(path, {"norm_stats": {key: value.to_json() for key, value in stats.items()}})
-
-
-def write_json_atomic(path: str | Path, payload: Any) -> None:
-    """Writes `payload` as JSON through a temporary file and a rename, readable as any file the
-    user writes (the temporary file is created 0600; colleagues on a shared cluster read it)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
-                                     delete=False) as tmp:
-        tmp.write(json.dumps(payload, indent=2))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp.name, 0o666 & ~umask)
-    os.replace(tmp.name, path)
+    json_files.write_json_atomic(path, {"norm_stats": {key: value.to_json() for key, value in stats.items()}})
 
 
 def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None,

@@ -21,7 +21,7 @@ import numpy as np
 from etils import epath
 
 from pi0_armfix import hysteresis, inference
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data import json_files
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
@@ -120,7 +120,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
             for factor, measured in rollout_lib.success_curve(
                 replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
                 progress=progress and jax.process_index() == 0).items()}
-    stats_lib.write_json_atomic(results_path, strict_json(summary))
+    json_files.write_json_atomic(results_path, strict_json(summary))
     if looser:
         rollout_lib.plot_success_curves({"policy": summary["success_curve"]},
                                         figure_path.with_name(

@@ -33,6 +33,7 @@ from absl import app, flags
 
 from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.sim import env as env_lib
@@ -135,7 +136,7 @@ def main(argv: Sequence[str]) -> None:
                        factors)
     out = Path(FLAGS.output)
     out.mkdir(parents=True, exist_ok=True)
-    stats_lib.write_json_atomic(out / "calibration.json", {
+    json_files.write_json_atomic(out / "calibration.json", {
         "episodes": FLAGS.episodes, "tolerances": factors, "hold": FLAGS.hold,
         "noise_run": FLAGS.noise_run or None,
         "noise_std": None if noise_std is None else noise_std.tolist(), "rows": curves})

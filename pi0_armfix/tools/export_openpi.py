@@ -45,6 +45,7 @@ from etils import epath
 
 from pi0_armfix import console, inference
 from pi0_armfix.data import run_inputs, sources
+from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
 from pi0_armfix.model import config as model_config_lib
@@ -245,13 +246,13 @@ def export(checkpoint: str | Path, output: str | Path, *, asset_id: str = "",
     output.mkdir(parents=True, exist_ok=True)
     try:
         leaves = write_params(run.params, output / "params", dtype)
-        stats_lib.write_json_atomic(output / "assets" / asset_id / "norm_stats.json", norm_stats)
+        json_files.write_json_atomic(output / "assets" / asset_id / "norm_stats.json", norm_stats)
         summary = {"run": str(workdir), "step": run.step, "params": run.params_name,
                    "preset": run.config.model.preset, "dtype": dtype, "leaves": leaves,
                    "code_version": code_version(), "openpi_config": pairing,
                    "constant_dims_rewritten": adjusted, "refused_without_force": problems,
                    "caveats": openpi_caveats(run)}
-        stats_lib.write_json_atomic(output / EXPORT_FILE, summary)
+        json_files.write_json_atomic(output / EXPORT_FILE, summary)
     except BaseException:
         shutil.rmtree(output, ignore_errors=True)  # never leave a half export that looks whole
         raise

@@ -32,7 +32,7 @@ from absl import app, flags
 from tqdm import tqdm
 
 from pi0_armfix import console
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data import json_files
 from pi0_armfix.sim import render
 from pi0_armfix.sim.world import TASKS, DemoSpec
 
@@ -192,7 +192,7 @@ def main(argv: Sequence[str]) -> None:
     results = [probe_size(s, DemoSpec(), FLAGS.train, FLAGS.test, FLAGS.steps) for s in sizes]
     out = Path(FLAGS.output)
     out.mkdir(parents=True, exist_ok=True)
-    stats_lib.write_json_atomic(out / "learnability.json", {
+    json_files.write_json_atomic(out / "learnability.json", {
         "train": FLAGS.train, "test": FLAGS.test, "steps": FLAGS.steps, "results": results})
     text = markdown(results, FLAGS.train, FLAGS.steps)
     (out / "learnability.md").write_text(text)

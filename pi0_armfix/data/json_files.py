@@ -1,0 +1,24 @@
+"""JSON files written atomically: a reader (another process of the run, a resumed run, a study)
+never sees a partial file, and a crash leaves the previous file whole."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+
+def write_json_atomic(path: str | Path, payload: Any) -> None:
+    """Writes `payload` as JSON through a temporary file and a rename, readable as any file the
+    user writes (the temporary file is created 0600; colleagues on a shared cluster read it)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
+                                     delete=False) as tmp:
+        tmp.write(json.dumps(payload, indent=2))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp.name, 0o666 & ~umask)
+    os.replace(tmp.name, path)
