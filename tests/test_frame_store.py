@@ -14,7 +14,8 @@ from data_fixtures import make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import frame_store as frame_store_lib
 from pi0_armfix.data.frame_store import FrameStore, FrameColumn
-from pi0_armfix.data.lerobot import VERSIONS, LeRobotSource
+from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data.lerobot_meta import VERSIONS
 from pi0_armfix.data.sampling import EpisodeFrames
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")

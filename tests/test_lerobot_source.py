@@ -12,7 +12,8 @@ from ml_collections import ConfigDict
 from data_fixtures import (B1K_CAMERAS, identify_frame, make_episodes, write_dataset)
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.cameras import match_cameras
-from pi0_armfix.data.lerobot import VERSIONS, LeRobotSource
+from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data.lerobot_meta import VERSIONS
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data.sources import open_source
 from pi0_armfix.data.video import VideoDecoder

@@ -31,6 +31,8 @@ of a file that holds many: a row whose time falls past its segment's last frame 
 frame when it overruns by at most `data.video_tolerance_frames`, and is an error naming the
 episode, the row and the file otherwise (it would read the next episode's frames). Decoders are per thread, so any number of Grain threads may read at once.
 `LeRobotSource.probe` decodes the first and last frame of a sample of episodes before training.
+The metadata (versions, templates, episode records, prompts) is `data/lerobot_meta.py`; the lazy
+frame decoding `data/lerobot_frames.py`; this module holds the source.
 
 Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
 
@@ -50,235 +52,43 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
-import dataclasses
 import functools
 import itertools
 import json
-import math
-import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.cache import digest
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.frame_store import FrameStore, FrameColumn
+from pi0_armfix.data.frame_store import FrameStore
 from pi0_armfix.data.files import lfs_pointer_message, unreadable
+from pi0_armfix.data.lerobot_frames import LeRobotFrameImages, segment_time
+from pi0_armfix.data.lerobot_meta import (ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3,
+                                       major_version, matrix, open_parquet, task_prompts_of,
+                                       task_rows, vector, with_prompts)
 from pi0_armfix.data.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
 
-ACTION = "action"
-STATE = "observation.state"
-VERSIONS = ("v2.0", "v2.1", "v3.0")
+# Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
+PROBE_DECODE_FRAMES = 1800
+FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
+
+
+def probe_frame(decoder: VideoDecoder, seconds: float, where: str) -> None:
+    try:
+        decoder.frame_at(seconds)
+    except ValueError as err:
+        raise ValueError(f"{err} ({where})") from None
+
 
 BLOCK_KEYS = ("actions", "state", "timestamp")
-# Data files read ahead of the consumer by a background thread (bounds memory).
 _READ_AHEAD = 2
-
-V2_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
-V2_VIDEO_PATH = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
-V3_DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-V3_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
-V3_EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-
-
-# ====================================================================== shared helpers
-
-
-def _major_version(info: Mapping[str, Any], path: Path) -> int:
-    version = str(info["codebase_version"])
-    major = version.lstrip("v").split(".")[0]
-    if major not in ("2", "3"):
-        raise ValueError(f"{path}: codebase_version {version!r} is not supported; "
-                         f"supported layouts: {list(VERSIONS)}")
-    return int(major)
-
-
-def _open_parquet(path: Path) -> pq.ParquetFile:
-    if not path.is_file():
-        raise ValueError(f"missing parquet file {path}")
-    try:
-        return pq.ParquetFile(path)
-    except (pa.ArrowException, OSError) as err:
-        raise unreadable(path, "parquet file", err) from err
-
-
-def _read_parquet(path: Path, columns: Sequence[str]) -> pa.Table:
-    parquet = _open_parquet(path)
-    missing = [c for c in columns if c not in parquet.schema_arrow.names]
-    if missing:
-        raise ValueError(f"{path} has no column(s) {missing}")
-    try:
-        return parquet.read(columns=list(columns))
-    except (pa.ArrowException, OSError) as err:
-        raise unreadable(path, "parquet file", err) from err
-
-
-def _read_jsonl(path: Path) -> list[dict[str, Any]]:
-    if not path.is_file():
-        raise ValueError(f"missing LeRobot metadata file {path}")
-    try:
-        with open(path) as f:
-            return [json.loads(line) for line in f if line.strip()]
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(lfs_pointer_message(path) or f"cannot read {path}: {err}") from err
-
-
-def _matrix(column: pa.ChunkedArray | pa.Array, name: str, path: Path) -> np.ndarray:
-    """A list column of n rows of equal width w -> [n, w] numpy (zero-copy where arrow allows)."""
-    array = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
-    n = len(array)
-    if array.null_count:
-        raise ValueError(f"{path}: column {name!r} has {array.null_count} missing values")
-    if pa.types.is_fixed_size_list(array.type):
-        width = array.type.list_size
-    elif pa.types.is_list(array.type) or pa.types.is_large_list(array.type):
-        lengths = np.diff(array.offsets.to_numpy())
-        width = int(lengths[0]) if n else 0
-        if n and (lengths != width).any():
-            raise ValueError(f"{path}: column {name!r} has rows of different widths "
-                             f"{sorted(set(lengths.tolist()))[:5]}")
-    else:
-        raise ValueError(f"{path}: column {name!r} has type {array.type}, expected a list of numbers")
-    values = array.flatten().to_numpy(zero_copy_only=False)
-    return values.reshape(n, width)
-
-
-def _vector(column: pa.ChunkedArray, name: str, path: Path) -> np.ndarray:
-    """A scalar (or one-element list) column -> [n] numpy."""
-    array = column.combine_chunks()
-    if pa.types.is_list(array.type) or pa.types.is_fixed_size_list(array.type):
-        return _matrix(array, name, path)[:, 0]
-    return array.to_numpy(zero_copy_only=False)
-
-
-# ====================================================================== reader
-
-
-@dataclasses.dataclass(frozen=True)
-class _Episode:
-    """Where one episode's frames are: rows [first_row, first_row + length) of data_file."""
-
-    index: int
-    length: int
-    task: str
-    data_file: Path
-    first_row: int
-    # camera feature -> (mp4 file, from_timestamp, to_timestamp): the episode's segment of the
-    # file (v2: the whole file, to_timestamp infinite)
-    videos: Mapping[str, tuple[Path, float, float]]
-
-
-def _first_task(tasks: Any, where: str) -> str:
-    if isinstance(tasks, str):
-        return tasks
-    if not tasks:
-        raise ValueError(f"{where} lists no task")
-    return str(tasks[0])
-
-
-def _template(info: Mapping[str, Any], field: str, path: Path, **values) -> str:
-    template = info.get(field)
-    if not template:
-        raise ValueError(f"{path} has no {field!r} template")
-    try:
-        return template.format(**values)
-    except (KeyError, IndexError, ValueError) as err:
-        raise ValueError(f"{path}: cannot fill {field!r} = {template!r}: {err}") from err
-
-
-def _episodes_v2(root: Path, info: Mapping[str, Any], video_keys: Sequence[str]) -> list[_Episode]:
-    path = root / "meta" / "episodes.jsonl"
-    info_path = root / "meta" / "info.json"
-    chunks_size = int(info.get("chunks_size", 1000))
-    episodes = []
-    for line, row in enumerate(_read_jsonl(path), 1):
-        if "episode_index" not in row or "length" not in row:
-            raise ValueError(f"{path} line {line} lacks 'episode_index' or 'length'")
-        index = int(row["episode_index"])
-        names = dict(episode_chunk=index // chunks_size, episode_index=index)
-        episodes.append(_Episode(
-            index=index, length=int(row["length"]),
-            task=_first_task(row.get("tasks"), f"{path} line {line}"),
-            data_file=root / _template(info, "data_path", info_path, **names), first_row=0,
-            videos={key: (root / _template(info, "video_path", info_path, video_key=key, **names),
-                          0.0, math.inf) for key in video_keys}))
-    return sorted(episodes, key=lambda e: e.index)
-
-
-def _episodes_v3(root: Path, info: Mapping[str, Any], video_keys: Sequence[str]) -> list[_Episode]:
-    files = sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet"))
-    if not files:
-        raise ValueError(f"{root / 'meta' / 'episodes'} holds no chunk-*/file-*.parquet files")
-    info_path = root / "meta" / "info.json"
-    columns = ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index",
-               "dataset_from_index"]
-    for key in video_keys:
-        columns += [f"videos/{key}/chunk_index", f"videos/{key}/file_index",
-                    f"videos/{key}/from_timestamp"]
-    rows = []
-    for file in files:
-        present = set(_open_parquet(file).schema_arrow.names)
-        ends = [f"videos/{key}/to_timestamp" for key in video_keys
-                if f"videos/{key}/to_timestamp" in present]
-        table = _read_parquet(file, columns + ends)
-        rows += [(file, row) for row in table.to_pylist()]
-    # v3.0 rows are addressed by the dataset-global `index`; a data file starts at the smallest
-    # `dataset_from_index` of the episodes it holds.
-    file_start: dict[tuple[int, int], int] = {}
-    for _, row in rows:
-        key = (row["data/chunk_index"], row["data/file_index"])
-        file_start[key] = min(file_start.get(key, row["dataset_from_index"]),
-                              row["dataset_from_index"])
-    episodes = []
-    for file, row in rows:
-        chunk, number = row["data/chunk_index"], row["data/file_index"]
-        videos = {}
-        for key in video_keys:
-            video = _template(info, "video_path", info_path, video_key=key,
-                              chunk_index=row[f"videos/{key}/chunk_index"],
-                              file_index=row[f"videos/{key}/file_index"])
-            videos[key] = (root / video, float(row[f"videos/{key}/from_timestamp"]),
-                           float(row.get(f"videos/{key}/to_timestamp", math.inf)))
-        episodes.append(_Episode(
-            index=int(row["episode_index"]), length=int(row["length"]),
-            task=_first_task(row["tasks"], f"{file} episode {row['episode_index']}"),
-            data_file=root / _template(info, "data_path", info_path, chunk_index=chunk,
-                                       file_index=number),
-            first_row=int(row["dataset_from_index"]) - file_start[(chunk, number)],
-            videos=videos))
-    return sorted(episodes, key=lambda e: e.index)
-
-
-def _task_rows(root: Path) -> list[dict[str, Any]]:
-    """The rows of `meta/tasks.jsonl` ([] without the file)."""
-    path = root / "meta" / "tasks.jsonl"
-    return _read_jsonl(path) if path.is_file() else []
-
-
-def _task_prompts(rows: Sequence[Mapping[str, Any]]) -> dict[int, str]:
-    """`{task_index: prompt}` of the tasks rows (B1K's: the task ids its evaluation harness
-    sends as `task_id`)."""
-    return {int(row["task_index"]): row["task"] for row in rows
-            if isinstance(row.get("task_index"), int) and isinstance(row.get("task"), str)}
-
-
-def _with_prompts(episodes: list[_Episode], rows: Sequence[Mapping[str, Any]]
-                  ) -> list[_Episode]:
-    """`episodes` whose task is a task name listed in the tasks rows with a prompt, given that
-    prompt instead."""
-    prompts = {}
-    for row in rows:
-        name, prompt = row.get("task_name"), row.get("task")
-        if isinstance(name, str) and isinstance(prompt, str) and prompt.strip():
-            prompts[name] = prompt
-    return [dataclasses.replace(e, task=prompts.get(e.task, e.task)) for e in episodes]
 
 
 class LeRobotSource:
@@ -323,7 +133,7 @@ class LeRobotSource:
         for field in ("codebase_version", "fps", "features"):
             if field not in info:
                 raise ValueError(f"{info_path} has no {field!r} field")
-        major = _major_version(info, info_path)
+        major = major_version(info, info_path)
         self.version, self.fps = str(info["codebase_version"]), float(info["fps"])
         if not video_tolerance_frames > 0:
             raise ValueError(f"data.video_tolerance_frames = {video_tolerance_frames} must be > 0 "
@@ -364,15 +174,15 @@ class LeRobotSource:
                         if images else {})
         self._camera_kind = {name: stored[name] for name in self.cameras.values()}
         video_keys = [name for name, kind in self._camera_kind.items() if kind == "video"]
-        load = _episodes_v2 if major == 2 else _episodes_v3
-        task_rows = _task_rows(self.root)
-        self._episodes = _with_prompts(load(self.root, info, video_keys), task_rows)
+        load = episodes_v2 if major == 2 else episodes_v3
+        rows = task_rows(self.root)
+        self._episodes = with_prompts(load(self.root, info, video_keys), rows)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
-        self.task_prompts = _task_prompts(task_rows)
+        self.task_prompts = task_prompts_of(rows)
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
 
     block_keys = BLOCK_KEYS
@@ -410,7 +220,7 @@ class LeRobotSource:
         (git-LFS pointers named), the action/state columns have the declared widths, and for each
         video camera the frame of the first row decodes and the last row's timestamp lies within
         `video_tolerance_frames` of the video's last frame (decoded for episodes of up to
-        `_PROBE_DECODE_FRAMES` frames; from the container's frame count beyond, since B1K's HEVC
+        `PROBE_DECODE_FRAMES` frames; from the container's frame count beyond, since B1K's HEVC
         files have one keyframe per episode and decoding to the end costs a full pass).
 
         Args:
@@ -449,10 +259,10 @@ class LeRobotSource:
                     for row in (0, len(times) - 1):
                         segment_time(start, stop, times[row], self.fps,
                                      self.video_tolerance_frames, f"{where}, row {row}", path)
-                    _probe_frame(decoder, start + times[0], where + ", first row")
+                    probe_frame(decoder, start + times[0], where + ", first row")
                     last = decoder.last_frame_time()
-                    if episode.length <= _PROBE_DECODE_FRAMES or last is None:
-                        _probe_frame(decoder, segment_time(
+                    if episode.length <= PROBE_DECODE_FRAMES or last is None:
+                        probe_frame(decoder, segment_time(
                             start, stop, times[-1], self.fps, self.video_tolerance_frames,
                             where, path), where + ", last row")
                     elif start + times[-1] > (last + self.video_tolerance_frames / self.fps
@@ -494,7 +304,7 @@ class LeRobotSource:
         return (f"dim {dim} (stored {self._columns[key]!r} dim"
                 + (f"s {' + '.join(map(str, stored))})" if len(stored) > 1 else f" {stored[0]})"))
 
-    def _check_row_rate(self, times: np.ndarray, episode: _Episode) -> None:
+    def _check_row_rate(self, times: np.ndarray, episode: EpisodeRecord) -> None:
         """The declared fps against the rows' timestamps of one episode (their median step)."""
         steps = np.diff(times)
         if not len(steps):
@@ -542,10 +352,10 @@ class LeRobotSource:
                 for future in ahead:
                     future.cancel()
 
-    def _read_file(self, path: Path, episodes: Sequence[_Episode],
+    def _read_file(self, path: Path, episodes: Sequence[EpisodeRecord],
                    keys: tuple[str, ...]) -> list[dict[str, np.ndarray]]:
         """The blocks (one per row group) of the chosen episodes of one data file."""
-        parquet = _open_parquet(path)
+        parquet = open_parquet(path)
         columns = [self._columns[k] for k in keys if k != "state" or self._has_state]
         missing = [c for c in columns if c not in parquet.schema_arrow.names]
         if missing:
@@ -590,12 +400,12 @@ class LeRobotSource:
         block: dict[str, np.ndarray] = {}
         for key in keys:
             if key == "timestamp":
-                block[key] = _vector(table.column("timestamp"), "timestamp", path)
+                block[key] = vector(table.column("timestamp"), "timestamp", path)
             elif key == "state" and not self._has_state:
                 block[key] = np.zeros((n, 0), np.float32)
             else:
                 column = self._columns[key]
-                values = _matrix(table.column(column), column, path)
+                values = matrix(table.column(column), column, path)
                 selection = (self.action_selection if key == "actions"
                              else self.state_selection)
                 if values.shape[1] != selection.stored_width:
@@ -660,168 +470,3 @@ class LeRobotSource:
                             state=store.column("state", positions), episode_starts=starts,
                             episode_index=np.array([e.index for e in chosen], np.int64),
                             tasks=[e.task for e in chosen], images=reader, fps=self.fps)
-
-
-# ====================================================================== lazy images
-
-# Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
-_PROBE_DECODE_FRAMES = 1800
-FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
-
-
-def _probe_frame(decoder: "VideoDecoder", seconds: float, where: str) -> None:
-    try:
-        decoder.frame_at(seconds)
-    except ValueError as err:
-        raise ValueError(f"{err} ({where})") from None
-
-
-def segment_time(start: float, stop: float, timestamp: float, fps: float, tolerance: float,
-                 where: str, path: Path) -> float:
-    """The time in the mp4 of a row with `timestamp` whose episode owns the segment
-    `[start, stop)` of the file: `start + timestamp`, moved to the segment's last frame (or its
-    first) when it lies past it by at most `tolerance` frames.
-
-    Raises:
-      ValueError naming `where` (episode, camera, row) and the file when it lies further out.
-    """
-    seconds = start + timestamp
-    last = stop - 1.0 / fps
-    slack = (tolerance + TIME_EPSILON_FRAMES) / fps
-    if seconds > last + TIME_EPSILON_FRAMES / fps:
-        if seconds - last <= slack:
-            return last
-        over = (seconds - last) * fps
-        raise ValueError(
-            f"{where}: timestamp {timestamp:.4f} s lies {over:.2f} frames past the episode's "
-            f"segment [{start:.4f} s, {stop:.4f} s) of {path} (its last frame at {last:.4f} s; "
-            "beyond it the file holds the next episode). "
-            + (f"If the data's timestamps run late by up to {math.ceil(over - 1e-6)} frame(s), "
-               f"set data.video_tolerance_frames={math.ceil(over - 1e-6)} to read the segment's "
-               "last frame" if over <= 2 + 1e-6 else "The episode's meta/episodes record or its "
-               "timestamps are wrong"))
-    if seconds < start - TIME_EPSILON_FRAMES / fps:
-        if start - seconds <= slack:
-            return start
-        raise ValueError(f"{where}: timestamp {timestamp:.4f} s lies before the episode's "
-                         f"segment [{start:.4f} s, {stop:.4f} s) of {path}")
-    return seconds
-
-
-class LeRobotFrameImages:
-    """Lazy images of the frames of an EpisodeTable built from a LeRobot root (a FrameImages).
-
-    Parquet images: one row group of one camera column (still encoded) is read at a time and kept
-    in an LRU cache of at most `cache_bytes`; a request decodes one PNG/JPEG. Videos: one
-    `VideoDecoder` per file (LRU of `max_open_videos`), resizing to fit inside `image_size` in the
-    decoder. `timestamps` ([N] row timestamps, for videos) is a `FrameColumn`. Picklable
-    for worker processes: files are reopened lazily and every process starts with empty caches.
-    """
-
-    def __init__(self, cameras: Mapping[str, str], kinds: Mapping[str, str],
-                 episodes: Sequence[_Episode], episode_starts: np.ndarray,
-                 timestamps: FrameColumn | None, fps: float, cache_bytes: int = 256 << 20,
-                 max_open_videos: int = 8, video_tolerance_frames: float = 0.5,
-                 image_size: tuple[int, int] | None = None):
-        self.cameras = tuple(cameras)
-        self._features = dict(cameras)
-        self._kinds = dict(kinds)
-        self._episodes = list(episodes)
-        self._starts = np.asarray(episode_starts)
-        self._timestamps = timestamps
-        self._fps, self._cache_bytes, self._max_open = fps, cache_bytes, max_open_videos
-        self._tolerance = video_tolerance_frames
-        self._image_size = tuple(image_size) if image_size else None
-        self._local = threading.local()
-
-    # Decoders and caches are per thread: a PyAV container and its frame generator must never be
-    # used by two threads at once (Grain reads with several threads when data.num_workers = 0).
-    @property
-    def _caches(self) -> _Caches:
-        caches = getattr(self._local, "caches", None)
-        if caches is None:
-            caches = self._local.caches = _Caches()
-        return caches
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state.pop("_local")
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._local = threading.local()
-
-    def __call__(self, frame: int) -> dict[str, np.ndarray]:
-        if not 0 <= frame < self._starts[-1]:
-            raise IndexError(f"frame {frame} outside [0, {int(self._starts[-1])})")
-        position = int(np.searchsorted(self._starts, frame, side="right")) - 1
-        episode = self._episodes[position]
-        offset = frame - int(self._starts[position])
-        out = {}
-        for camera, feature in self._features.items():
-            if self._kinds[feature] == "video":
-                path, start, stop = episode.videos[feature]
-                seconds = segment_time(start, stop, float(self._timestamps[frame]), self._fps,
-                                       self._tolerance, f"episode {episode.index}, camera "
-                                       f"{feature!r}, row {offset}", path)
-                out[camera] = self._video(path).frame_at(seconds)
-            else:
-                out[camera] = self._image(feature, episode.data_file, episode.first_row + offset)
-        return out
-
-    def _image(self, feature: str, path: Path, row: int) -> np.ndarray:
-        caches = self._caches
-        starts = caches.row_groups.get(path)
-        if starts is None:
-            metadata = _open_parquet(path).metadata
-            starts = np.cumsum([0] + [metadata.row_group(i).num_rows
-                                      for i in range(metadata.num_row_groups)])
-            caches.row_groups[path] = starts
-        group = int(np.searchsorted(starts, row, side="right")) - 1
-        key = (path, group, feature)
-        column = caches.columns.get(key)
-        if column is None:
-            try:
-                table = _open_parquet(path).read_row_group(group, columns=[feature])
-            except (pa.ArrowException, OSError) as err:
-                raise unreadable(path, "parquet file", err) from err
-            column = table.column(0).combine_chunks().field("bytes")
-            caches.columns[key] = column
-            caches.cached_bytes += column.nbytes
-            while caches.cached_bytes > self._cache_bytes and len(caches.columns) > 1:
-                _, dropped = caches.columns.popitem(last=False)
-                caches.cached_bytes -= dropped.nbytes
-        else:
-            caches.columns.move_to_end(key)
-        data = column[row - int(starts[group])].as_py()
-        if data is None:
-            raise ValueError(f"{path}: camera {feature!r} row {row} holds no image bytes")
-        return cameras_lib.decode_image(data, f"{path} camera {feature!r} row {row}")
-
-    def _video(self, path: Path) -> VideoDecoder:
-        videos = self._caches.videos
-        decoder = videos.get(path)
-        if decoder is None:
-            if not path.is_file():
-                raise ValueError(f"missing video file {path}")
-            decoder = VideoDecoder(path, self._fps, self._tolerance, size=self._image_size)
-            videos[path] = decoder
-            if len(videos) > self._max_open:
-                videos.popitem(last=False)[1].close()
-        else:
-            videos.move_to_end(path)
-        return decoder
-
-
-@dataclasses.dataclass
-class _Caches:
-    """One thread's open files of a LeRobotFrameImages."""
-
-    row_groups: dict = dataclasses.field(default_factory=dict)  # parquet -> row group starts
-    columns: collections.OrderedDict = dataclasses.field(
-        default_factory=collections.OrderedDict)  # (parquet, group, feature) -> encoded images
-    cached_bytes: int = 0
-    videos: collections.OrderedDict = dataclasses.field(
-        default_factory=collections.OrderedDict)  # mp4 -> VideoDecoder
-

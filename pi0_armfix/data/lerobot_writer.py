@@ -32,8 +32,9 @@ import pyarrow.parquet as pq
 
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import lerobot_stats
-from pi0_armfix.data.lerobot import (ACTION, STATE, V2_DATA_PATH, V2_VIDEO_PATH,
-                                     V3_DATA_PATH, V3_EPISODES_PATH, V3_VIDEO_PATH, VERSIONS)
+from pi0_armfix.data.lerobot_meta import (ACTION, STATE, V2_DATA_PATH, V2_VIDEO_PATH,
+                                          V3_DATA_PATH, V3_EPISODES_PATH, V3_VIDEO_PATH,
+                                          VERSIONS)
 from pi0_armfix.data.video import write_video
 
 
