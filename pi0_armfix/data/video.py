@@ -73,6 +73,9 @@ class VideoDecoder:
         context = self._stream.codec_context
         self.height, self.width = fit_inside(context.height, context.width, size)
         self._resize = (self.height, self.width) != (context.height, context.width)
+        # One scaler kept for the stream: a frame's own reformat builds a new one every frame,
+        # which costs more CPU than the scaling itself.
+        self._reformatter = av.video.reformatter.VideoReformatter()
         self._frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self._decoder = None
         self._position = -1  # number of the last frame the decoder returned
@@ -89,8 +92,9 @@ class VideoDecoder:
 
     def _array(self, frame) -> np.ndarray:
         if self._resize:
-            return frame.to_ndarray(format="rgb24", width=self.width, height=self.height,
-                                    interpolation="AREA")
+            frame = self._reformatter.reformat(frame, width=self.width, height=self.height,
+                                               format="rgb24", interpolation="AREA")
+            return frame.to_ndarray()
         return frame.to_ndarray(format="rgb24")
 
     def frame_at(self, seconds: float) -> np.ndarray:
