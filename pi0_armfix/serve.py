@@ -168,6 +168,9 @@ class PolicyServer:
     async def _handle(self, websocket) -> None:
         try:
             await websocket.send(self._metadata)
+            # A request sent while the sampler compiles waits for it: the warm-up's draw and a
+            # client's never interleave.
+            await self._warmed.wait()
             async for message in websocket:
                 reply = self.answer(message, client=websocket.id)
                 if reply is not None:
@@ -191,6 +194,7 @@ class PolicyServer:
         port, for port 0)."""
         where = ({"sock": self.sock} if self.sock is not None
                  else {"host": self.host, "port": self.port})
+        self._warmed = asyncio.Event()
         async with ws_server.serve(self._handle, compression=None,
                                    max_size=self.max_message_bytes,
                                    process_request=self._health, **where) as server:
@@ -202,6 +206,7 @@ class PolicyServer:
                 sizes = harness.IMAGE_SIZES if self.protocol == "b1k" else ()
                 await asyncio.to_thread(warm_up, *([sizes] if sizes else []))
             self.warm.set()
+            self._warmed.set()
             await server.serve_forever()
 
 

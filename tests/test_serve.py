@@ -57,6 +57,31 @@ def server(run):
     return policy_server
 
 
+def test_a_request_sent_while_the_sampler_compiles_waits_for_it(run):
+    policy = inference.RunPolicy.from_workdir(run)
+    release, compiled = threading.Event(), []
+    warm_up = policy.warm_up
+
+    def slow_warm_up(*args):
+        release.wait(30)
+        warm_up(*args)
+        compiled.append(policy._draws)
+
+    policy.warm_up = slow_warm_up
+    server = serve.PolicyServer(policy, "127.0.0.1", 0)
+    loop, ready = asyncio.new_event_loop(), asyncio.Event()
+    threading.Thread(target=lambda: loop.run_until_complete(server.serve(ready)),
+                     daemon=True).start()
+    while not ready.is_set():
+        time.sleep(0.02)
+    client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
+    threading.Timer(0.5, release.set).start()
+    result = client.infer(_observation())  # sent before the warm-up ends
+    assert compiled == [0] and result["actions"].shape[-1] == 23
+    twin = inference.RunPolicy.from_workdir(run)
+    np.testing.assert_allclose(result["actions"], twin.infer([_observation()])[0], atol=1e-6)
+
+
 def _observation(seed=0):
     observation, _ = DemoWorldEnv().reset(seed=seed)
     return observation
