@@ -38,6 +38,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from pi0_armfix import inference
+
 CAMERAS = {"robot_r1::robot_r1:zed_link:Camera:0::rgb": "base_0_rgb",
            "robot_r1::robot_r1:left_realsense_link:Camera:0::rgb": "left_wrist_0_rgb",
            "robot_r1::robot_r1:right_realsense_link:Camera:0::rgb": "right_wrist_0_rgb"}
@@ -84,36 +86,24 @@ class HarnessSession:
             raise ValueError(f"RTC follows the unexecuted tail of a chunk: --n_exec={n_exec} "
                              f"must be below the horizon {policy.horizon}")
         self.policy, self.n_exec, self.seed, self.prompt = policy, n_exec, seed, prompt
-        self.rtc, self.latch = rtc, latch
+        self._replanning = inference.ReplanningPolicy(policy, n_exec, rtc, latch)
         self.episode = -1
         self._queues: dict[int, list[np.ndarray]] = {}
-        self._tails: dict[int, np.ndarray] = {}
         self._warned: set[int] = set()
         self.reset()
 
     def reset(self) -> None:
         self.episode += 1
         self._queues.clear()
-        self._tails.clear()
-        if self.latch is not None:
-            self.latch.reset()
+        self._replanning.start()
         self._key, self._draws = jax.random.key(self.seed + self.episode), 0
 
     def _sample(self, envs: list[int], observations: list[dict[str, Any]]) -> np.ndarray:
         """Chunks `[len(envs), H, 23]` from this connection's noise stream, following each env's
         tail under RTC (when every env asking has one: a chunk at an episode's start has none)."""
-        follow = None
-        if self.rtc and all(e in self._tails for e in envs):
-            follow = np.stack([self._tails[e] for e in envs])
         rng = jax.random.fold_in(self._key, self._draws)
         self._draws += 1
-        chunks = self.policy.infer(observations, follow=follow, rng=rng)
-        if self.latch is not None:
-            chunks = np.stack([self.latch(e, chunk, self.n_exec)
-                               for e, chunk in zip(envs, chunks)])
-        for e, chunk in zip(envs, chunks):
-            self._tails[e] = chunk[self.n_exec:]
-        return chunks
+        return self._replanning(envs, observations, rng=rng)
 
     def answer(self, message: Mapping[str, Any]) -> dict[str, np.ndarray] | None:
         """A harness message -> the reply (None for a reset, which gets none).

@@ -27,6 +27,7 @@ import ml_collections
 import numpy as np
 from etils import epath
 
+from pi0_armfix import hysteresis
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import batching, run_inputs, sources, transforms
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
@@ -357,3 +358,37 @@ class RunPolicy:
             raise ValueError(f"observation[{key!r}] must be a uint8 image [h, w, 3] with h, w > 0, "
                              f"got {image.dtype} {image.shape}")
         return image
+
+
+class ReplanningPolicy:
+    """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
+    `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
+    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
+    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""
+
+    def __init__(self, policy: RunPolicy, n_exec: int, follow_tail: bool,
+                 latch: hysteresis.GripperLatch | None = None):
+        self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
+        self.latch = latch
+
+    def start(self, envs=None):
+        """A new episode: no tails, the latch's held commands forgotten."""
+        self._tails: dict[int, np.ndarray] = {}
+        if self.latch is not None:
+            self.latch.reset()
+
+    def __call__(self, active, observations, rng: jax.Array | None = None):
+        """Chunks `[len(active), H, A]` for the envs `active` (their tails followed when every
+        one has a tail: a chunk at an episode's start has none); `rng`: the draw's key (a caller
+        with its own noise stream), else the policy's next."""
+        follow = None
+        if self.follow_tail and all(i in self._tails for i in active):
+            follow = np.stack([self._tails[i] for i in active])
+        chunks = self.policy.infer(observations, follow=follow,
+                                   **({} if rng is None else {"rng": rng}))
+        if self.latch is not None:
+            chunks = np.stack([self.latch(i, chunk, self.n_exec)
+                               for i, chunk in zip(active, chunks)])
+        for i, chunk in zip(active, chunks):
+            self._tails[i] = chunk[self.n_exec:]
+        return chunks

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from configs import base
-from pi0_armfix import evaluate, hysteresis, serve
-from pi0_armfix.evaluation import closed_loop as closed_loop_lib
+from pi0_armfix import evaluate, hysteresis, inference, serve
 from pi0_armfix.action_space import ActionLayout
 
 OPEN, CLOSE = 0.9, -0.98
@@ -87,7 +86,7 @@ class _Undecided:
 
 def test_the_closed_loop_policy_keeps_a_closed_gripper_closed_through_dithering():
     latch = hysteresis.GripperLatch([14, 22], OPEN, CLOSE)
-    replanning = closed_loop_lib.ReplanningPolicy(_Undecided(), n_exec=2, follow_tail=False,
+    replanning = inference.ReplanningPolicy(_Undecided(), n_exec=2, follow_tail=False,
                                            latch=latch)
     replanning.start([None])
     replanning([0], [{}])

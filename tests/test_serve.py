@@ -38,10 +38,7 @@ CONFIG = "configs/arm_delta.py"
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, cache_dir, demo_root):  # noqa: F811
-    workdir = tmp_path_factory.mktemp("run")
-    trained = tf.run_train(CONFIG, workdir, tf.tiny_overrides(demo_root), cache_dir)
-    assert trained.returncode == 0, trained.stderr[-3000:]
-    return workdir
+    return tf.trained_tiny_run(CONFIG, tmp_path_factory.mktemp("run"), demo_root, cache_dir)
 
 
 @pytest.fixture(scope="module")

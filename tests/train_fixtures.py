@@ -92,6 +92,14 @@ def run_train(config: str, workdir: Path | None, overrides: Mapping[str, Any], c
                           cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
+def trained_tiny_run(config: str, workdir: Path, data_root: Path, cache_dir: Path) -> Path:
+    """`workdir` after a tiny run of `config` on the tiny demo at `data_root` (asserted to
+    succeed)."""
+    trained = run_train(config, workdir, tiny_overrides(data_root), cache_dir)
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    return workdir
+
+
 def records(workdir: Path) -> list[dict]:
     """`metrics.jsonl` records without the timing fields (which no two runs share)."""
     lines = (workdir / "metrics.jsonl").read_text().splitlines()

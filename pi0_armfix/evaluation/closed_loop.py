@@ -4,7 +4,7 @@
         [--gripper_hysteresis=0.9,-0.98] [--tolerances=1,2,4] [--sim_seed=S]
 
 The policy samples a chunk, the world executes `n_exec` of it, the policy replans
-(`ReplanningPolicy`); the rollouts (`sim.rollout`) record every phase's success and, for a failed
+(`inference.ReplanningPolicy`); the rollouts (`sim.rollout`) record every phase's success and, for a failed
 phase, the furthest stage it reached (its failure reason). What a success means physically:
 docs/evaluation.md. Results are named by their settings (`closed_loop_paths`), never replaced by
 another evaluation's.
@@ -17,7 +17,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import jax
-import numpy as np
 from etils import epath
 
 from pi0_armfix import hysteresis, inference
@@ -29,35 +28,6 @@ from pi0_armfix.sim.world import DemoSpec
 
 CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_loop_paths`)
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
-
-
-class ReplanningPolicy:
-    """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
-    `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
-    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
-    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""
-
-    def __init__(self, policy: inference.RunPolicy, n_exec: int, follow_tail: bool,
-                 latch: hysteresis.GripperLatch | None = None):
-        self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
-        self.latch = latch
-
-    def start(self, envs):
-        self._tails: dict[int, np.ndarray] = {}
-        if self.latch is not None:
-            self.latch.reset()
-
-    def __call__(self, active, observations):
-        follow = None
-        if self.follow_tail and all(i in self._tails for i in active):
-            follow = np.stack([self._tails[i] for i in active])
-        chunks = self.policy.infer(observations, follow=follow)
-        if self.latch is not None:
-            chunks = np.stack([self.latch(i, chunk, self.n_exec)
-                               for i, chunk in zip(active, chunks)])
-        for i, chunk in zip(active, chunks):
-            self._tails[i] = chunk[self.n_exec:]
-        return chunks
 
 
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
@@ -98,7 +68,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
                          "with --rtc: the tail to follow)")
     spec = DemoSpec(seed=sim_seed)
-    replanning = ReplanningPolicy(policy_, n_exec, follow_tail, latch)
+    replanning = inference.ReplanningPolicy(policy_, n_exec, follow_tail, latch)
     records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
                                   progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
