@@ -5,7 +5,7 @@ The phase boundaries are step numbers fixed here from the scale's `train.total_s
 overrides `--config.train.total_steps` sets `--config.data.curriculum` too.
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -4,7 +4,7 @@ uniform loss: the representation lever of B1K 2025's winners on its own.
   python -m pi0_armfix.train --config=configs/arm_delta.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -4,7 +4,7 @@ correlation of the normalized training chunks (B1K 2025's first place), beta = 0
   python -m pi0_armfix.train --config=configs/arm_delta_correlated_noise.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

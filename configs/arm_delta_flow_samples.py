@@ -4,7 +4,7 @@ more suffix gradient per prefix compute.
   python -m pi0_armfix.train --config=configs/arm_delta_flow_samples.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -3,7 +3,7 @@
   python -m pi0_armfix.train --config=configs/arm_delta_focused.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

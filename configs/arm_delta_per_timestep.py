@@ -4,7 +4,7 @@ growing spread of a[t + h] - s[t] over h does not squeeze the first steps to ~0.
   python -m pi0_armfix.train --config=configs/arm_delta_per_timestep.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

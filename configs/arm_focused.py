@@ -8,7 +8,7 @@ What it does, measured over seeds against doing nothing: README, "Results".
   python -m pi0_armfix.train --config=configs/arm_focused.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -1,7 +1,7 @@
 """`arm_focused` on balanced normalization stats: every group's frame-to-frame motion is brought to
 the same RMS in normalized units (computed into the workdir on first use), then arms weighted 3x."""
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -6,7 +6,7 @@ moves the target by about a pixel, which is ~5 cm of distance, while the arrival
   python -m pi0_armfix.train --config=configs/arm_focused_openpi_augment.py
 """
 
-from configs import arm_focused
+from pi0_armfix.configs import arm_focused
 
 
 def get_config(arg=None):

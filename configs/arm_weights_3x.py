@@ -6,7 +6,7 @@ mechanisms"); it stays so that the seed's claim can be tested side by side.
   python -m pi0_armfix.train --config=configs/arm_weights_3x.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -4,7 +4,7 @@ weigh 3x (for "the gripper never closes").
   python -m pi0_armfix.train --config=configs/gripper_switch.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

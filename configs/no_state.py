@@ -4,7 +4,7 @@ the ablation of the state-copy shortcut: everything must come from the cameras a
   python -m pi0_armfix.train --config=configs/no_state.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -4,7 +4,7 @@ It weights each timestep by the norm of the whole action's change, which the bas
 dominates: it favours navigation, the opposite of what the arms need.
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

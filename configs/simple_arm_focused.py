@@ -4,7 +4,7 @@ Same static weights as `arm_focused`, spelled out dim by dim: the form to start 
 joints (a wrist, a constant torso dim) need their own weight.
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -5,7 +5,7 @@ a lever against the state-copy shortcut, where a policy learns to repeat the sta
   python -m pi0_armfix.train --config=configs/state_dropout.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

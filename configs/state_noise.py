@@ -5,7 +5,7 @@ states a little off the demonstrations, as its own errors put it in closed loop.
   python -m pi0_armfix.train --config=configs/state_noise.py
 """
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

@@ -1,6 +1,6 @@
 """Baseline: plain mean over all action dims, exactly upstream openpi's pi0 loss."""
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

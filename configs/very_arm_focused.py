@@ -1,6 +1,6 @@
 """Arms and grippers weighted 5x the base and torso (per_group): the stronger setting."""
 
-from configs import base
+from pi0_armfix.configs import base
 
 
 def get_config(arg=None):

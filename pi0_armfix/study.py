@@ -392,7 +392,7 @@ def main(argv: Sequence[str]) -> None:
 
 
 def _configs_dir() -> Path:
-    import configs
+    from pi0_armfix import configs
 
     return Path(configs.__file__).parent
 

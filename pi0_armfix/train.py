@@ -576,7 +576,7 @@ def _check_config_file(path: str) -> None:
 
 def _configs_dir() -> epath.Path:
     """The experiment configs installed beside this package."""
-    import configs
+    from pi0_armfix import configs
 
     return epath.Path(configs.__file__).parent
 

@@ -12,7 +12,7 @@ import pytest
 
 import b1k2026_fixture as fixture
 import train_fixtures as tf
-from configs import arm_focused
+from pi0_armfix.configs import arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import evaluate, inference, train
 from pi0_armfix.action_space import ActionLayout

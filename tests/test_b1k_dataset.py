@@ -8,7 +8,7 @@ import pytest
 
 import b1k_fixture
 import train_fixtures as tf
-from configs import arm_curriculum, arm_focused
+from pi0_armfix.configs import arm_curriculum, arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import evaluate, train
 from pi0_armfix.action_space import ActionLayout

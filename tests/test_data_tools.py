@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from configs import base as base_config
+from pi0_armfix.configs import base as base_config
 from data_fixtures import write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import motion as motion_lib

@@ -4,7 +4,7 @@ stream and across chunks, in the closed loop and in the policy server."""
 import numpy as np
 import pytest
 
-from configs import base
+from pi0_armfix.configs import base
 from pi0_armfix import evaluate, hysteresis, inference, serve
 from pi0_armfix.action_space import ActionLayout
 

@@ -1,13 +1,24 @@
 """The package installs (`pip install -e .`) and its console scripts run from any folder."""
 
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
+import zipfile
 from pathlib import Path
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+
+
+def _source_copy(tmp_path: Path) -> Path:
+    """The repository's sources copied, so that building writes nothing into the checkout."""
+    source = tmp_path / "source"
+    shutil.copytree(tf.REPO_ROOT, source, symlinks=True, ignore=shutil.ignore_patterns(
+        ".git", "runs", "build", "*.egg-info", "__pycache__", ".*cache*", ".hypothesis",
+        "results"))
+    return source
 
 
 def test_an_editable_install_runs_the_demo_training_from_another_folder(tmp_path, cache_dir,
@@ -23,7 +34,7 @@ def test_an_editable_install_runs_the_demo_training_from_another_folder(tmp_path
     (site / "requirements.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     install = subprocess.run(
         [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps",
-         "--no-build-isolation", "-e", str(tf.REPO_ROOT)],
+         "--no-build-isolation", "-e", str(_source_copy(tmp_path))],
         capture_output=True, text=True, timeout=600)
     assert install.returncode == 0, install.stderr[-3000:]
 
@@ -37,3 +48,16 @@ def test_an_editable_install_runs_the_demo_training_from_another_folder(tmp_path
     assert result.returncode == 0, result.stderr[-3000:]
     assert (elsewhere / "run" / "checkpoints" / "2").is_dir()
     assert not os.path.exists(elsewhere / "configs")  # the installed config was found
+
+
+def test_a_built_wheel_ships_the_configs_inside_the_package_and_no_top_level_configs(tmp_path):
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
+         "--wheel-dir", str(tmp_path), str(_source_copy(tmp_path))],
+        capture_output=True, text=True, timeout=600)
+    assert built.returncode == 0, built.stderr[-3000:]
+    (wheel,) = tmp_path.glob("*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    shipped = {Path(n).stem for n in names if n.startswith("pi0_armfix/configs/")}
+    assert shipped == {p.stem for p in (tf.REPO_ROOT / "configs").glob("*.py")}
+    assert not [n for n in names if n.split("/")[0] == "configs"]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from absl import flags
 
-from configs import base as base_config
+from pi0_armfix.configs import base as base_config
 from data_fixtures import make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib

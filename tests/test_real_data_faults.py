@@ -18,7 +18,7 @@ import pytest
 import b1k_fixture
 import train_fixtures as tf
 from train_fixtures import cache_dir  # noqa: F401  (pytest fixture)
-from configs import arm_curriculum, base
+from pi0_armfix.configs import arm_curriculum, base
 from data_fixtures import identify_frame, make_episodes, write_dataset
 from pi0_armfix import evaluate, train
 from pi0_armfix.action_space import ActionLayout

@@ -14,7 +14,7 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from configs import base
+from pi0_armfix.configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import sources

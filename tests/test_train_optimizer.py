@@ -5,7 +5,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from configs import base
+from pi0_armfix.configs import base
 from pi0_armfix.training import optimizer
 
 

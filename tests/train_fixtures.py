@@ -109,7 +109,7 @@ def records(workdir: Path) -> list[dict]:
 def tiny_b1k_config(scale: str, root: Path, **overrides: Any):
     """`configs/arm_focused.py:<scale>` (`b1k` or `b1k2026`) shrunk to the tiny preset on a
     B1K-layout fixture at `root`: two steps of batch 8, an evaluation on 2 held-out episodes."""
-    from configs import arm_focused
+    from pi0_armfix.configs import arm_focused
 
     config = arm_focused.get_config(scale)
     config.update_from_flattened_dict({

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 
 import jax
 
-from configs import base
+from pi0_armfix.configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
