@@ -43,12 +43,12 @@ from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
 from pi0_armfix.training import plots
-from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import metrics_log
 from pi0_armfix.training import sharding as sharding_lib
 
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
@@ -147,7 +147,7 @@ class Evaluator:
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
         self.seed = int(config.seed)
         self._sample = jax.jit(
-            functools.partial(policy.sample_actions, config=model_config,
+            functools.partial(flow_model.sample_actions, config=model_config,
                               num_steps=eval_cfg.num_steps, noise_factor=noise_factor),
             in_shardings=(params_sharding, None, self.batch_sharding),
             out_shardings=sharding_lib.replicated(mesh))
@@ -249,7 +249,7 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
         indent=2, allow_nan=False) + "\n")
     evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
                    "vs true (solid)")
-    plots.plot_group_losses(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE), layout,
+    plots.plot_group_losses(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE), layout,
                             out / "group_losses.png")
     plots.plot_stagnation(offline_records(workdir), layout, workdir / "eval" / STAGNATION_FILE)
     return step, metrics, layout

@@ -86,7 +86,7 @@ class HarnessSession:
             raise ValueError(f"RTC follows the unexecuted tail of a chunk: --n_exec={n_exec} "
                              f"must be below the horizon {policy.horizon}")
         self.policy, self.n_exec, self.seed, self.prompt = policy, n_exec, seed, prompt
-        self._replanning = inference.ReplanningPolicy(policy, n_exec, rtc, latch)
+        self._replanning = inference.Replanner(policy, n_exec, rtc, latch)
         self.episode = -1
         self._queues: dict[int, list[np.ndarray]] = {}
         self._warned: set[int] = set()

@@ -8,7 +8,7 @@ An observation is a dict with B1K's openpi keys by default (`B1K_KEYS`; any mapp
 stores it (e.g. the demo's 23-D baseline-order state, B1K's 256-D proprioception: the run's
 `data.state_preset` selects from it), and the prompt. The policy does what training did to a
 sample (state selection and normalization, the prompt tokenizer, pi0.5's state tokens), samples
-with the run's `eval.num_steps` Euler steps and the KV cache (`model.policy.sample_actions`,
+with the run's `eval.num_steps` Euler steps and the KV cache (`model.flow_model.sample_actions`,
 jit-compiled once per batch shape), and undoes the action normalization and delta actions: the
 result is absolute actions in the dataset's units. Used by the closed-loop evaluation and by the
 policy server.
@@ -35,7 +35,7 @@ from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint
 from pi0_armfix.training import sharding as sharding_lib
@@ -208,7 +208,7 @@ class RunPolicy:
         self.trained_prompts = frozenset(source.tasks)
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
         self._sample = functools.partial(
-            policy.sample_actions, config=run.model_config,
+            flow_model.sample_actions, config=run.model_config,
             num_steps=int(num_steps or config.eval.num_steps), noise_factor=noise_factor)
         self._key = jax.random.key(seed)
         self._draws = 0
@@ -360,8 +360,9 @@ class RunPolicy:
         return image
 
 
-class ReplanningPolicy:
-    """A run's policy for `sim.rollout`: a chunk per request, of which the rollout executes
+class Replanner:
+    """A run's policy as a receding-horizon driver (`sim.rollout.Driver`, the harness's
+    sessions): a chunk per request, of which the rollout executes
     `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
     tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
     grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""

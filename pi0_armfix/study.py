@@ -71,7 +71,7 @@ from pi0_armfix.study_aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES, aggregate,
                                         closed_loop_outcomes, episode_replicates)
 from pi0_armfix.study_report import markdown, plot_study
-from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
 
@@ -95,10 +95,10 @@ def train_command(config: str, seed: int, steps: int, folder: Path,
 
 def final_evaluation(folder: Path) -> dict[str, float]:
     """The last held-out evaluation record of a run's `metrics.jsonl`."""
-    records = [r for r in metrics_lib.read_metrics(folder / metrics_lib.METRICS_FILE)
+    records = [r for r in metrics_log.read_metrics(folder / metrics_log.METRICS_FILE)
                if any(k.startswith("motion_gain/") for k in r)]
     if not records:
-        raise ValueError(f"{folder} has no held-out evaluation in {metrics_lib.METRICS_FILE}; "
+        raise ValueError(f"{folder} has no held-out evaluation in {metrics_log.METRICS_FILE}; "
                          f"see {folder / 'train.log'}")
     return records[-1]
 
@@ -220,7 +220,7 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
 def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict[str, Any]:
     """The result with the closed-loop metrics and per-episode outcomes of `episodes` episodes
     (measured now when it has none of that many; `result.json` rewritten)."""
-    if episodes <= 0 or has_closed_loop(result, episodes):
+    if episodes <= 0 or run_has_closed_loop(result, episodes):
         return result
     metrics, outcomes = closed_loop_metrics(folder, result["steps"], episodes)
     result = {**result, CLOSED_LOOP_EPISODES: outcomes, "metrics": {
@@ -230,7 +230,7 @@ def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict
     return result
 
 
-def has_closed_loop(result: Mapping[str, Any], episodes: int) -> bool:
+def run_has_closed_loop(result: Mapping[str, Any], episodes: int) -> bool:
     """Whether a run's result holds the closed-loop metrics and outcomes of `episodes` episodes."""
     return (result["metrics"].get(CLOSED_LOOP + "episodes") == episodes
             and CLOSED_LOOP_EPISODES in result)
@@ -261,7 +261,7 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
             if result is not None and result["steps"] == steps:
                 result = add_episode_replicates(result, folder, evaluate_missing=train)
                 results[config, seed] = result
-                if train and closed_loop_episodes > 0 and not has_closed_loop(
+                if train and closed_loop_episodes > 0 and not run_has_closed_loop(
                         result, closed_loop_episodes):
                     unmeasured.append((config, seed))
             elif result is not None:

@@ -136,12 +136,12 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         lines.append(f"| {name} | {_interval(c['arm_skill_interval'])} | "
                      + " | ".join("met" if met[k] else "missed" for k in
                                   ("arm_skill", "arm_gain", "base_skill", "switch_f1")) + " |")
-    if has_closed_loop(configs):
+    if any_config_has_closed_loop(configs):
         lines += closed_loop_table(study)
     return "\n".join(lines) + "\n"
 
 
-def has_closed_loop(configs: Mapping[str, Any]) -> bool:
+def any_config_has_closed_loop(configs: Mapping[str, Any]) -> bool:
     """Whether any config of an aggregate has closed-loop metrics."""
     return any(f"{CLOSED_LOOP}success/task" in c["mean"] for c in configs.values())
 
@@ -248,7 +248,7 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
     known, as grey ones); closed-loop success beside them when the runs have it."""
     groups, configs = study["groups"], study["configs"]
     width = 0.8 / len(configs)
-    closed = has_closed_loop(configs)
+    closed = any_config_has_closed_loop(configs)
     panels = [("skill", "skill over persistence (> 0: better than doing nothing)"),
               ("motion_gain", "motion gain (1 = moves like the data)")]
     fig, axes = plt.subplots(1, len(panels) + closed, squeeze=False, gridspec_kw={

@@ -73,10 +73,10 @@ from pi0_armfix.data import run_inputs
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import noise as noise_lib
-from pi0_armfix.model import policy, pretrained
+from pi0_armfix.model import flow_model, pretrained
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint, finite_checkpoints, fingerprint, plots, preemption
-from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import metrics_log
 from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
@@ -128,7 +128,7 @@ def _init_state(config: ml_collections.ConfigDict, model_config, layout: ActionL
                                             shardings=params_shardings)
         return jax.jit(create, in_shardings=(params_shardings,),
                        out_shardings=state_shardings)(params)
-    init = lambda rng: create(policy.init_params(model_config, rng))  # noqa: E731
+    init = lambda rng: create(flow_model.init_params(model_config, rng))  # noqa: E731
     return jax.jit(init, out_shardings=state_shardings)(jax.random.key(config.seed))
 
 
@@ -235,7 +235,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
 
         abstract_state = jax.eval_shape(
             lambda: state_lib.create_train_state(
-                policy.init_params(model_config, jax.random.key(0)), tx=tx,
+                flow_model.init_params(model_config, jax.random.key(0)), tx=tx,
                 loss_cfg=config.loss, layout=layout, ema_decay=config.optim.ema_decay))
         state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
         evaluator = None
@@ -289,7 +289,7 @@ def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
            layout: ActionLayout, mesh: jax.sharding.Mesh, source) -> list[str]:
     """What a run is, in a few lines, before it starts on its long work."""
     num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
-        policy.param_shapes(model_config)))
+        flow_model.param_shapes(model_config)))
     held_out = source.num_episodes - len(dataset_lib.training_episodes(config, source))
     frames = int(np.sum(source.episode_lengths))
     root = getattr(source, "root", config.data.root)
@@ -340,7 +340,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     total_steps = config.train.total_steps
     ckpts = run.checkpoints
     finite = finite_checkpoints.FiniteCheckpoints(ckpts, run.start)
-    writer = metrics_lib.MetricsWriter(workdir, resume_step=run.start)
+    writer = metrics_log.MetricsWriter(workdir, resume_step=run.start)
     phase = train_iter.phase
     # The next global batches are built (host -> device included) in a background thread.
     batches = background.prefetched(_with_position(train_iter), depth=2)
@@ -436,7 +436,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
             run.lock.close()
     if not is_main:
         return {}
-    records = metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)
+    records = metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE)
     plots.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
     return [r for r in records if "loss" in r][-1]
 
@@ -492,7 +492,7 @@ def _plots_dir(workdir: epath.Path) -> epath.Path:
 
 
 def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: int,
-              writer: metrics_lib.MetricsWriter, workdir: epath.Path,
+              writer: metrics_log.MetricsWriter, workdir: epath.Path,
               layout: ActionLayout) -> None:
     params = state.ema_params if state.ema_params is not None else state.params
     metrics, predicted, true, sums = evaluator(params)
@@ -501,7 +501,7 @@ def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: 
         heldout_lib.save_chunk_sums(
             workdir / "eval" / f"step_{step}" / heldout_lib.CHUNK_SUMS_FILE, sums)
     if jax.process_index() == 0:
-        plots.plot_stagnation(metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE),
+        plots.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
     _say(f"step {step} held-out evaluation (sampled actions):\n"
          + evaluate.format_metrics(metrics, layout))

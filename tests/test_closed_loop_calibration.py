@@ -48,8 +48,8 @@ def test_looser_tolerances_never_lower_a_noisy_experts_success(curves):
 def test_the_noisy_expert_holds_each_error_draw_for_hold_steps():
     env = env_lib.DemoWorldEnv(QUICK)
     env.reset(seed=0)
-    noisy = rollout.NoisyExpertPolicy(np.full(23, 0.1), hold=3)
-    clean = rollout.ExpertPolicy()
+    noisy = rollout.NoisyExpertDriver(np.full(23, 0.1), hold=3)
+    clean = rollout.ExpertDriver()
     twin = env_lib.DemoWorldEnv(QUICK)
     twin.reset(seed=0)
     noisy.start([env])

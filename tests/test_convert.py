@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model.config import get_preset
 from pi0_armfix.model.inputs import fake_observation
 from pi0_armfix.model.tree import flatten_tree
@@ -34,7 +34,7 @@ NORM_STATS = {"norm_stats": {"actions": {"mean": [0.5] * 32, "std": [2.0] * 32,
 
 @pytest.fixture(scope="module")
 def params():
-    return policy.init_params(CONFIG, jax.random.key(1))
+    return flow_model.init_params(CONFIG, jax.random.key(1))
 
 
 def _flat(tree):
@@ -87,7 +87,7 @@ def test_cli_converts_a_run_checkpoint_that_loads_back_identical_and_predicts_li
     x_t = np.random.default_rng(0).standard_normal((2, CONFIG.action_horizon, CONFIG.action_dim),
                                                    dtype=np.float32)
     t = np.array([0.3, 0.9], np.float32)
-    expected = np.asarray(policy.velocity(params, obs, x_t, t, config=CONFIG))
+    expected = np.asarray(flow_model.velocity(params, obs, x_t, t, config=CONFIG))
     with torch.no_grad():
         np.testing.assert_allclose(model.velocity(obs, x_t, t).numpy(), expected, rtol=0, atol=1e-5)
 

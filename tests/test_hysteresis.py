@@ -86,7 +86,7 @@ class _Undecided:
 
 def test_the_closed_loop_policy_keeps_a_closed_gripper_closed_through_dithering():
     latch = hysteresis.GripperLatch([14, 22], OPEN, CLOSE)
-    replanning = inference.ReplanningPolicy(_Undecided(), n_exec=2, follow_tail=False,
+    replanning = inference.Replanner(_Undecided(), n_exec=2, follow_tail=False,
                                            latch=latch)
     replanning.start([None])
     replanning([0], [{}])

@@ -11,7 +11,7 @@ import pytest
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import config as model_config
-from pi0_armfix.model import pi0, policy
+from pi0_armfix.model import flow_model, pi0
 from pi0_armfix.model.inputs import fake_observation, preprocess_observation
 from pi0_armfix.model.tree import count_params
 
@@ -23,7 +23,7 @@ BATCH = 3
 
 @pytest.fixture(scope="module")
 def params():
-    return policy.init_params(TINY, jax.random.key(0))
+    return flow_model.init_params(TINY, jax.random.key(0))
 
 
 def _observation(seed=0):
@@ -65,15 +65,15 @@ def _expert_outputs(params, obs, x_t, t):
 
 def test_pi0_param_tree_equals_openpi_reference():
     expected = json.loads(REFERENCE.read_text())["pi0"]
-    tree = policy.param_tree(model_config.get_preset("pi0"))
+    tree = flow_model.param_tree(model_config.get_preset("pi0"))
     assert tree == expected
     assert count_params(tree) == 3_238_048_528
 
 
 @pytest.mark.parametrize("preset", ["demo", "tiny"])
 def test_small_presets_use_the_pi0_names(preset):
-    pi0_names = set(policy.param_tree(model_config.get_preset("pi0")))
-    assert set(policy.param_tree(model_config.get_preset(preset))) == pi0_names
+    pi0_names = set(flow_model.param_tree(model_config.get_preset("pi0")))
+    assert set(flow_model.param_tree(model_config.get_preset(preset))) == pi0_names
 
 
 def test_config_round_trips_through_json():
@@ -100,7 +100,7 @@ def test_unknown_preset_is_named():
 
 def test_compute_loss_returns_scalar_and_group_losses_with_finite_gradients(params):
     def loss_fn(p):
-        return policy.compute_loss(p, jax.random.key(3), _batch(), config=TINY, layout=LAYOUT,
+        return flow_model.compute_loss(p, jax.random.key(3), _batch(), config=TINY, layout=LAYOUT,
                                    train=True, strategy="uniform")
 
     (loss, aux), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(params)
@@ -113,14 +113,14 @@ def test_compute_loss_returns_scalar_and_group_losses_with_finite_gradients(para
 def test_compute_loss_is_flow_matching_on_the_velocity(params):
     """uniform strategy, no augmentation: mean over valid (b, h) of mean_d (v - (noise - a))^2."""
     batch, rng = _batch(), jax.random.key(4)
-    loss, _ = jax.jit(lambda p, b: policy.compute_loss(
+    loss, _ = jax.jit(lambda p, b: flow_model.compute_loss(
         p, rng, b, config=TINY, layout=LAYOUT, train=False, strategy="uniform"))(params, batch)
     _, rng_noise, rng_time = jax.random.split(rng, 3)
     actions = batch["actions"]
     noise = jax.random.normal(rng_noise, actions.shape)
     t = jax.random.beta(rng_time, 1.5, 1.0, (BATCH,)) * 0.999 + 0.001
     x_t = t[:, None, None] * noise + (1 - t[:, None, None]) * actions
-    v = policy.velocity(params, batch, x_t, t, config=TINY)
+    v = flow_model.velocity(params, batch, x_t, t, config=TINY)
     per_step = np.mean(np.square(v - (noise - actions)), axis=-1)
     expected = per_step[~batch["action_is_pad"]].mean()
     np.testing.assert_allclose(loss, expected, rtol=1e-6)
@@ -130,16 +130,16 @@ def test_actions_of_the_wrong_horizon_are_rejected(params):
     batch = _batch()
     batch["actions"] = batch["actions"][:, :2]
     with pytest.raises(ValueError, match="action_horizon"):
-        policy.compute_loss(params, jax.random.key(0), batch, config=TINY, layout=LAYOUT,
+        flow_model.compute_loss(params, jax.random.key(0), batch, config=TINY, layout=LAYOUT,
                             train=False, strategy="uniform")
 
 
 def test_bfloat16_activations_keep_float32_params_and_outputs():
     config = TINY.replace(dtype="bfloat16")
-    params = policy.init_params(config, jax.random.key(0))
+    params = flow_model.init_params(config, jax.random.key(0))
     noise, t = _noise_and_time()
-    v16 = policy.velocity(params, _observation(), noise, t, config=config)
-    v32 = policy.velocity(params, _observation(), noise, t, config=TINY)
+    v16 = flow_model.velocity(params, _observation(), noise, t, config=config)
+    v32 = flow_model.velocity(params, _observation(), noise, t, config=TINY)
     assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(params))
     assert v16.dtype == jnp.float32
     np.testing.assert_allclose(v16, v32, atol=0.1 * float(np.abs(v32).max()))
@@ -179,14 +179,14 @@ def test_prefix_and_state_outputs_do_not_depend_on_the_actions(params):
 def test_masked_camera_pixels_do_not_reach_the_actions(params):
     noise, t = _noise_and_time()
     obs = _observation()
-    base = policy.velocity(params, obs, noise, t, config=TINY)
+    base = flow_model.velocity(params, obs, noise, t, config=TINY)
     masked = _observation()
     masked["image"]["right_wrist_0_rgb"][1] = 255 - masked["image"]["right_wrist_0_rgb"][1]
-    np.testing.assert_allclose(policy.velocity(params, masked, noise, t, config=TINY)[1], base[1],
+    np.testing.assert_allclose(flow_model.velocity(params, masked, noise, t, config=TINY)[1], base[1],
                                atol=1e-6)
     seen = _observation()
     seen["image"]["base_0_rgb"][1] = 255 - seen["image"]["base_0_rgb"][1]
-    assert not np.allclose(policy.velocity(params, seen, noise, t, config=TINY)[1], base[1], atol=1e-4)
+    assert not np.allclose(flow_model.velocity(params, seen, noise, t, config=TINY)[1], base[1], atol=1e-4)
 
 
 # ------------------------------------------------------------------------------ sampling
@@ -194,8 +194,8 @@ def test_masked_camera_pixels_do_not_reach_the_actions(params):
 
 def test_kv_cached_sampling_equals_full_recomputation(params):
     noise, _ = _noise_and_time()
-    cached = policy.sample_actions(params, None, _observation(), config=TINY, num_steps=10, noise=noise)
-    full = policy.sample_actions(params, None, _observation(), config=TINY, num_steps=10, noise=noise,
+    cached = flow_model.sample_actions(params, None, _observation(), config=TINY, num_steps=10, noise=noise)
+    full = flow_model.sample_actions(params, None, _observation(), config=TINY, num_steps=10, noise=noise,
                   use_kv_cache=False)
     assert cached.shape == (BATCH, TINY.action_horizon, TINY.action_dim)
     np.testing.assert_allclose(cached, full, atol=1e-5)
@@ -206,9 +206,9 @@ def test_sampling_integrates_the_velocity_with_euler_steps(params):
     obs = _observation()
     x, t = noise, 1.0
     for _ in range(2):
-        x = x - 0.5 * policy.velocity(params, obs, x, jnp.full((BATCH,), t), config=TINY)
+        x = x - 0.5 * flow_model.velocity(params, obs, x, jnp.full((BATCH,), t), config=TINY)
         t -= 0.5
-    sampled = policy.sample_actions(params, None, obs, config=TINY, num_steps=2, noise=noise)
+    sampled = flow_model.sample_actions(params, None, obs, config=TINY, num_steps=2, noise=noise)
     np.testing.assert_allclose(sampled, x, atol=1e-5)
 
 
@@ -218,18 +218,18 @@ def test_soft_inpainting_pins_full_weight_steps_and_leaves_zero_weight_steps_fre
     target = np.random.default_rng(3).standard_normal(noise.shape).astype(np.float32)
     weights = np.zeros((BATCH, TINY.action_horizon), np.float32)
     weights[:, :2] = 1.0
-    free = policy.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise)
-    guided = policy.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise,
+    free = flow_model.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise)
+    guided = flow_model.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise,
                                    inpaint=target, inpaint_weights=weights)
     np.testing.assert_allclose(guided[:, :2], target[:, :2], atol=1e-5)
-    unguided = policy.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise,
+    unguided = flow_model.sample_actions(params, None, obs, config=TINY, num_steps=4, noise=noise,
                                      inpaint=target, inpaint_weights=np.zeros_like(weights))
     np.testing.assert_allclose(unguided, free, atol=1e-6)
 
 
 def test_sampling_is_deterministic_given_the_rng(params):
-    a = policy.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
-    b = policy.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
+    a = flow_model.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
+    b = flow_model.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
     np.testing.assert_array_equal(a, b)
 
 
@@ -246,7 +246,7 @@ def _with_depth(depth):
 
 
 def test_layers_are_stacked_along_depth():
-    shapes = policy.param_shapes(_with_depth(5))
+    shapes = flow_model.param_shapes(_with_depth(5))
     assert shapes["PaliGemma"]["llm"]["layers"]["attn"]["q_einsum_1"]["w"].shape[0] == 5
     encoder = shapes["PaliGemma"]["img"]["Transformer"]["encoderblock"]
     assert encoder["LayerNorm_0"]["scale"].shape[0] == 5
@@ -255,10 +255,10 @@ def test_layers_are_stacked_along_depth():
 def test_compiled_program_size_does_not_grow_with_depth():
     def hlo_size(depth):
         config = _with_depth(depth)
-        params = policy.param_shapes(config)
+        params = flow_model.param_shapes(config)
 
         def loss(p, b):
-            return policy.compute_loss(p, jax.random.key(0), b, config=config, layout=LAYOUT,
+            return flow_model.compute_loss(p, jax.random.key(0), b, config=config, layout=LAYOUT,
                                        train=True, strategy="uniform")[0]
 
         return len(jax.jit(jax.grad(loss)).lower(params, _batch()).as_text())
@@ -270,9 +270,9 @@ def test_compiled_program_size_does_not_grow_with_depth():
 def test_unrolled_layers_compute_what_the_scan_computes(params):
     unrolled = TINY.replace(unroll_layers=True)
     batch, rng = _batch(), jax.random.key(3)
-    scanned_loss = policy.compute_loss(params, rng, batch, config=TINY, layout=LAYOUT, train=True,
+    scanned_loss = flow_model.compute_loss(params, rng, batch, config=TINY, layout=LAYOUT, train=True,
                                        strategy="uniform")[0]
-    unrolled_loss = policy.compute_loss(params, rng, batch, config=unrolled, layout=LAYOUT,
+    unrolled_loss = flow_model.compute_loss(params, rng, batch, config=unrolled, layout=LAYOUT,
                                         train=True, strategy="uniform")[0]
     np.testing.assert_allclose(unrolled_loss, scanned_loss, rtol=1e-6)
 
@@ -294,7 +294,7 @@ def _plain_pi0_loss(params, rng, batch):
 def test_one_flow_sample_is_the_plain_pi0_loss_bitwise(params):
     batch, rng = _batch(), jax.random.key(5)
     plain = jax.jit(jax.value_and_grad(lambda p: _plain_pi0_loss(p, rng, batch)))(params)
-    one = jax.jit(jax.value_and_grad(lambda p: policy.compute_loss(
+    one = jax.jit(jax.value_and_grad(lambda p: flow_model.compute_loss(
         p, rng, batch, config=TINY, layout=LAYOUT, train=True, strategy="uniform",
         flow_samples=1)[0]))(params)
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(one)):
@@ -316,10 +316,10 @@ def test_k_flow_samples_share_the_prefix_and_never_see_each_other(params):
 
 def test_k_flow_samples_average_the_losses_of_k_draws(params):
     batch = _batch()
-    loss, _ = policy.compute_loss(params, jax.random.key(6), batch, config=TINY, layout=LAYOUT,
+    loss, _ = flow_model.compute_loss(params, jax.random.key(6), batch, config=TINY, layout=LAYOUT,
                                   train=False, strategy="uniform", flow_samples=4)
     assert np.isfinite(loss)
-    single = [policy.compute_loss(params, jax.random.key(s), batch, config=TINY, layout=LAYOUT,
+    single = [flow_model.compute_loss(params, jax.random.key(s), batch, config=TINY, layout=LAYOUT,
                                   train=False, strategy="uniform")[0] for s in range(8)]
     # Another draw of noise and time: same scale as single draws, not K times it.
     assert min(single) * 0.5 < loss < max(single) * 1.5

@@ -11,7 +11,7 @@ import pytest
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import config as model_config
-from pi0_armfix.model import gemma, pi0, policy
+from pi0_armfix.model import flow_model, gemma, pi0
 from pi0_armfix.model.inputs import fake_observation, preprocess_observation
 from pi0_armfix.model.tree import count_params
 
@@ -25,7 +25,7 @@ BATCH = 3
 def params():
     """Random params with non-zero adaptive-norm kernels (zero at init: the time would not
     reach the actions, which is openpi's start but hides what the tests look for)."""
-    p = policy.init_params(TINY05, jax.random.key(0))
+    p = flow_model.init_params(TINY05, jax.random.key(0))
     keys = iter(jax.random.split(jax.random.key(1), 8))
     llm = p["PaliGemma"]["llm"]
     for norm in ("pre_attention_norm_1", "pre_ffw_norm_1"):
@@ -48,15 +48,15 @@ def _x_t_and_t(seed=1, rows=BATCH):
 
 
 def test_pi05_param_tree_equals_openpi_reference():
-    tree = policy.param_tree(model_config.get_preset("pi05"))
+    tree = flow_model.param_tree(model_config.get_preset("pi05"))
     assert tree == json.loads(REFERENCE.read_text())["pi05"]
     assert count_params(tree) == 3_353_433_872
 
 
 @pytest.mark.parametrize("preset", ["pi05_demo", "pi05_tiny"])
 def test_small_pi05_presets_use_the_pi05_names(preset):
-    names = set(policy.param_tree(model_config.get_preset("pi05")))
-    assert set(policy.param_tree(model_config.get_preset(preset))) == names
+    names = set(flow_model.param_tree(model_config.get_preset("pi05")))
+    assert set(flow_model.param_tree(model_config.get_preset(preset))) == names
 
 
 def test_adaptive_norm_and_gated_residual_follow_openpi_formula():
@@ -120,9 +120,9 @@ def test_pi05_k_flow_samples_equal_separate_passes(params):
 
 def test_pi05_kv_cached_sampling_equals_full_recomputation(params):
     noise, _ = _x_t_and_t(seed=4)
-    cached = policy.sample_actions(params, None, _observation(), config=TINY05, num_steps=5,
+    cached = flow_model.sample_actions(params, None, _observation(), config=TINY05, num_steps=5,
                                    noise=noise)
-    full = policy.sample_actions(params, None, _observation(), config=TINY05, num_steps=5,
+    full = flow_model.sample_actions(params, None, _observation(), config=TINY05, num_steps=5,
                                  noise=noise, use_kv_cache=False)
     np.testing.assert_allclose(cached, full, atol=1e-5)
 
@@ -135,7 +135,7 @@ def test_pi05_loss_has_finite_gradients_for_every_parameter(params, strategy, kw
                  actions=rng.standard_normal((BATCH, TINY05.action_horizon, TINY05.action_dim)
                                              ).astype(np.float32),
                  action_is_pad=np.zeros((BATCH, TINY05.action_horizon), bool))
-    loss, grads = jax.value_and_grad(lambda p: policy.compute_loss(
+    loss, grads = jax.value_and_grad(lambda p: flow_model.compute_loss(
         p, jax.random.key(0), batch, config=TINY05, layout=LAYOUT, train=True, strategy=strategy,
         flow_samples=2, **kwargs)[0])(params)
     assert np.isfinite(loss)
@@ -155,7 +155,7 @@ def test_pi05_trains_with_correlated_noise_and_gripper_switch_emphasis(params):
     batch = dict(_observation(),
                  actions=rng.standard_normal((BATCH, horizon, TINY05.action_dim)).astype(np.float32),
                  action_is_pad=np.zeros((BATCH, horizon), bool))
-    loss, grads = jax.value_and_grad(lambda p: policy.compute_loss(
+    loss, grads = jax.value_and_grad(lambda p: flow_model.compute_loss(
         p, jax.random.key(0), batch, config=TINY05, layout=LAYOUT, train=True, strategy="uniform",
         noise_factor=jnp.asarray(factor), switch_threshold=np.zeros(TINY05.action_dim, np.float32),
         switch_weight=3.0, switch_window=1)[0])(params)

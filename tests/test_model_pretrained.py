@@ -6,7 +6,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from pi0_armfix.model import config as model_config
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model.pretrained import load_pretrained
 
 TINY = model_config.get_preset("tiny")
@@ -14,7 +14,7 @@ TINY = model_config.get_preset("tiny")
 
 @pytest.fixture(scope="module")
 def params():
-    return jax.tree.map(np.asarray, policy.init_params(TINY, jax.random.key(0)))
+    return jax.tree.map(np.asarray, flow_model.init_params(TINY, jax.random.key(0)))
 
 
 def _save(path, params):

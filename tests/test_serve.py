@@ -27,7 +27,7 @@ from pi0_armfix.evaluation import outputs
 from pi0_armfix.data import batching, sources
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
-from pi0_armfix.model import policy as model_policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.sim import world as world_lib
 from pi0_armfix.sim.env import DemoWorldEnv
 
@@ -227,12 +227,12 @@ def test_images_of_any_size_compile_the_sampler_once(run):
     policy = inference.RunPolicy.from_workdir(run)
     observation = _observation()
     policy.infer([observation])
-    compiled = model_policy.sample_actions._cache_size()
+    compiled = flow_model.sample_actions._cache_size()
     for size in ((48, 40), (20, 64)):
         bigger = {**observation, **{key: np.zeros((*size, 3), np.uint8)
                                     for key in inference.B1K_KEYS.cameras}}
         assert policy.infer([bigger]).shape[1:] == (policy.horizon, 23)
-    assert model_policy.sample_actions._cache_size() == compiled
+    assert flow_model.sample_actions._cache_size() == compiled
 
 
 def test_a_port_in_use_is_one_line_before_the_policy_loads(run, cache_dir):  # noqa: F811

@@ -45,8 +45,8 @@ def test_the_expert_succeeds_in_at_least_95_percent_of_episodes():
 
 def test_zero_action_and_random_recorded_chunks_never_manipulate():
     quick = dataclasses.replace(SPEC, navigation_seconds=4.0, manipulation_seconds=4.0)
-    for policy, n_exec in ((rollout.ZeroPolicy(), 1),
-                           (rollout.RecordedChunkPolicy(horizon=32, episodes=3), 16)):
+    for policy, n_exec in ((rollout.ZeroDriver(), 1),
+                           (rollout.RecordedChunkDriver(horizon=32, episodes=3), 16)):
         summary = rollout.summarize(rollout.rollout(policy, range(5), spec=quick, n_exec=n_exec,
                                                     progress=False))
         assert summary["phase_success/manipulation"] == 0.0, (policy, summary)

@@ -18,7 +18,7 @@ import torch
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import inputs as flax_inputs
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model.config import get_preset
 from pi0_armfix.torch_mirror import checkpoint, inputs
 from pi0_armfix.torch_mirror.model import Pi0
@@ -40,7 +40,7 @@ def config(request):
 def flax_params(config):
     """Initial params; pi0.5's adaptive-norm kernels (zero at init) made random, so that the
     time condition reaches the actions on both sides."""
-    params = policy.init_params(config, jax.random.key(0))
+    params = flow_model.init_params(config, jax.random.key(0))
     llm = params["PaliGemma"]["llm"]
     norms = [llm["layers"][n]["Dense_0"] for n in ("pre_attention_norm_1", "pre_ffw_norm_1")
              if "Dense_0" in llm["layers"].get(n, {})]
@@ -78,7 +78,7 @@ def _noise_and_time(seed):
 def test_param_shapes_equal_the_flax_tree_for_every_small_preset():
     for name in ("tiny", "demo", "pi05_tiny", "pi05_demo"):
         config = get_preset(name)
-        flax_shapes = {k: v.shape for k, v in flatten_tree(policy.param_shapes(config)).items()}
+        flax_shapes = {k: v.shape for k, v in flatten_tree(flow_model.param_shapes(config)).items()}
         assert param_shapes(config) == flax_shapes, name
 
 
@@ -107,7 +107,7 @@ def test_resize_with_pad_matches_jax_image_resize():
 
 def test_velocity_matches_flax(config, flax_params, torch_model, observation):
     x_t, t = _noise_and_time(0)
-    expected = np.asarray(jax.jit(lambda p, o, x, t: policy.velocity(p, o, x, t, config=config))(
+    expected = np.asarray(jax.jit(lambda p, o, x, t: flow_model.velocity(p, o, x, t, config=config))(
         flax_params, observation, x_t, t))
     with torch.no_grad():
         got = torch_model.velocity(observation, x_t, t).numpy()
@@ -129,9 +129,9 @@ def test_compute_loss_matches_flax(config, flax_params, torch_model, observation
     action_is_pad[0, -2:] = True
     batch = {**observation, "actions": actions, "action_is_pad": action_is_pad}
     key = jax.random.key(7)
-    expected, expected_aux = policy.compute_loss(flax_params, key, batch, config=config, layout=LAYOUT,
+    expected, expected_aux = flow_model.compute_loss(flax_params, key, batch, config=config, layout=LAYOUT,
                                                  train=False, **loss_kwargs)
-    # The draws of policy.compute_loss: its rng splits into augmentation, noise and time keys.
+    # The draws of flow_model.compute_loss: its rng splits into augmentation, noise and time keys.
     _, key_noise, key_time = jax.random.split(key, 3)
     noise = np.asarray(jax.random.normal(key_noise, actions.shape))
     time = np.asarray(jax.random.beta(key_time, 1.5, 1.0, (BATCH,)) * 0.999 + 0.001)
@@ -147,7 +147,7 @@ def test_compute_loss_matches_flax(config, flax_params, torch_model, observation
 
 def test_sample_actions_matches_flax(config, flax_params, torch_model, observation):
     noise, _ = _noise_and_time(3)
-    expected = np.asarray(policy.sample_actions(flax_params, None, observation, config=config,
+    expected = np.asarray(flow_model.sample_actions(flax_params, None, observation, config=config,
                                                 num_steps=10, noise=jnp.asarray(noise)))
     got = torch_model.sample_actions(observation, noise, num_steps=10).numpy()
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-4)
@@ -191,13 +191,13 @@ def test_actions_of_the_wrong_shape_are_a_value_error(torch_model, observation):
 def test_a_no_state_run_samples_like_flax_in_the_mirror(tmp_path):
     config = CONFIG.replace(use_state=False)
     observation = flax_inputs.fake_observation(config, BATCH, seed=1)
-    params = policy.init_params(config, jax.random.key(0))
+    params = flow_model.init_params(config, jax.random.key(0))
     checkpoint.write_converted(str(tmp_path), {k: np.asarray(v) for k, v in
                                                flatten_tree(params).items()}, config, None,
                                source="test")
     model, _ = checkpoint.load_converted(str(tmp_path))
     noise, _ = _noise_and_time(5)
-    expected = np.asarray(policy.sample_actions(params, None, observation, config=config,
+    expected = np.asarray(flow_model.sample_actions(params, None, observation, config=config,
                                                 num_steps=4, noise=jnp.asarray(noise)))
     np.testing.assert_allclose(model.sample_actions(observation, noise, num_steps=4).numpy(),
                                expected, rtol=0, atol=1e-4)

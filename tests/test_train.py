@@ -19,7 +19,7 @@ from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import sources
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint
 from pi0_armfix.training import step as step_lib
@@ -218,7 +218,7 @@ def test_run_without_workdir_checkpoints_into_runs_of_the_current_folder(tmp_pat
 def test_pretrained_params_are_the_state_at_step_zero(tmp_path, demo_root):
     # openpi's params layout: an orbax PyTree checkpoint of {"params": params}.
     model_config = model_config_lib.get_preset("tiny")
-    params = jax.device_get(policy.init_params(model_config, jax.random.key(7)))
+    params = jax.device_get(flow_model.init_params(model_config, jax.random.key(7)))
     with ocp.PyTreeCheckpointer() as checkpointer:
         checkpointer.save(tmp_path / "pretrained", {"params": params})
     prompts = sources.open_source({"root": str(demo_root)}, B1K).tasks

@@ -141,9 +141,9 @@ def _equal(a, b) -> bool:
 
 
 def _records(workdir: Path) -> list[dict]:
-    from pi0_armfix.training import metrics as metrics_lib
+    from pi0_armfix.training import metrics_log
 
-    return metrics_lib.read_metrics(workdir / metrics_lib.METRICS_FILE)
+    return metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE)
 
 
 def _losses(workdir: Path) -> list[dict]:

@@ -35,7 +35,7 @@ import optax
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import config as model_config
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model.inputs import fake_observation
 
 _DEVICES = 8
@@ -77,12 +77,12 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 def sampling_latency(preset: str, batch_size: int, num_steps: int, repeats: int) -> dict[str, float]:
     """Median seconds of one `sample_actions` call, with and without the prefix KV cache."""
     config = model_config.get_preset(preset)
-    params = policy.init_params(config, jax.random.key(0))
+    params = flow_model.init_params(config, jax.random.key(0))
     observation = jax.tree.map(jnp.asarray, fake_observation(config, batch_size))
     result = {}
     for name, use_kv_cache in (("cached", True), ("uncached", False)):
         def run():
-            return policy.sample_actions(params, jax.random.key(1), observation, config=config,
+            return flow_model.sample_actions(params, jax.random.key(1), observation, config=config,
                                          num_steps=num_steps, use_kv_cache=use_kv_cache)
 
         run().block_until_ready()  # compile
@@ -102,7 +102,7 @@ def _train_step(config: model_config.Pi0Config, tx: optax.GradientTransformation
 
     def train_step(state, batch, rng):
         def loss_fn(p):
-            return policy.compute_loss(p, rng, batch, config=config, layout=layout, train=True,
+            return flow_model.compute_loss(p, rng, batch, config=config, layout=layout, train=True,
                                        flow_samples=flow_samples, strategy="uniform")[0]
 
         loss, grads = jax.value_and_grad(loss_fn)(state["params"])
@@ -125,7 +125,7 @@ def lower_train_step(config: model_config.Pi0Config, batch_size: int,
 
     mesh = sharding.make_mesh(fsdp=jax.device_count())
     tx = optax.adamw(1e-4)
-    params = policy.param_shapes(config)
+    params = flow_model.param_shapes(config)
     state = {"params": params, "opt_state": jax.eval_shape(tx.init, params)}
     state_shardings = sharding.tree_shardings(state, mesh)
     abstract_state = jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
@@ -167,7 +167,7 @@ def step_time_per_flow_sample(preset: str, batch_size: int, ks: tuple[int, ...],
     """Median seconds of one train step / K for each K, on one batch, K variants interleaved."""
     config = model_config.get_preset(preset)
     tx = optax.adamw(1e-4)
-    params = policy.init_params(config, jax.random.key(0))
+    params = flow_model.init_params(config, jax.random.key(0))
     batch = jax.tree.map(jnp.asarray, _example_batch(config, batch_size))
     batch["actions"] = jax.random.normal(jax.random.key(2), batch["actions"].shape)
     runs = {}

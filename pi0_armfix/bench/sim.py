@@ -38,8 +38,8 @@ def main(argv: list[str]) -> None:
         raise SystemExit(f"--policies names {unknown}; choose from {list(POLICIES)}")
     spec = DemoSpec(seed=env_lib.EVAL_SEED)
     for name in names:
-        policy, n_exec = {"expert": (rollout.ExpertPolicy, 1), "zero": (rollout.ZeroPolicy, 1),
-                          "recorded": (lambda: rollout.RecordedChunkPolicy(32), 16)}[name]
+        policy, n_exec = {"expert": (rollout.ExpertDriver, 1), "zero": (rollout.ZeroDriver, 1),
+                          "recorded": (lambda: rollout.RecordedChunkDriver(32), 16)}[name]
         policy = policy()
         start = time.perf_counter()
         records = rollout.rollout(policy, range(args.episodes), spec=spec, n_exec=n_exec,

@@ -31,9 +31,9 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, sources
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import metrics_log
 from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
@@ -68,7 +68,7 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     with jax.set_mesh(mesh):
         for name, loss_cfg in losses.items():
             init = lambda rng, loss_cfg=loss_cfg: state_lib.create_train_state(  # noqa: E731
-                policy.init_params(model_config, rng), tx=tx, loss_cfg=loss_cfg, layout=layout,
+                flow_model.init_params(model_config, rng), tx=tx, loss_cfg=loss_cfg, layout=layout,
                 ema_decay=0.0)
             shardings = sharding_lib.tree_shardings(jax.eval_shape(init, jax.random.key(0)), mesh)
             state = jax.jit(init, out_shardings=shardings)(jax.random.key(0))
@@ -101,7 +101,7 @@ def data_wait_fraction(steps: int) -> float:
                                        "train.checkpoint_every": steps})
     with tempfile.TemporaryDirectory() as workdir:
         train.train_and_evaluate(config, workdir)
-        records = [r for r in metrics_lib.read_metrics(f"{workdir}/{metrics_lib.METRICS_FILE}")
+        records = [r for r in metrics_log.read_metrics(f"{workdir}/{metrics_log.METRICS_FILE}")
                    if "data_wait" in r]
     # Window i spans the steps since record i - 1; window 0 holds the compilation.
     durations = [(b["step"] - a["step"]) / b["steps_per_sec"] for a, b in zip(records, records[1:])]

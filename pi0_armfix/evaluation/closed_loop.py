@@ -4,7 +4,7 @@
         [--gripper_hysteresis=0.9,-0.98] [--tolerances=1,2,4] [--sim_seed=S]
 
 The policy samples a chunk, the world executes `n_exec` of it, the policy replans
-(`inference.ReplanningPolicy`); the rollouts (`sim.rollout`) record every phase's success and, for a failed
+(`inference.Replanner`); the rollouts (`sim.rollout`) record every phase's success and, for a failed
 phase, the furthest stage it reached (its failure reason). What a success means physically:
 docs/evaluation.md. Results are named by their settings (`closed_loop_paths`), never replaced by
 another evaluation's.
@@ -68,7 +68,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
                          "with --rtc: the tail to follow)")
     spec = DemoSpec(seed=sim_seed)
-    replanning = inference.ReplanningPolicy(policy_, n_exec, follow_tail, latch)
+    replanning = inference.Replanner(policy_, n_exec, follow_tail, latch)
     records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
                                   progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
@@ -97,7 +97,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                             figure_path.name.replace("rollouts", "success_curve")),
                                         f"step {run.step}: {episodes} episodes")
     shown = records[:ROLLOUT_ROWS]
-    expert = rollout_lib.rollout(rollout_lib.ExpertPolicy(), [r.episode for r in shown],
+    expert = rollout_lib.rollout(rollout_lib.ExpertDriver(), [r.episode for r in shown],
                                  spec=spec, progress=False)
     rollout_lib.plot_rollouts(shown, expert, figure_path,
                               f"step {run.step}: closed loop, n_exec {n_exec}"

@@ -19,7 +19,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from pi0_armfix.model.config import Pi0Config
-from pi0_armfix.model.policy import Params, param_shapes
+from pi0_armfix.model.flow_model import Params, param_shapes
 
 _SEP = "/"
 

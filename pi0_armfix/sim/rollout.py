@@ -1,12 +1,12 @@
-"""Closed-loop rollouts: a policy drives environments of the demo world in lockstep.
+"""Closed-loop rollouts: a driver steers environments of the demo world in lockstep.
 
-A policy maps the observations of the environments that need actions to action chunks
+A driver (`Driver`) maps the observations of the environments that need actions to action chunks
 `[b, h, 23]` (absolute, dataset units); each environment executes the first `n_exec` actions of
-its chunk, then asks again (receding horizon). Policies here: the scripted expert, the expert
-with errors the size of a policy's (`NoisyExpertPolicy`), holding the last action, a zero-action
-policy and a replay of random recorded chunks (the calibration rows,
-`pi0_armfix.tools.closed_loop_calibration`); a trained run is one through
-`pi0_armfix.inference.RunPolicy` (`pi0_armfix.evaluate --closed_loop`).
+its chunk, then asks again (receding horizon). Drivers here: the scripted expert, the expert
+with errors the size of a policy's (`NoisyExpertDriver`), holding the last action, zero actions
+and a replay of random recorded chunks (the calibration rows,
+`pi0_armfix.tools.closed_loop_calibration`); a trained run drives through
+`pi0_armfix.inference.Replanner` around its `RunPolicy` (`pi0_armfix.evaluate --closed_loop`).
 
 Per episode the result of every phase (`sim.world`), whether navigation, manipulation and the task
 succeeded (every phase of that kind did), the time to success, and the traces of the base pose and
@@ -34,7 +34,9 @@ from pi0_armfix.sim.world import (ACTION_DIM, FAILURE_REASONS, STATE_ARM, DemoSp
 KINDS = ("navigation", "manipulation", "task")
 
 
-class ChunkPolicy(Protocol):
+class Driver(Protocol):
+    """What steers a rollout: a trained run's `inference.Replanner`, or a calibration row."""
+
     def start(self, envs: Sequence[env_lib.DemoWorldEnv]) -> None:
         """Called once the environments are reset."""
 
@@ -42,7 +44,7 @@ class ChunkPolicy(Protocol):
         """Chunks `[len(active), h, 23]` for the environments `active` (their observations)."""
 
 
-class ExpertPolicy:
+class ExpertDriver:
     """The scripted teleoperator of each episode (privileged: reads the world)."""
 
     def start(self, envs):
@@ -52,7 +54,7 @@ class ExpertPolicy:
         return np.stack([self._experts[i].act() for i in active])[:, None]
 
 
-class NoisyExpertPolicy:
+class NoisyExpertDriver:
     """The scripted teleoperator with an error added to every action: N(0, `noise_std`^2) per dim
     (data units, `[23]`), drawn afresh every `hold` steps and held in between, like the error of a
     sampled chunk, which is off by much the same amount for the steps executed from it. What a
@@ -78,7 +80,7 @@ class NoisyExpertPolicy:
         return np.stack(actions)[:, None]
 
 
-class HoldPolicy:
+class HoldDriver:
     """Holds the last action: the command the robot starts with (posture, grippers open, base
     still), never changed. Persistence in closed loop."""
 
@@ -89,7 +91,7 @@ class HoldPolicy:
         return np.stack([self._first[i] for i in active])[:, None].astype(np.float32)
 
 
-class ZeroPolicy:
+class ZeroDriver:
     """Every action 0: base still, joints driven to 0, grippers half-way (closed)."""
 
     def start(self, envs):
@@ -99,7 +101,7 @@ class ZeroPolicy:
         return np.zeros((len(active), 1, ACTION_DIM), np.float32)
 
 
-class RecordedChunkPolicy:
+class RecordedChunkDriver:
     """Replays a random chunk of `horizon` recorded actions of the demo dataset (seed 0, its
     first `episodes` episodes), whatever the observation: motion of the right kind and size, at
     the wrong time and place."""
@@ -140,19 +142,19 @@ def _arms(state: np.ndarray) -> np.ndarray:
     return np.concatenate([state[STATE_ARM["left"]], state[STATE_ARM["right"]]])
 
 
-def rollout(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec, n_exec: int = 1,
+def rollout(driver: Driver, episodes: Sequence[int], *, spec: DemoSpec, n_exec: int = 1,
             progress: bool = True, desc: str = "closed loop") -> list[EpisodeRecord]:
-    """Runs `policy` on `episodes` of `spec` (one environment each, in lockstep).
+    """Runs `driver` on `episodes` of `spec` (one environment each, in lockstep).
 
     Args:
-      n_exec: actions of each chunk executed before the policy is asked again (chunks shorter
+      n_exec: actions of each chunk executed before the driver is asked again (chunks shorter
         than that are executed whole).
     """
     if n_exec < 1:
         raise ValueError(f"n_exec = {n_exec} must be >= 1 (actions executed per chunk)")
     envs = [env_lib.DemoWorldEnv(spec) for _ in episodes]
     observations = [env.reset(seed=int(e))[0] for env, e in zip(envs, episodes)]
-    policy.start(envs)
+    driver.start(envs)
     queues: list[list[np.ndarray]] = [[] for _ in envs]
     poses = [[env.world.pose.copy()] for env in envs]
     arms = [[_arms(o[env_lib.STATE])] for o in observations]
@@ -161,7 +163,7 @@ def rollout(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec, n_e
     while active:
         asking = [i for i in active if not queues[i]]
         if asking:
-            chunks = policy(asking, [observations[i] for i in asking])
+            chunks = driver(asking, [observations[i] for i in asking])
             for i, chunk in zip(asking, chunks):
                 queues[i] = list(chunk[:n_exec])
         for i in list(active):
@@ -225,13 +227,13 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def success_curve(policy: ChunkPolicy, episodes: Sequence[int], *, spec: DemoSpec,
+def success_curve(driver: Driver, episodes: Sequence[int], *, spec: DemoSpec,
                   factors: Sequence[float], n_exec: int = 1, progress: bool = True
                   ) -> dict[str, dict[str, Any]]:
-    """`{factor: summarize(...)}`: `policy` on `episodes` in the world with every success tolerance
+    """`{factor: summarize(...)}`: `driver` on `episodes` in the world with every success tolerance
     times each factor (`sim.world.tolerances`; 1 = the world as it is), so a policy that misses by
     a little is told from one that misses by far."""
-    return {f"{factor:g}": summarize(rollout(policy, episodes, spec=tolerances(spec, factor),
+    return {f"{factor:g}": summarize(rollout(driver, episodes, spec=tolerances(spec, factor),
                                              n_exec=n_exec, progress=progress,
                                              desc=f"closed loop at {factor:g}x tolerance"))
             for factor in factors}

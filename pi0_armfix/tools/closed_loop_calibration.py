@@ -39,7 +39,7 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
 from pi0_armfix.sim.world import FAILURE_REASONS, DemoSpec
-from pi0_armfix.training import metrics as metrics_lib
+from pi0_armfix.training import metrics_log
 
 NOISY_EXPERT = "expert + policy error"
 
@@ -51,12 +51,12 @@ def policy_error_std(run: Path) -> np.ndarray:
     run = Path(run)
     config = json.loads((run / "config.json").read_text()) if (run / "config.json").exists() \
         else None
-    records = [r for r in metrics_lib.read_metrics(run / metrics_lib.METRICS_FILE)
-               if any(k.startswith("err/") for k in r)] if (run / metrics_lib.METRICS_FILE
+    records = [r for r in metrics_log.read_metrics(run / metrics_log.METRICS_FILE)
+               if any(k.startswith("err/") for k in r)] if (run / metrics_log.METRICS_FILE
                                                              ).exists() else []
     if config is None or not records:
         raise ValueError(f"--noise_run={run} is not a run folder with a held-out evaluation "
-                         f"(config.json and evaluation records in {metrics_lib.METRICS_FILE}); "
+                         f"(config.json and evaluation records in {metrics_log.METRICS_FILE}); "
                          "train one (python -m pi0_armfix.train) or leave --noise_run empty")
     layout = ActionLayout.from_config(config["layout"])
     stats = stats_lib.load_norm_stats(run / "norm_stats.json")
@@ -74,18 +74,18 @@ def policy_error_std(run: Path) -> np.ndarray:
 
 
 def calibration_rows(noise_std: np.ndarray | None, hold: int
-                     ) -> dict[str, tuple[rollout_lib.ChunkPolicy, int]]:
+                     ) -> dict[str, tuple[rollout_lib.Driver, int]]:
     """`{name: (policy, actions executed per chunk)}` of the calibration rows."""
-    rows = {"expert": (rollout_lib.ExpertPolicy(), 1)}
+    rows = {"expert": (rollout_lib.ExpertDriver(), 1)}
     if noise_std is not None:
-        rows[NOISY_EXPERT] = (rollout_lib.NoisyExpertPolicy(noise_std, hold), 1)
-    rows |= {"hold last action": (rollout_lib.HoldPolicy(), 1),
-             "zero": (rollout_lib.ZeroPolicy(), 1),
-             "recorded chunks": (rollout_lib.RecordedChunkPolicy(horizon=2 * hold), hold)}
+        rows[NOISY_EXPERT] = (rollout_lib.NoisyExpertDriver(noise_std, hold), 1)
+    rows |= {"hold last action": (rollout_lib.HoldDriver(), 1),
+             "zero": (rollout_lib.ZeroDriver(), 1),
+             "recorded chunks": (rollout_lib.RecordedChunkDriver(horizon=2 * hold), hold)}
     return rows
 
 
-def calibrate(rows: Mapping[str, tuple[rollout_lib.ChunkPolicy, int]], episodes: Sequence[int],
+def calibrate(rows: Mapping[str, tuple[rollout_lib.Driver, int]], episodes: Sequence[int],
               factors: Sequence[float], progress: bool = True,
               spec: DemoSpec = DemoSpec(seed=env_lib.EVAL_SEED)) -> dict[str, Any]:
     """`{name: {factor: summary}}` of every row on `episodes` of `spec` (the closed-loop

@@ -14,7 +14,7 @@ from absl import app, flags
 
 from pi0_armfix import console
 from pi0_armfix.model import config as model_config
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model.tree import count_params
 
 _PRESET = flags.DEFINE_enum("preset", "pi0", model_config.PRESETS, "Model preset.")
@@ -22,7 +22,7 @@ _PRESET = flags.DEFINE_enum("preset", "pi0", model_config.PRESETS, "Model preset
 
 def main(argv: list[str]) -> None:
     del argv
-    tree = policy.param_tree(model_config.get_preset(_PRESET.value))
+    tree = flow_model.param_tree(model_config.get_preset(_PRESET.value))
     print(json.dumps(tree, indent=1))
     print(f"parameters: {count_params(tree):,}")
 

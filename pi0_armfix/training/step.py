@@ -24,7 +24,7 @@ import optax
 
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.model import policy
+from pi0_armfix.model import flow_model
 from pi0_armfix.model.config import Pi0Config
 from pi0_armfix.training.state import TrainState
 
@@ -130,7 +130,7 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
     def loss_fn(trainable):
         kwargs = loss_kwargs(loss_cfg, layout, state.step, trainable["loss_params"],
                              state.balancer, switch_threshold)
-        loss, aux = policy.compute_loss(trainable["params"], rng, batch, config=model_config,
+        loss, aux = flow_model.compute_loss(trainable["params"], rng, batch, config=model_config,
                                         layout=layout, train=True,
                                         flow_samples=loss_cfg["flow_samples"],
                                         noise_factor=noise_factor, **kwargs)

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from pi0_armfix.training.metrics import METRICS_FILE, MetricsWriter, read_metrics
+from pi0_armfix.training.metrics_log import METRICS_FILE, MetricsWriter, read_metrics
 
 
 def _write(path, text):

@@ -1,4 +1,5 @@
-"""Public functional API of the pi0 policy over a plain nested-dict params pytree (openpi names).
+"""The flow-matching model as functions over a plain nested-dict params pytree (openpi names);
+openpi calls this the model, `inference.RunPolicy` is the policy that wraps it.
 
   init_params(config, rng) -> params
   param_shapes(config) -> params of jax.ShapeDtypeStruct (no allocation)
