@@ -53,6 +53,15 @@ ROLES = ("base", "torso", "arm", "gripper", "other")
 MANIPULATION_ROLES = ("arm", "gripper")
 
 
+def gripper_boundary(q01: np.ndarray, q99: np.ndarray) -> np.ndarray:
+    """`[D]` the open/close boundary of each dim, in the units (and dtype) of its 1 % and 99 %
+    quantiles `q01`, `q99` `[D]`: their midpoint. A gripper command is bimodal (open or closed),
+    so the midpoint of its range separates the two modes whatever the command's scale; the
+    evaluation counts switches across it, the switch emphasis of the loss looks for them there.
+    (The demo world's own boundary is its physics, a command <= 0 closing: `sim.world`.)"""
+    return (np.asarray(q01) + np.asarray(q99)) / 2
+
+
 def _is_concrete(x: Any) -> bool:
     """True for Python/numpy numbers; False for JAX tracers (values unknown at trace time)."""
     try:

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import ActionLayout, gripper_boundary
 
 B1K = ActionLayout.preset("b1k_r1pro")
 
@@ -130,3 +130,10 @@ def test_all_zero_dimension_weights_are_an_error():
 def test_dataset_width_mismatch_names_both_widths():
     _raises(r"my.parquet has action width 21 but the layout's real_dim is 23",
             lambda: B1K.check_real_dim(21, source="my.parquet"))
+
+
+def test_the_gripper_boundary_separates_open_from_closed_whatever_the_commands_scale():
+    # A [-1, 1] command (B1K's grippers) and a [0, 0.1] m finger gap: the midpoint of each range.
+    q01, q99 = np.array([-1.0, 0.0]), np.array([1.0, 0.1])
+    np.testing.assert_allclose(gripper_boundary(q01, q99), [0.0, 0.05])
+    assert gripper_boundary(q01.astype(np.float32), q99.astype(np.float32)).dtype == np.float32

@@ -16,10 +16,11 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import demo
 from pi0_armfix.data.lerobot import LeRobotSource
 from pi0_armfix.data.sources import open_source
+from pi0_armfix.sim.world import B1K_2025_NORM_STATS
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 REPO = Path(__file__).resolve().parents[1]
-REFERENCE = Path(__file__).resolve().parent / "reference" / "b1k_2025_norm_stats.json"
+REFERENCE = B1K_2025_NORM_STATS
 CHUNK = 50  # pi0's action horizon
 
 

@@ -50,7 +50,7 @@ def test_an_editable_install_runs_the_demo_training_from_another_folder(tmp_path
     assert not os.path.exists(elsewhere / "configs")  # the installed config was found
 
 
-def test_a_built_wheel_ships_the_configs_inside_the_package_and_no_top_level_configs(tmp_path):
+def test_a_built_wheel_ships_the_configs_and_data_inside_the_package_and_no_top_level_configs(tmp_path):
     built = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
          "--wheel-dir", str(tmp_path), str(_source_copy(tmp_path))],
@@ -61,3 +61,4 @@ def test_a_built_wheel_ships_the_configs_inside_the_package_and_no_top_level_con
     shipped = {Path(n).stem for n in names if n.startswith("pi0_armfix/configs/")}
     assert shipped == {p.stem for p in (tf.REPO_ROOT / "configs").glob("*.py")}
     assert not [n for n in names if n.split("/")[0] == "configs"]
+    assert "pi0_armfix/reference/b1k_2025_norm_stats.json" in names  # the demo world poses from it

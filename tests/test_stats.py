@@ -1,7 +1,6 @@
 """Streaming normalization statistics and openpi's norm_stats.json."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,8 +8,9 @@ import pytest
 from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.sim.world import B1K_2025_NORM_STATS
 
-REFERENCE = Path(__file__).resolve().parent / "reference" / "b1k_2025_norm_stats.json"
+REFERENCE = B1K_2025_NORM_STATS
 
 
 def hard_data(seed: int = 0, n: int = 60_000) -> np.ndarray:

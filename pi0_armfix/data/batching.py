@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import ActionLayout, gripper_boundary
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
@@ -38,12 +38,12 @@ def action_normalizer(norm_stats: Mapping[str, stats_lib.NormStats], real_dim: i
 
 def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
                          norm_mode: str, action_horizon: int) -> np.ndarray:
-    """The midpoint of each action dim's 1 % and 99 % quantiles (a gripper's open/close boundary)
-    in normalized units, padded: `[action_dim]`, or `[H, action_dim]` when normalized per
+    """Each action dim's open/close boundary (`action_space.gripper_boundary`) in normalized units, padded: `[action_dim]`, or `[H, action_dim]` when normalized per
     timestep."""
     normalizer = action_normalizer(norm_stats, layout.real_dim, norm_mode, action_horizon)
     actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim, "norm stats 'actions'")
-    return transforms.pad_last(normalizer((actions.q01 + actions.q99) / 2), layout.action_dim)
+    return transforms.pad_last(normalizer(gripper_boundary(actions.q01, actions.q99)),
+                              layout.action_dim)
 
 
 def absolute_actions(actions: np.ndarray, state: np.ndarray, *,

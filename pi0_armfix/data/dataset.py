@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from pi0_armfix import state_space
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import curriculum as curriculum_lib
@@ -167,7 +168,7 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
         stored = getattr(source, "stored_state_width", source.state_width)
         presets = selection_lib.presets_for(stored)
         hint = (f"data.state_preset={presets[0]!r} ({stored}-D state -> "
-                f"{selection_lib.STATE_PRESETS[presets[0]].width} dims in the action order) or "
+                f"{state_space.STATE_PRESETS[presets[0]].width} dims in the action order) or "
                 if presets else "")
         raise ValueError(
             f"{where}: the state ({data.get('state_key') or 'observation.state'!r}) has "

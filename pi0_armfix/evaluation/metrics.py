@@ -18,7 +18,7 @@ over a per-dim scale, not centred, so a zero velocity command stays 0). Per grou
 A displacement is the chunk's last valid action minus its first (the current one); for a velocity
 group (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean command measured from
 the zero command (a standing base is 0). A gripper switch is a crossing of the dim's open/close
-boundary (`gripper_boundary`) between two consecutive valid steps.
+boundary (`action_space.gripper_boundary`) between two consecutive valid steps.
 
 Every metric is a ratio of sums over chunks (`chunk_sums`, one row per chunk), so the metrics of
 any multiset of chunks (a resample of the held-out episodes, `metrics_from_sums`) come from the
@@ -32,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import ActionLayout, gripper_boundary
 from pi0_armfix.data import transforms
 
 # A dim whose training spread is below this (data units: a millimetre, a milliradian) is measured
@@ -58,13 +58,6 @@ def displacement(chunk: np.ndarray, valid: np.ndarray, velocity: np.ndarray) -> 
     w = valid[..., None].astype(chunk.dtype)
     mean = (chunk * w).sum(axis=1) / np.maximum(w.sum(axis=1), 1.0)
     return np.where(velocity, mean, position)
-
-
-def gripper_boundary(q01: np.ndarray, q99: np.ndarray) -> np.ndarray:
-    """The open/close boundary of each dim: the midpoint of its 1 % and 99 % quantiles (the
-    evaluation's; `data.batching.normalized_midpoints` takes the same midpoint for the loss's
-    switch emphasis, in normalized units)."""
-    return (np.asarray(q01, np.float64) + np.asarray(q99, np.float64)) / 2
 
 
 def switch_events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray
@@ -239,4 +232,5 @@ def evaluation_units(std: np.ndarray, q01: np.ndarray, q99: np.ndarray
     """
     std = np.asarray(std, np.float64)
     scale = np.where(std < UNIT_FLOOR, 1.0, std)
+    q01, q99 = np.asarray(q01, np.float64), np.asarray(q99, np.float64)
     return scale, gripper_boundary(q01, q99) / scale

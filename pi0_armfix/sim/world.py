@@ -64,35 +64,48 @@ What the cameras show (uint8, `image_size` square), rendered from `scene()`:
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import statistics
+from pathlib import Path
 
 import numpy as np
 
-# Published B1K 2025 action statistics (tests/reference/b1k_2025_norm_stats.json): per-joint
-# mean, std, q01, q99 of the torso (dims 3:6) and the two arms (7:14, 15:22).
-_TORSO = np.array([[0.9349, -1.2805, -0.5019], [0.4331, 0.7829, 0.4365],
-                   [0.4500, -2.5590, -1.8326], [1.7139, -0.4000, 0.2432]])
-_LEFT_ARM = np.array([
-    [-0.4411, 0.0456, -0.0972, -0.6205, 0.3803, 0.1655, -0.0447],
-    [0.4390, 0.1621, 0.4621, 0.5237, 0.5729, 0.5252, 0.5272],
-    [-2.2718, -0.1745, -2.3102, -1.6383, -1.7373, -1.0472, -1.5708],
-    [0.5087, 1.0496, 1.8854, 0.0951, 2.3562, 1.0472, 1.5708]])
-_RIGHT_ARM = np.array([
-    [-0.4936, -0.0581, 0.0607, -0.6374, -0.2398, 0.1692, 0.0499],
-    [0.4179, 0.1716, 0.4015, 0.5414, 0.5493, 0.5334, 0.4833],
-    [-2.2321, -1.2651, -1.8810, -1.6291, -2.3200, -1.0472, -1.5708],
-    [0.4026, 0.1745, 2.1230, 0.0832, 2.0049, 1.0472, 1.5708]])
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.state_space import STATE_PRESETS
+
+# Where the world poses the torso (its first three joints; the fourth stays 0) and the arms:
+# around the published B1K 2025 action statistics, `[4, joints]` rows mean, std, q01, q99, rounded
+# to 4 decimals (the precision the recorded demo was generated with).
+B1K_2025_NORM_STATS = Path(__file__).resolve().parents[1] / "reference" / "b1k_2025_norm_stats.json"
+_LAYOUT = ActionLayout.preset("b1k_r1pro")
+_TORSO_START = _LAYOUT.groups["torso"][0]
+
+
+def _published_action_stats(dims: slice) -> np.ndarray:
+    with open(B1K_2025_NORM_STATS) as f:
+        actions = json.load(f)["norm_stats"]["actions"]
+    return np.round(np.array([actions[k] for k in ("mean", "std", "q01", "q99")])[:, dims], 4)
+
+
+_TORSO = _published_action_stats(slice(_TORSO_START, _TORSO_START + 3))
+_LEFT_ARM = _published_action_stats(slice(*_LAYOUT.groups["left_arm"]))
+_RIGHT_ARM = _published_action_stats(slice(*_LAYOUT.groups["right_arm"]))
 # The torso's joints move together (a crouch): signs of their loadings on one latent posture.
 TORSO_LOADING = np.array([1.0, -1.0, -1.0])
 
 ARMS = ("left", "right")
-# Action dims (docs/design.md §2) and state dims (official baseline order).
-BASE, TORSO, ARM = slice(0, 3), slice(3, 6), {"left": slice(7, 14), "right": slice(15, 22)}
-GRIPPER = {"left": 14, "right": 22}
-STATE_ARM = {"left": slice(7, 14), "right": slice(14, 21)}
-STATE_GAP = {"left": 21, "right": 22}
-ACTION_DIM = STATE_DIM = 23
+# Action dims: the `b1k_r1pro` layout (docs/design.md §2). State dims: the official baseline's
+# 23-D order (grippers last), the state preset `b1k_baseline23` that reads it in the action order.
+_STATE = {part.group: part.dims for part in STATE_PRESETS["b1k_baseline23"].parts}
+BASE = slice(*_LAYOUT.groups["base"])
+TORSO = slice(_TORSO_START, _TORSO_START + 3)
+ARM = {arm: slice(*_LAYOUT.groups[f"{arm}_arm"]) for arm in ARMS}
+GRIPPER = {arm: _LAYOUT.groups[f"{arm}_gripper"][0] for arm in ARMS}
+STATE_ARM = {arm: slice(_STATE[f"{arm}_arm"][0], _STATE[f"{arm}_arm"][-1] + 1) for arm in ARMS}
+STATE_GAP = {arm: _STATE[f"{arm}_gripper"][0] for arm in ARMS}
+ACTION_DIM = _LAYOUT.real_dim
+STATE_DIM = STATE_PRESETS["b1k_baseline23"].stored_width
 OPEN_GAP = 0.1  # m, the fingers' gap when open
 JOINT_LAG, GAP_LAG = 0.5, 0.35  # fraction of the error closed per frame
 OBJECT_AHEAD = 0.35  # m: where the object stands once the robot has arrived
