@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -35,6 +37,7 @@ def test_video_benchmark_reads_the_original_reencodes_and_trains(tmp_path):
     assert "(32, 32, 3)" in out
 
 
+@pytest.mark.slow  # the slow lane: fault injection
 def test_fault_injection_benchmark_kills_restarts_and_finds_every_resume_bitwise(tmp_path):
     out = _bench(tmp_path, "faults", "--kills=2", "--steps=6", "--seed=1")
     assert out.count("  fault ") == 2
@@ -42,6 +45,7 @@ def test_fault_injection_benchmark_kills_restarts_and_finds_every_resume_bitwise
     assert "  faults                  2" in out
 
 
+@pytest.mark.slow  # the slow lane: every part of the model benchmark
 def test_model_benchmark_runs_every_part_and_k_flow_samples_cost_less_per_sample(tmp_path):
     out = _bench(tmp_path, "model", "--latency_preset=tiny", "--repeats=1", "--num_steps=2",
                  "--memory_preset=tiny", "--memory_batch=8", "--flow_time_preset=tiny",

@@ -8,10 +8,13 @@ import time
 
 import jax
 import numpy as np
+import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix.training import checkpoint, sharding
+
+pytestmark = pytest.mark.slow  # the slow lane: a run killed and restarted
 
 N = 3  # the checkpoint the run is killed after; the run has 2N steps
 

@@ -8,8 +8,12 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
+import pytest
+
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+
+pytestmark = pytest.mark.slow  # the slow lane: builds and installs the package
 
 
 def _source_copy(tmp_path: Path) -> Path:

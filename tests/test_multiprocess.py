@@ -5,9 +5,12 @@ import socket
 import subprocess
 
 import numpy as np
+import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+
+pytestmark = pytest.mark.slow  # the slow lane: several training processes
 
 STEPS = 5
 

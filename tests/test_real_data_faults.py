@@ -163,6 +163,7 @@ def test_a_last_row_past_the_end_of_its_video_is_named_before_training(tmp_path)
     assert identify_frame(last, 0, table.num_frames, 0) == table.num_frames - 1
 
 
+@pytest.mark.slow  # the slow lane: a fault met by a training run
 def test_an_unreadable_video_met_during_training_stops_with_one_message(tmp_path):
     root = tmp_path / "b1k"
     b1k_fixture.write_b1k_dataset(root)
@@ -198,6 +199,7 @@ def test_action_indices_select_the_dims_of_a_wider_dataset(tmp_path):
                                episodes[0]["actions"][:, chosen], rtol=1e-6)
 
 
+@pytest.mark.slow  # the slow lane: a fault met by a training run
 def test_actions_wider_than_32_train_without_cameras_with_eval_groups_from_roles(tmp_path,
                                                                                cache_dir):
     episodes = make_episodes(6, action_width=44, state_width=44, cameras={}, min_length=20,

@@ -18,6 +18,8 @@ from pi0_armfix import inference, train
 from pi0_armfix.training import finite_checkpoints
 from pi0_armfix.training import checkpoint, fingerprint, preemption, sharding
 
+pytestmark = pytest.mark.slow  # the slow lane: fault injection into training runs
+
 
 def _config(config_module=base, **overrides):
     config = config_module.get_config()

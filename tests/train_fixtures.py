@@ -2,7 +2,8 @@
 
 Runs go through `python -m pi0_armfix.train` in a subprocess (the entrypoint as users start it)
 or `train.train_and_evaluate` in-process. Compiled programs are shared through JAX's persistent
-compilation cache in a per-module folder, so a test that repeats a run does not recompile it.
+compilation cache in one folder per test process (xdist worker), so a run that another test
+module already compiled (the tiny `uniform` run, say) does not compile again.
 Test modules import the fixtures `cache_dir` and `demo_root` from here.
 """
 
@@ -69,13 +70,13 @@ def flags(overrides: Mapping[str, Any]) -> list[str]:
 
 
 def env(cache_dir: Path, devices: int = 1) -> dict[str, str]:
-    """Environment of a training subprocess: `devices` CPU devices, the repo importable, a shared
-    compilation cache, a private tokenizer cache, and XLA's cheapest CPU code generation (tiny
+    """Environment of a training subprocess: `devices` CPU devices, the repo importable, the
+    test process's compilation cache, the module's own tokenizer cache, and XLA's cheapest CPU code generation (tiny
     programs compile ~2x faster; both sides of every comparison use it)."""
     xla_flags = (f"--xla_force_host_platform_device_count={devices} "
                  "--xla_backend_optimization_level=0")
     return dict(os.environ, PYTHONPATH=str(REPO_ROOT), JAX_PLATFORMS="cpu", XLA_FLAGS=xla_flags,
-                JAX_COMPILATION_CACHE_DIR=str(cache_dir / "jax"),
+                JAX_COMPILATION_CACHE_DIR=str(cache_dir.parent / "jax_compilation_cache"),
                 JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                 PI0_ARMFIX_CACHE=str(cache_dir / "pi0_armfix"))
 
