@@ -314,15 +314,27 @@ def test_k_flow_samples_share_the_prefix_and_never_see_each_other(params):
         np.testing.assert_allclose(together[rows], alone, rtol=1e-5, atol=1e-5)
 
 
-def test_k_flow_samples_average_the_losses_of_k_draws(params):
-    batch = _batch()
+def test_k_flow_samples_are_the_exact_mean_of_the_k_single_draw_losses_under_the_same_draws(
+        params):
+    batch, k = _batch(), 4
     loss, _ = flow_model.compute_loss(params, jax.random.key(6), batch, config=TINY, layout=LAYOUT,
-                                  train=False, strategy="uniform", flow_samples=4)
-    assert np.isfinite(loss)
-    single = [flow_model.compute_loss(params, jax.random.key(s), batch, config=TINY, layout=LAYOUT,
-                                  train=False, strategy="uniform")[0] for s in range(8)]
-    # Another draw of noise and time: same scale as single draws, not K times it.
-    assert min(single) * 0.5 < loss < max(single) * 1.5
+                                      train=False, strategy="uniform", flow_samples=k)
+    # The same draws, made as compute_loss makes them, then each draw's plain pi0 loss alone.
+    _, rng_noise, rng_time = jax.random.split(jax.random.key(6), 3)
+    actions = jnp.tile(jnp.asarray(batch["actions"], jnp.float32), (k, 1, 1))
+    noise = jax.random.normal(rng_noise, actions.shape)
+    t = jax.random.beta(rng_time, 1.5, 1.0, (len(actions),)) * 0.999 + 0.001
+    x_t = t[:, None, None] * noise + (1.0 - t[:, None, None]) * actions
+    obs = preprocess_observation(None, batch, config=TINY, train=False)
+    valid = ~jnp.asarray(batch["action_is_pad"])
+    single = []
+    for draw in range(k):
+        rows = slice(draw * BATCH, (draw + 1) * BATCH)
+        v = pi0.forward_velocity(params, obs, x_t[rows], t[rows], config=TINY)
+        per_step = jnp.mean(jnp.square(v - (noise[rows] - actions[rows])), axis=-1)
+        single.append(float(jnp.sum(per_step * valid) / jnp.sum(valid)))
+    assert len(set(single)) == k  # four different draws
+    np.testing.assert_allclose(float(loss), np.mean(single), rtol=1e-5)
 
 
 def test_correlated_noise_has_the_configured_covariance():
