@@ -37,8 +37,8 @@ CONFIG = "configs/arm_delta.py"
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, cache_dir, demo_root):  # noqa: F811
-    return tf.trained_tiny_run(CONFIG, tmp_path_factory.mktemp("run"), demo_root, cache_dir)
+def run(tmp_path_factory, demo_root):  # noqa: F811
+    return tf.trained_tiny_run(CONFIG, tmp_path_factory.mktemp("run"), demo_root)
 
 
 @pytest.fixture(scope="module")
