@@ -166,13 +166,16 @@ def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
         evaluate.check_eval_config(eval_cfg, LAYOUT, num_devices=1)
 
 
-def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
-        tmp_path, cache_dir, demo_root):
-    workdir = tmp_path / "run"
-    trained = tf.run_train("configs/arm_focused.py", workdir,
-                           tf.tiny_overrides(demo_root, optim__ema_decay=0.5), cache_dir)
-    assert trained.returncode == 0, trained.stderr[-3000:]
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, demo_root):  # noqa: F811
+    """A tiny run of configs/arm_focused.py with an EMA that moves (checkpoint at step 2)."""
+    return tf.trained_tiny_run("configs/arm_focused.py", tmp_path_factory.mktemp("run"),
+                               demo_root, optim__ema_decay=0.5)
 
+
+def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
+        trained, cache_dir):  # noqa: F811
+    workdir = trained
     result = subprocess.run([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={workdir}"],
                             env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,
                             text=True, timeout=600)
@@ -191,11 +194,8 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
     assert (workdir / "eval" / "stagnation.png").stat().st_size > 10_000  # over the evaluations
 
 
-def test_offline_evaluation_is_quiet_by_default(tmp_path, cache_dir, demo_root):
-    workdir = tmp_path / "run"
-    assert tf.run_train("configs/uniform.py", workdir, tf.tiny_overrides(demo_root),
-                        cache_dir).returncode == 0
-    result = subprocess.run([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={workdir}"],
+def test_offline_evaluation_is_quiet_by_default(trained, cache_dir):  # noqa: F811
+    result = subprocess.run([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={trained}"],
                             env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,
                             text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -94,13 +94,13 @@ def run_train(config: str, workdir: Path | None, overrides: Mapping[str, Any], c
                           cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
-def trained_tiny_run(config: str, workdir: Path, data_root: Path) -> Path:
+def trained_tiny_run(config: str, workdir: Path, data_root: Path, **changes: Any) -> Path:
     """`workdir` after a tiny run of `config` (`configs/<name>.py`) on the tiny demo at
-    `data_root`, trained in-process."""
+    `data_root` (`changes`: as `tiny_overrides`'), trained in-process."""
     from pi0_armfix import train
 
     run_config = importlib.import_module(f"pi0_armfix.configs.{Path(config).stem}").get_config()
-    run_config.update_from_flattened_dict(tiny_overrides(data_root))
+    run_config.update_from_flattened_dict(tiny_overrides(data_root, **changes))
     train.train_and_evaluate(run_config, str(workdir))
     return workdir
 
