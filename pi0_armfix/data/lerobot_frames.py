@@ -101,6 +101,24 @@ class LeRobotFrameImages:
         if not 0 <= frame < self._starts[-1]:
             raise IndexError(f"frame {frame} outside [0, {int(self._starts[-1])})")
         position = int(np.searchsorted(self._starts, frame, side="right")) - 1
+        return self._read(position, frame, self._video)
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self._episodes)
+
+    def episode_length(self, position: int) -> int:
+        """Frames of the table's episode at `position`."""
+        return int(self._starts[position + 1] - self._starts[position])
+
+    def episode_reader(self, position: int) -> "EpisodeReader":
+        """The frames of the table's episode at `position` read front to back, with decoders of
+        its own (`EpisodeReader`): a stream of one episode never disturbs another's decoders."""
+        return EpisodeReader(self, position)
+
+    def _read(self, position: int, frame: int, video) -> dict[str, np.ndarray]:
+        """The images of table row `frame` of the episode at `position`; `video(path)`: the
+        decoder to read a video file with."""
         episode = self._episodes[position]
         offset = frame - int(self._starts[position])
         out = {}
@@ -110,10 +128,16 @@ class LeRobotFrameImages:
                 seconds = segment_time(start, stop, float(self._timestamps[frame]), self._fps,
                                        self._tolerance, f"episode {episode.index}, camera "
                                        f"{feature!r}, row {offset}", path)
-                out[camera] = self._video(path).frame_at(seconds)
+                out[camera] = video(path).frame_at(seconds)
             else:
                 out[camera] = self._image(feature, episode.data_file, episode.first_row + offset)
         return out
+
+    def _open_video(self, path: Path, threads: bool = True) -> VideoDecoder:
+        if not path.is_file():
+            raise ValueError(f"missing video file {path}")
+        return VideoDecoder(path, self._fps, self._tolerance, size=self._image_size,
+                            threads=threads)
 
     def _image(self, feature: str, path: Path, row: int) -> np.ndarray:
         caches = self._caches
@@ -148,10 +172,7 @@ class LeRobotFrameImages:
         videos = self._caches.videos
         decoder = videos.get(path)
         if decoder is None:
-            if not path.is_file():
-                raise ValueError(f"missing video file {path}")
-            decoder = VideoDecoder(path, self._fps, self._tolerance, size=self._image_size)
-            videos[path] = decoder
+            decoder = videos[path] = self._open_video(path)
             if len(videos) > self._max_open:
                 videos.popitem(last=False)[1].close()
         else:
@@ -169,3 +190,40 @@ class _Caches:
     cached_bytes: int = 0
     videos: collections.OrderedDict = dataclasses.field(
         default_factory=collections.OrderedDict)  # mp4 -> VideoDecoder
+
+
+class EpisodeReader:
+    """One episode's images read front to back, with one single-threaded decoder per camera of
+    its own (for streaming many episodes at once: one process decoding several streams gains
+    nothing from decoder threads on few cores and spends more CPU per frame with them).
+
+    `images(offset)` of the episode's frames in increasing order decodes each frame once; any
+    other order seeks (from the keyframe before it). `close()` releases the decoders."""
+
+    def __init__(self, frames: LeRobotFrameImages, position: int):
+        self._frames, self._position = frames, position
+        self.start = int(frames._starts[position])  # noqa: SLF001 - its own table's layout
+        self.length = frames.episode_length(position)
+        self._decoders: dict[Path, VideoDecoder] = {}
+
+    def _video(self, path: Path) -> VideoDecoder:
+        decoder = self._decoders.get(path)
+        if decoder is None:
+            decoder = self._decoders[path] = self._frames._open_video(path, threads=False)  # noqa: SLF001
+        return decoder
+
+    def images(self, offset: int) -> dict[str, np.ndarray]:
+        """`{camera: uint8 [h, w, 3]}` of the episode's frame `offset`."""
+        if not 0 <= offset < self.length:
+            raise IndexError(f"frame {offset} outside the episode's [0, {self.length})")
+        return self._frames._read(self._position, self.start + offset, self._video)  # noqa: SLF001
+
+    @property
+    def decoded(self) -> int:
+        """Frames decoded so far by this reader's decoders (what its reads cost)."""
+        return sum(d.decoded for d in self._decoders.values())
+
+    def close(self) -> None:
+        for decoder in self._decoders.values():
+            decoder.close()
+        self._decoders.clear()

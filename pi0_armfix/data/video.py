@@ -55,10 +55,14 @@ class VideoDecoder:
       size: (height, width) to fit frames inside, in the decoder (see the module docstring);
         None = as stored.
       max_frames, max_gap: see above.
+      threads: decode with FFmpeg's frame and slice threads (a random reader: several times
+        faster per frame); False for a reader of one of many streams decoded at once, where
+        threads only add CPU per frame.
     """
 
     def __init__(self, path: Path, fps: float, tolerance: float = 0.5,
-                 size: tuple[int, int] | None = None, max_frames: int = 32, max_gap: int = 32):
+                 size: tuple[int, int] | None = None, max_frames: int = 32, max_gap: int = 32,
+                 threads: bool = True):
         import av  # PyAV is only needed for video features
 
         self.path, self.fps, self.tolerance = Path(path), fps, tolerance
@@ -69,7 +73,8 @@ class VideoDecoder:
         except (av.FFmpegError, IndexError) as err:
             raise unreadable(self.path, "video file", err) from err
         # Frame threads decode HEVC several times faster than one; slices as well for h264.
-        self._stream.thread_type = "AUTO"
+        if threads:
+            self._stream.thread_type = "AUTO"
         context = self._stream.codec_context
         self.height, self.width = fit_inside(context.height, context.width, size)
         self._resize = (self.height, self.width) != (context.height, context.width)

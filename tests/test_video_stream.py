@@ -1,0 +1,114 @@
+"""Episodes streamed front to back (pi0_armfix.data.video_stream) on B1K 2025's layout: HEVC with
+one keyframe per episode."""
+
+import collections
+
+import numpy as np
+import pytest
+
+import b1k_fixture
+from data_fixtures import identify_frame
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import video_stream
+from pi0_armfix.data.lerobot import LeRobotSource
+
+LAYOUT = ActionLayout.preset("b1k_r1pro")
+
+
+@pytest.fixture(scope="module")
+def table(tmp_path_factory):
+    root = tmp_path_factory.mktemp("b1k") / "b1k"
+    b1k_fixture.write_b1k_dataset(root)
+    return LeRobotSource(root, LAYOUT, state_preset="b1k_r1pro").load_table()
+
+
+def _stream(table, **changes):
+    options = dict(seed=0, open_episodes=3, shuffle_window=8) | changes
+    return video_stream.stream_frames(table.images, range(len(table.episode_lengths)), **options)
+
+
+def _identified(table, sample) -> tuple[int, int]:
+    """(episode position, offset) of a sample, the offset read from the decoded head image."""
+    frame = int(sample["frame"])
+    position = int(table.episode_of_frame(np.array([frame]))[0])
+    length = int(table.episode_lengths[position])
+    decoded = identify_frame(sample["images"]["base_0_rgb"], position, length, 0)
+    return position, decoded
+
+
+def test_one_open_episode_without_a_shuffle_streams_each_episode_in_order_with_its_images(
+        table):
+    it = iter(_stream(table, open_episodes=1, shuffle_window=1))
+    epoch = [next(it) for _ in range(table.num_frames)]
+    it.close()
+    assert sorted(int(s["frame"]) for s in epoch) == list(range(table.num_frames))
+    for previous, sample in zip(epoch, epoch[1:]):
+        (p0, o0), (p1, o1) = _identified(table, previous), _identified(table, sample)
+        assert (p1, o1) == (p0, o0 + 1) or (o1 == 0 and o0 == table.episode_lengths[p0] - 1)
+    for sample in epoch:
+        position, decoded = _identified(table, sample)
+        assert decoded == int(sample["frame"]) - int(table.episode_starts[position])
+
+
+def test_every_frame_comes_once_per_epoch_with_episodes_open_and_a_shuffle(table):
+    it = iter(_stream(table))
+    epochs = 4
+    counts = collections.Counter(int(next(it)["frame"]) for _ in range(epochs * table.num_frames))
+    it.close()
+    # Epochs overlap only where the last episodes of one are still open as the next begins.
+    assert set(counts) == set(range(table.num_frames))
+    assert min(counts.values()) >= epochs - 1 and max(counts.values()) <= epochs + 1
+
+
+def test_each_episode_is_decoded_once_front_to_back(table):
+    reader = table.images.episode_reader(2)
+    for offset in range(reader.length):
+        reader.images(offset)
+    # One decode per frame and camera: no seek back to the keyframe.
+    assert reader.decoded == reader.length * len(table.images.cameras)
+    reader.close()
+
+
+def test_a_restored_iterator_goes_on_exactly_where_its_state_was_taken(table):
+    it = iter(_stream(table))
+    for _ in range(23):  # mid-way through open episodes and a shuffle window
+        next(it)
+    state = it.get_state()
+    expected = [next(it) for _ in range(40)]
+    it.close()
+    restored = iter(_stream(table))
+    restored.set_state(state)
+    again = [next(restored) for _ in range(40)]
+    restored.close()
+    assert [int(s["frame"]) for s in again] == [int(s["frame"]) for s in expected]
+    for a, b in zip(again, expected):
+        for camera in a["images"]:
+            np.testing.assert_array_equal(a["images"][camera], b["images"][camera])
+
+
+def test_the_seed_sets_the_order_and_processes_open_disjoint_episodes(table):
+    def first_episodes(**changes):
+        order = video_stream.episode_order(range(6), **{"seed": 0} | changes)
+        return [order[i] for i in range(6 // changes.get("process_count", 1))]
+
+    assert sorted(first_episodes()) == list(range(6))
+    assert first_episodes() != first_episodes(seed=1)
+    halves = [first_episodes(process_index=p, process_count=2) for p in (0, 1)]
+    assert sorted(halves[0] + halves[1]) == list(range(6))
+    order = video_stream.episode_order(range(6), seed=0)
+    assert [order[i] for i in range(6)] != [order[i] for i in range(6, 12)]  # a new epoch
+
+
+def test_open_episodes_bound_how_many_episodes_a_window_mixes(table):
+    it = iter(_stream(table, open_episodes=2, shuffle_window=4))
+    samples = [next(it) for _ in range(40)]
+    it.close()
+    positions = [_identified(table, s)[0] for s in samples]
+    # Two episodes open, one replaced when it ends: a window of 4 sees at most 3 episodes.
+    assert max(len(set(positions[i:i + 4])) for i in range(0, 40, 4)) <= 3
+    assert len(collections.Counter(positions)) >= 3  # episodes are replaced as they end
+
+
+def test_stream_options_below_one_are_an_error_naming_them(table):
+    with pytest.raises(ValueError, match="open_episodes \\(0\\)"):
+        _stream(table, open_episodes=0)
