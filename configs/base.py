@@ -120,14 +120,22 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.images = True  # False: read no camera (all-zero, masked): data without its videos
     config.data.action_key = "action"  # LeRobot: the stored action feature
     config.data.state_key = "observation.state"  # LeRobot: the stored state feature
-    # LeRobot: a named selection of the stored state into the action order (pi0_armfix.data.
-    # selection: 'b1k_r1pro' for B1K 2025's 256-D state, 'b1k2026_r1pro' for B1K 2026's 61-D,
+    # LeRobot: a named selection of the stored state into the action order (pi0_armfix.
+    # state_space: 'b1k_r1pro' for B1K 2025's 256-D state, 'b1k2026_r1pro' for B1K 2026's 61-D,
     # 'b1k_baseline23' for the baseline's 23-D
     # order); '' = data.state_indices, or on the embedded demo its 'b1k_baseline23'.
     config.data.state_preset = ""
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
+    # How camera frames are read (pi0_armfix.data.video_stream): 'random' = each sample's frame on
+    # request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded front to
+    # back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC has one
+    # keyframe per episode); 'auto' = 'stream' when keyframes lie more than 32 frames apart and
+    # there is no curriculum, else 'random'. The banner says which and why.
+    config.data.video_access = "auto"
+    config.data.stream_episodes = 16  # 'stream': episodes open (decoding) at once
+    config.data.stream_shuffle = 256  # 'stream': samples mixed by the window shuffle
     config.data.probe_episodes = 4  # episodes whose files and first/last frames are read first
     config.data.split = "train"  # RLDS: the split to read
     config.data.norm = ""  # zscore | quantile; '' = the model's (pi0: zscore, pi0.5: quantile)

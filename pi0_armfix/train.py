@@ -66,7 +66,7 @@ from tqdm import tqdm
 from pi0_armfix import console, evaluate
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import background, batching, pipeline, sources
+from pi0_armfix.data import background, batching, pipeline, sources, video_stream
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import run_inputs
@@ -191,8 +191,14 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     for warning in dataset_lib.check_data(config, layout, source,
                                           action_horizon=model_config.action_horizon):
         _say(f"warning: {warning}")
+    keyframes = (source.video_keyframes()
+                 if config.data.images and hasattr(source, "video_keyframes") else None)
+    video_access, video_why = video_stream.choose_access(
+        config.data.video_access, keyframes, curriculum=bool(config.data.curriculum),
+        open_episodes=config.data.stream_episodes, shuffle_window=config.data.stream_shuffle)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
-    for line in banner(config, workdir, model_config, layout, mesh, source):
+    for line in banner(config, workdir, model_config, layout, mesh, source,
+                       video_why if keyframes is not None else ""):
         _say(line)
 
     workdir.mkdir(parents=True, exist_ok=True)
@@ -231,7 +237,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         train_iter = pipeline.make_train_iterator(
             config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
             global_batch_size=config.train.batch_size, sharding=batch_sharding,
-            tokenize=tokenize, source=source, image_size=model_config.image_resolution)
+            tokenize=tokenize, source=source, image_size=model_config.image_resolution,
+            video_access=video_access)
 
         abstract_state = jax.eval_shape(
             lambda: state_lib.create_train_state(
@@ -286,8 +293,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
 
 
 def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
-           layout: ActionLayout, mesh: jax.sharding.Mesh, source) -> list[str]:
-    """What a run is, in a few lines, before it starts on its long work."""
+           layout: ActionLayout, mesh: jax.sharding.Mesh, source, video: str = "") -> list[str]:
+    """What a run is, in a few lines, before it starts on its long work (`video`: how its
+    camera frames are read, and why)."""
     num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
         flow_model.param_shapes(model_config)))
     held_out = source.num_episodes - len(dataset_lib.training_episodes(config, source))
@@ -304,7 +312,6 @@ def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
              + (f"; written for {preset.dataset})" if preset.dataset else ")")
              if preset is not None else f"{source.state_width}-D, as stored"
              + (" (data.state_indices)" if config.data.get("state_indices") else ""))
-    video = source.video_access() if hasattr(source, "video_access") else ""
     return [
         f"run       {workdir}",
         f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "

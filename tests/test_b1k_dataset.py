@@ -3,6 +3,7 @@ decode, train with the `:b1k` scale, evaluate, and run every tool on it."""
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -14,6 +15,7 @@ from pi0_armfix import evaluate, train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import selection
 from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.training import checkpoint, sharding
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
                               filter_arm_heavy_episodes, recompute_balanced_norm_stats)
 
@@ -81,11 +83,13 @@ def test_b1k_hevc_frames_decode_at_their_timestamps(b1k):
             assert identify_frame(images[camera], position, table.num_frames, c) == frame
 
 
-def test_b1k_scale_trains_and_evaluates_on_the_fixture(b1k, tmp_path):
+def test_b1k_scale_trains_and_evaluates_on_the_fixture(b1k, tmp_path, capsys):
     root, _ = b1k
     workdir = tmp_path / "run"
     record = train.train_and_evaluate(b1k_config(root), str(workdir))
     assert np.isfinite(record["loss"]) and (workdir / "checkpoints" / "2").is_dir()
+    # One keyframe per episode: the run streams its episodes, and says so.
+    assert "one keyframe in its first packets (a long GOP): streamed" in capsys.readouterr().out
     step, metrics, _ = evaluate.evaluate_checkpoint(workdir)
     assert step == 2 and np.isfinite(metrics["err/left_arm"])
     assert (workdir / "eval" / "step_2" / "trajectories.png").is_file()
@@ -105,3 +109,21 @@ def test_every_tool_runs_on_the_b1k_fixture(b1k, tmp_path, capsys):
     assert "reading 4 of 6 episodes" in capsys.readouterr().out
     curriculum = arm_curriculum.get_config("b1k")
     assert curriculum.data.state_preset == "b1k_r1pro"
+
+
+def test_a_streamed_run_resumed_from_its_checkpoint_ends_bitwise_where_an_uninterrupted_one_ends(
+        b1k, tmp_path):
+    root, _ = b1k
+    options = {"train.total_steps": 6, "eval.every": 0, "data.stream_episodes": 2,
+               "data.stream_shuffle": 8}
+    train.train_and_evaluate(b1k_config(root, **options), str(tmp_path / "straight"))
+    # Stopped after the checkpoint of step 2 (mid-way through open episodes), then resumed.
+    train.train_and_evaluate(b1k_config(root, **{**options, "train.total_steps": 2}),
+                             str(tmp_path / "resumed"))
+    train.train_and_evaluate(b1k_config(root, **options), str(tmp_path / "resumed"))
+    assert tf.records(tmp_path / "resumed") == tf.records(tmp_path / "straight")
+    straight, resumed = (checkpoint.Checkpoints(tmp_path / run / "checkpoints", read_only=True)
+                         .restore_for_eval(6, sharding.make_mesh(1), items=("params",))[0]
+                         for run in ("straight", "resumed"))
+    for a, b in zip(jax.tree.leaves(straight), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

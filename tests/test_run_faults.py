@@ -178,23 +178,6 @@ def test_optimizer_and_schedule_changes_resume_with_a_note(finished_run, tmp_pat
         in out
 
 
-def test_fingerprint_keys_are_what_gives_the_saved_state_its_meaning():
-    for key in ("seed", "model.preset", "loss.group_weights.left_arm", "layout.preset",
-                "data.root", "data.curriculum", "train.batch_size"):
-        assert fingerprint.is_fingerprint_key(key), key
-    for key in ("optim.lr", "train.total_steps", "eval.every", "data.num_workers",
-                "model.pretrained", "sharding.fsdp"):
-        assert not fingerprint.is_fingerprint_key(key), key
-
-
-def test_a_relative_and_an_absolute_data_root_of_one_folder_are_the_same_run(tmp_path,
-                                                                            monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    changed, _ = fingerprint.differences({"data": {"root": "demo"}},
-                                         {"data": {"root": str(tmp_path / "demo")}})
-    assert changed == []
-
-
 # ---------------------------------------------------------------- preemption and Ctrl-C
 
 def _start(workdir, overrides, cache_dir, log):

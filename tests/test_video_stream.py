@@ -112,3 +112,30 @@ def test_open_episodes_bound_how_many_episodes_a_window_mixes(table):
 def test_stream_options_below_one_are_an_error_naming_them(table):
     with pytest.raises(ValueError, match="open_episodes \\(0\\)"):
         _stream(table, open_episodes=0)
+
+
+def _access(requested, keyframes, curriculum=False):
+    return video_stream.choose_access(requested, keyframes, curriculum=curriculum,
+                                      open_episodes=16, shuffle_window=256)
+
+
+def test_auto_streams_long_gop_video_and_reads_short_gop_video_on_request():
+    mode, why = _access("auto", ("hevc 720x720 (head)", None))  # B1K 2025: one per episode
+    assert mode == "stream" and "a long GOP" in why and "16 episodes" in why
+    mode, why = _access("auto", ("hevc 720x720 (head)", 8))  # B1K 2026
+    assert mode == "random" and "a keyframe every 8 frames" in why
+    assert _access("auto", None)[0] == "random"  # no video camera
+
+
+def test_auto_reads_on_request_when_a_curriculum_draws_samples_by_source_and_says_why():
+    mode, why = _access("auto", ("hevc 720x720 (head)", None), curriculum=True)
+    assert mode == "random" and "curriculum" in why and "slow" in why
+
+
+def test_a_stream_the_data_or_config_cannot_have_is_an_error_naming_the_key_and_the_fix():
+    with pytest.raises(ValueError, match="data.video_access = 'stream'.*data.curriculum"):
+        _access("stream", ("hevc 720x720 (head)", None), curriculum=True)
+    with pytest.raises(ValueError, match="no camera of the dataset is a video"):
+        _access("stream", None)
+    with pytest.raises(ValueError, match="data.video_access = 'fast' must be one of"):
+        _access("fast", None)

@@ -128,8 +128,11 @@ class BatchTransform:
         self.token_state = functools.partial(transforms.openpi_normalize, stats=state,
                                              mode=norm_mode)
 
-    def __call__(self, frames: np.ndarray) -> dict[str, Any]:
-        """frames: `[b]` frame indices of the table -> batch (docs/design.md §4)."""
+    def __call__(self, frames: np.ndarray, images: Mapping[str, np.ndarray] | None = None
+                 ) -> dict[str, Any]:
+        """frames: `[b]` frame indices of the table -> batch (docs/design.md §4). `images`:
+        `{camera: uint8 [b, h, w, 3]}` of those frames already decoded (a stream's,
+        `video_stream`); None reads them from the table."""
         frames = np.asarray(frames, np.int64)
         index, is_pad = transforms.chunk_indices(frames, self.table.episode_starts, self.horizon)
         actions = self.table.actions[index]  # [b, H, A]
@@ -146,7 +149,7 @@ class BatchTransform:
             prompts = [self.table.tasks[e] for e in self.table.episode_of_frame(frames)]
             batch["tokenized_prompt"], batch["tokenized_prompt_mask"] = self.tokens(
                 prompts, self.token_state(raw_state) if self.tokens.state_in_prompt else state)
-            batch["image"], batch["image_mask"] = self._images(frames)
+            batch["image"], batch["image_mask"] = self._images(frames, images)
         return batch
 
     def absolute_actions(self, actions: np.ndarray, frames: np.ndarray) -> np.ndarray:
@@ -156,10 +159,17 @@ class BatchTransform:
         return absolute_actions(actions, self.table.state[np.asarray(frames)],
                                 action_norm=self.action_norm, delta_mask=self.delta_mask)
 
-    def _images(self, frames: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    def _images(self, frames: np.ndarray, decoded: Mapping[str, np.ndarray] | None = None
+                ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Every batch camera: the stored one, or zeros masked out where none feeds it."""
         reader = self.table.images
-        per_frame = [reader(int(f)) for f in frames] if reader is not None else [{}] * len(frames)
+        if decoded is not None:
+            per_frame = [{camera: images[i] for camera, images in decoded.items()}
+                         for i in range(len(frames))]
+        elif reader is not None:
+            per_frame = [reader(int(f)) for f in frames]
+        else:
+            per_frame = [{}] * len(frames)
         provided = [c for c in cameras_lib.BATCH_CAMERAS if c in per_frame[0]]
         shape = per_frame[0][provided[0]].shape if provided else (*self.image_size, 3)
         images, masks = {}, {}

@@ -276,23 +276,19 @@ class LeRobotSource:
                 finally:
                     decoder.close()
 
-    def video_access(self) -> str:
-        """How the run will read its videos, for the banner: the first matched video camera's
-        codec, size and keyframe interval (demuxed from its first packets), and what that means
-        for random access; '' without video cameras."""
+    def video_keyframes(self) -> tuple[str, int | None] | None:
+        """`(description, frames between keyframes)` of the first matched video camera's file
+        (demuxed from its first packets; the interval None for one keyframe in them, a long
+        GOP), or None without video cameras. The description (codec, size, camera) is the
+        banner's."""
         videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
         if not videos:
-            return ""
+            return None
         path = self._episodes[0].videos[videos[0]][0]
         if not path.is_file():
-            return f"{videos[0]}: missing file {path}"
+            raise ValueError(f"missing video file {path} (episode {self._episodes[0].index})")
         codec, height, width, interval = keyframe_interval(path)
-        if interval is None:
-            access = ("one keyframe in its first 256 frames: each random read decodes from the "
-                      "episode's start (long GOP; tools.reencode_videos makes it cheap)")
-        else:
-            access = f"a keyframe every {interval} frames: random access decodes at most that many"
-        return f"{codec} {height}x{width} ({videos[0]}), {access}"
+        return f"{codec} {height}x{width} ({videos[0]})", interval
 
     def dim_name(self, key: str, dim: int) -> str:
         """`dim N` of the selected `key` ("actions" / "state"), with the stored dims it is read

@@ -25,6 +25,18 @@ read by row from the source's on-disk `FrameStore` (`frame_store.py`). The chain
 Every sample is a pure function of its global index, so processes read disjoint slices of each
 global batch, the order does not depend on the number of processes or workers, and the
 iterator state is just the step.
+
+With `video_access='stream'` (long-GOP video, `video_stream.choose_access`) the frames come from
+episodes decoded front to back instead (`stream_batches`):
+
+    video_stream.stream_frames   this process's episodes, `data.stream_episodes` open at once,
+                                 through a window shuffle of `data.stream_shuffle` samples
+      -> batch(b)                the frames and their decoded images
+      -> map(BatchTransform)     the same transform, the images already decoded
+      -> mp_prefetch(num_workers=data.num_workers)   (when > 0)
+
+and the iterator state is Grain's (the episode order's position, each open episode's frame
+offset, the shuffle window), saved with the checkpoint.
 """
 
 from __future__ import annotations
@@ -46,6 +58,7 @@ from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
+from pi0_armfix.data import video_stream
 from pi0_armfix.data.batching import BatchTransform, Tokenize
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.sampling import SampleSelector, source_frames, stream_seed
@@ -86,6 +99,45 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
                .map(selector.frames_of_step)
                .map(transform))
     return batches, curriculum
+
+
+class _StreamBatch:
+    """A stream's batch of frames and decoded images -> the contract's batch (picklable)."""
+
+    def __init__(self, transform: BatchTransform):
+        self.transform = transform
+
+    def __call__(self, frames: Mapping[str, Any]) -> dict[str, Any]:
+        return self.transform(frames["frame"], images=frames["images"])
+
+
+def stream_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
+                   seed: int, norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
+                   global_batch_size: int, process_index: int = 0, process_count: int = 1,
+                   tokenize: Tokenize | None = None, image_size: tuple[int, int] = (224, 224),
+                   norm_mode: str | None = None) -> grain.IterDataset:
+    """The infinite IterDataset of this process's numpy batches from episodes streamed front to
+    back (the module docstring); every episode of `table` trains."""
+    if global_batch_size < 1 or global_batch_size % process_count:
+        raise ValueError(f"train.batch_size = {global_batch_size} must be a positive multiple of "
+                         f"the number of processes ({process_count})")
+    if table.images is None or not hasattr(table.images, "episode_reader"):
+        raise ValueError("data.video_access = 'stream' needs a LeRobot dataset's video cameras")
+    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
+    if mask is not None:
+        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
+                                            table.state.shape[1])
+    transform = BatchTransform(table, layout, norm_stats=norm_stats,
+                               norm_mode=norm_mode or data_cfg.get("norm") or "zscore",
+                               action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
+                               image_size=image_size)
+    frames = video_stream.stream_frames(
+        table.images, range(len(table.episode_lengths)), seed=seed,
+        open_episodes=int(data_cfg.get("stream_episodes", 16)),
+        shuffle_window=int(data_cfg.get("stream_shuffle", 256)),
+        process_index=process_index, process_count=process_count)
+    return frames.batch(global_batch_size // process_count, drop_remainder=True).map(
+        _StreamBatch(transform))
 
 
 # ---------------------------------------------------------------------- the iterator
@@ -183,27 +235,70 @@ class TrainIterator:
         self._iterator = None
 
 
+class StreamTrainIterator(TrainIterator):
+    """A TrainIterator over `stream_batches`: its position is Grain's iterator state (episode
+    order, open episodes' frame offsets, shuffle window), not a step (`get_state()["stream"]`)."""
+
+    def __init__(self, batches: grain.IterDataset, curriculum: curriculum_lib.Curriculum, **kw):
+        super().__init__(batches, curriculum, **kw)
+        self._restore: Mapping[str, Any] | None = None
+
+    def _start(self) -> None:
+        dataset = self._batches
+        if self._num_workers:
+            dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(
+                num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)),
+                worker_init_fn=die_with_parent)
+        self._iterator = iter(dataset)
+        if self._restore is not None:
+            self._iterator.set_state(self._restore)
+            self._restore = None
+
+    def get_state(self) -> dict[str, Any]:
+        if self._iterator is None:
+            self._start()
+        return {**super().get_state(), "stream": self._iterator.get_state()}
+
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        if "stream" not in state:
+            raise ValueError("the checkpoint's data iterator state is a random-access run's (no "
+                             "'stream' position): resume it with data.video_access='random'")
+        super().set_state(state)
+        self._restore = state["stream"]
+
+
 def make_train_iterator(config: ConfigLike, layout: ActionLayout, *,
                         norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                         global_batch_size: int, sharding: jax.sharding.Sharding,
                         tokenize: Tokenize | None = None, actions_only: bool = False,
-                        source=None, image_size: tuple[int, int] = (224, 224)) -> TrainIterator:
+                        source=None, image_size: tuple[int, int] = (224, 224),
+                        video_access: str = "random") -> TrainIterator:
     """Training batches of `config` (see the module docstring). This process reads its slice
     `jax.process_index()` of `jax.process_count()` of every global batch. `source`: the run's
     opened source (None = open it); `image_size`: of the zero images of a dataset with no
-    camera, and the size video frames are decoded to fit inside."""
+    camera, and the size video frames are decoded to fit inside; `video_access`: the run's
+    resolved `video_stream.choose_access` mode."""
     data = config["data"]
     if source is None:
         source = sources.open_source(data, layout)
     table = source.load_table(dataset_lib.training_episodes(config, source),
                               images=not actions_only, image_size=image_size)
+    norm_mode = model_config_lib.norm_mode(config) if "model" in config else None
+    options = dict(sharding=sharding, global_batch_size=global_batch_size,
+                   seed=int(config.get("seed", 0)), num_workers=int(data.get("num_workers", 0)),
+                   prefetch=int(data.get("prefetch", 2)))
+    if video_access == "stream" and not actions_only:
+        batches = stream_batches(
+            table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,
+            action_horizon=action_horizon, global_batch_size=global_batch_size,
+            process_index=jax.process_index(), process_count=jax.process_count(),
+            tokenize=tokenize, image_size=image_size, norm_mode=norm_mode)
+        return StreamTrainIterator(batches, curriculum_lib.Curriculum.from_config(
+            data, int(config.get("seed", 0))), **options)
     batches, curriculum = train_batches(
         table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,
         action_horizon=action_horizon, global_batch_size=global_batch_size,
         process_index=jax.process_index(), process_count=jax.process_count(),
         tokenize=tokenize, actions_only=actions_only, image_size=image_size,
-        norm_mode=model_config_lib.norm_mode(config) if "model" in config else None)
-    return TrainIterator(batches, curriculum, sharding=sharding,
-                         global_batch_size=global_batch_size, seed=int(config.get("seed", 0)),
-                         num_workers=int(data.get("num_workers", 0)),
-                         prefetch=int(data.get("prefetch", 2)))
+        norm_mode=norm_mode)
+    return TrainIterator(batches, curriculum, **options)

@@ -8,7 +8,7 @@ window shuffle of `shuffle_window` samples:
 
     episode order        a seeded permutation of the episodes, a new one every epoch; process p of
                          P takes every P-th episode of it (disjoint, whatever P)
-      -> EpisodeFrames   per episode: its frames in order, all cameras in step, decoded by
+      -> EpisodeStream   per episode: its frames in order, all cameras in step, decoded by
                          single-threaded decoders of its own (`lerobot_frames.EpisodeReader`)
       -> InterleaveIterDataset(cycle_length=open_episodes)    one frame of each open episode in
                          turn; a finished episode is replaced by the next of the order
@@ -25,6 +25,11 @@ A sample's neighbours come from at most `open_episodes` episodes (those open), a
 holds `shuffle_window / open_episodes` consecutive frames of each: the correlation between
 samples a stream trades for decoding each frame once. A restored iterator reopens its episodes
 and decodes each from its keyframe up to its offset (the restart cost of a resume).
+
+`data.video_access` chooses between this and reading each sample's frame on request
+(`choose_access`): 'auto' streams video whose keyframes lie more than `STREAM_ABOVE_GOP` frames
+apart (B1K 2025's one per episode) and reads short-GOP video (B1K 2026's 8, LeRobot's 2, a
+re-encoded copy) on request.
 """
 
 from __future__ import annotations
@@ -39,18 +44,70 @@ from grain import experimental as grain_experimental
 from pi0_armfix.data.lerobot_frames import LeRobotFrameImages
 
 
-class EpisodeFrames(grain.IterDataset):
+ACCESS_MODES = ("auto", "stream", "random")
+# Keyframes further apart than this make a random read decode more frames than streaming costs
+# per sample, whatever the episode length.
+STREAM_ABOVE_GOP = 32
+
+
+def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
+                  curriculum: bool, open_episodes: int, shuffle_window: int) -> tuple[str, str]:
+    """`(mode, why)`: how a run reads its camera frames, 'stream' or 'random', and the banner's
+    sentence saying why.
+
+    Args:
+      requested: `data.video_access`, one of `ACCESS_MODES`.
+      keyframes: the source's `(video description, frames between keyframes or None for a
+        long GOP)`, or None when no camera is a video.
+      curriculum: the run has a curriculum or an arm-heavy mix (`data.curriculum`), which draws
+        each sample from its phase's weighted sources: read on request.
+    Raises:
+      ValueError naming `data.video_access` and the fix, for an unknown mode or a stream the
+      data or the config cannot have.
+    """
+    if requested not in ACCESS_MODES:
+        raise ValueError(f"data.video_access = {requested!r} must be one of {ACCESS_MODES}")
+    if keyframes is None:
+        if requested == "stream":
+            raise ValueError("data.video_access = 'stream' streams videos, but no camera of the "
+                             "dataset is a video: set data.video_access='auto' or 'random'")
+        return "random", "no camera is a video: frames read on request"
+    description, interval = keyframes
+    gop = ("one keyframe in its first packets (a long GOP)" if interval is None
+           else f"a keyframe every {interval} frames")
+    if requested == "stream" and curriculum:
+        raise ValueError("data.video_access = 'stream' cannot draw the samples of "
+                         "data.curriculum's weighted sources: set data.video_access='random' "
+                         "(or 'auto'), or data.curriculum=()")
+    long_gop = interval is None or interval > STREAM_ABOVE_GOP
+    mode = requested if requested != "auto" else (
+        "stream" if long_gop and not curriculum else "random")
+    chosen = "data.video_access" + (" = 'auto'" if requested == "auto" else "")
+    if mode == "stream":
+        return mode, (f"{description}, {gop}: streamed ({chosen}), {open_episodes} episodes "
+                      f"decoded front to back at once, mixed in a window of {shuffle_window} "
+                      "samples")
+    if not long_gop:
+        return mode, (f"{description}, {gop}: frames read on request ({chosen}), each decoding "
+                      "at most that many")
+    reason = "the curriculum draws samples by source" if requested == "auto" else chosen
+    return mode, (f"{description}, {gop}: frames read on request ({reason}), each decoding from "
+                  "the episode's start: slow; data.video_access='stream' (no curriculum) or "
+                  "tools.reencode_videos")
+
+
+class EpisodeStream(grain.IterDataset):
     """The frames of the table's episode at `position`, front to back."""
 
     def __init__(self, images: LeRobotFrameImages, position: int):
         super().__init__()
         self._images, self._position = images, int(position)
 
-    def __iter__(self) -> "_EpisodeFramesIterator":
-        return _EpisodeFramesIterator(self._images, self._position)
+    def __iter__(self) -> "_EpisodeStreamIterator":
+        return _EpisodeStreamIterator(self._images, self._position)
 
 
-class _EpisodeFramesIterator(grain.DatasetIterator):
+class _EpisodeStreamIterator(grain.DatasetIterator):
     """Yields `{"frame", "images"}` of one episode; its state is the offset of the next frame."""
 
     def __init__(self, images: LeRobotFrameImages, position: int):
@@ -101,7 +158,7 @@ def stream_frames(images: LeRobotFrameImages, positions: Sequence[int], *, seed:
                          "must be >= 1")
     episodes = episode_order(positions, seed=seed, process_index=process_index,
                              process_count=process_count).map(
-                                 lambda position: EpisodeFrames(images, position))
+                                 lambda position: EpisodeStream(images, position))
     interleaved = grain_experimental.InterleaveIterDataset(episodes, cycle_length=open_episodes)
     return grain_experimental.WindowShuffleIterDataset(interleaved, window_size=shuffle_window,
                                                        seed=seed)

@@ -35,6 +35,9 @@ RESUME_MODES = ("auto", "force", "new")
 FINGERPRINT_KEYS = ("seed", "model", "loss", "layout", "data", "train.batch_size")
 EXECUTION_KEYS = ("model.pretrained", "model.dtype", "data.num_workers", "data.prefetch",
                   "data.probe_episodes", "data.video_tolerance_frames")
+# Keys added after runs were saved without them, with the value that reproduces what those runs
+# did: a saved config that lacks one compares as if it held that value.
+ADDED_KEYS = {"data.video_access": "auto", "data.stream_episodes": 16, "data.stream_shuffle": 256}
 # Paths compare as absolute paths, so that a run restarted from another folder is the same run.
 PATH_KEYS = ("data.root", "data.norm_stats", "data.arm_heavy_episodes", "model.tokenizer")
 
@@ -69,6 +72,7 @@ def differences(saved: Mapping[str, Any], current: Mapping[str, Any]
                 ) -> tuple[list[str], list[str]]:
     """`(fingerprint changes, other changes)` between two configs, as "key: old -> new" lines."""
     old, new = flatten(saved), flatten(current)
+    old = {**{k: v for k, v in ADDED_KEYS.items() if k in new}, **old}
 
     def show(values: Mapping[str, Any], key: str) -> str:
         return repr(values[key]) if key in values else "(absent)"
