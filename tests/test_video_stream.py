@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import b1k_fixture
-from data_fixtures import identify_frame
+from data_fixtures import frame_colour, identify_frame
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import video_stream
+from pi0_armfix.data import video, video_stream
 from pi0_armfix.data.lerobot import LeRobotSource
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
@@ -139,3 +139,19 @@ def test_a_stream_the_data_or_config_cannot_have_is_an_error_naming_the_key_and_
         _access("stream", None)
     with pytest.raises(ValueError, match="data.video_access = 'fast' must be one of"):
         _access("fast", None)
+
+
+def test_a_seek_into_a_long_gop_skips_unreferenced_frames_and_returns_the_same_frames(tmp_path):
+    path = tmp_path / "long_gop.mp4"
+    frames = np.stack([np.full((16, 16, 3), frame_colour(1, i, 0), np.uint8) for i in range(300)])
+    video.write_video(path, frames, 30, "libx265", gop=1000,
+                      options={"x265-params": "log-level=none"})
+    every = video.VideoDecoder(path, 30)
+    full = {i: every.frame_at(i / 30) for i in range(300)}  # front to back: nothing skipped
+    assert every.decoded == 300
+    for wanted in (250, 120, 299, 70):
+        fresh = video.VideoDecoder(path, 30)
+        np.testing.assert_array_equal(fresh.frame_at(wanted / 30), full[wanted])
+        if wanted > video.SKIP_MARGIN:
+            assert fresh.decoded < wanted  # unreferenced frames before the margin were skipped
+        fresh.close()

@@ -2,7 +2,8 @@
 
 Reading cost is set by the file's GOP: a request that is not a little ahead of the decoder's
 position seeks to the keyframe before it and decodes forward from there, so random access into a
-file with one keyframe per episode (BEHAVIOR-1K 2025's HEVC) decodes half an episode on average.
+file with one keyframe per episode (BEHAVIOR-1K 2025's HEVC) decodes half an episode on average;
+on the way it skips the frames no other frame references (`SKIP_MARGIN`).
 `python -m pi0_armfix.tools.reencode_videos` rewrites such a dataset with short GOPs at the
 model's resolution; `python -m pi0_armfix.bench video` measures both.
 
@@ -26,6 +27,10 @@ from pi0_armfix.data.files import unreadable
 # Timestamps are float32: a row one frame late can compute to 1.0000114 frames. Time comparisons
 # allow this much (in frames) beyond the tolerance they apply.
 TIME_EPSILON_FRAMES = 1e-3
+# Decoding towards a frame this many frames or more ahead skips the frames nothing references
+# (`skip_frame="NONREF"`) until this close: a seek into a long GOP, a stream's restart. The margin
+# covers the frames a decoder keeps (`max_frames`) and those in flight in its threads.
+SKIP_MARGIN = 64
 
 
 def fit_inside(height: int, width: int, size: tuple[int, int] | None) -> tuple[int, int]:
@@ -112,6 +117,7 @@ class VideoDecoder:
             return self._frames[wanted]
         if self._decoder is None or not (self._position < wanted <= self._position + self.max_gap):
             self._seek(seconds)
+        context = self._stream.codec_context
         try:
             for frame in self._decoder:
                 self.decoded += 1
@@ -119,6 +125,13 @@ class VideoDecoder:
                 number = (int(round(frame.time * self.fps)) if frame.time is not None
                           else self._position + 1)
                 self._position = number
+                # Far before the wanted frame, frames no other frame references are skipped
+                # (decoding them would only draw them); the rest decode as always, so every
+                # frame from `wanted - SKIP_MARGIN` on is decoded, identical to a full decode.
+                # Only with timestamps: skipped frames would break numbering by order.
+                far = frame.time is not None and wanted - number > SKIP_MARGIN
+                if (context.skip_frame == "NONREF") != far:
+                    context.skip_frame = "NONREF" if far else "DEFAULT"
                 # Frames before the wanted one are kept only when a later request may want them.
                 if number >= wanted - self.max_frames:
                     self._frames[number] = self._array(frame)
@@ -129,6 +142,8 @@ class VideoDecoder:
         except av.FFmpegError as err:
             self._decoder = None
             raise unreadable(self.path, "video file", err) from err
+        finally:
+            context.skip_frame = "DEFAULT"
         if wanted in self._frames:
             return self._frames[wanted]
         nearest = min(self._frames, key=lambda n: abs(n - seconds * self.fps), default=None)
