@@ -1,7 +1,9 @@
-"""What the data benchmarks share: the config of a bare data run and a one-device batch sharding."""
+"""What the data benchmarks share: the config of a bare data run, a one-device batch sharding, the
+memory of a process and its descendants."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 
@@ -38,3 +40,21 @@ def timed_steps(iterator: Any, steps: int, warmup: int = 0) -> float:
     for _ in range(steps):
         jax.block_until_ready(next(iterator))
     return time.perf_counter() - start
+
+
+def memory(pid: int | str = "self") -> dict[str, float]:
+    """MiB of VmHWM (the peak), VmRSS, RssAnon, RssFile of a process (Linux /proc)."""
+    fields = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmHWM", "VmRSS", "RssAnon", "RssFile"):
+            fields[key] = int(value.split()[0]) / 1024
+    return fields
+
+
+def descendants(pid: int) -> list[int]:
+    """The pids of a process's children, theirs, and so on."""
+    children = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        children += [int(c) for c in (task / "children").read_text().split()]
+    return [d for c in children for d in [c, *descendants(c)]]

@@ -244,24 +244,6 @@ class SyntheticSource:
             tasks=[self.tasks[p] for p in positions], fps=self.fps)
 
 
-def _memory(pid: int | str = "self") -> dict[str, float]:
-    """MiB of VmHWM, VmRSS, RssAnon, RssFile of a process."""
-    fields = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmHWM", "VmRSS", "RssAnon", "RssFile"):
-            fields[key] = int(value.split()[0]) / 1024
-    return fields
-
-
-def _descendants(pid: int) -> list[int]:
-    children = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        text = (task / "children").read_text().split()
-        children += [int(c) for c in text]
-    return [d for c in children for d in [c, *_descendants(c)]]
-
-
 def _memory_child(arg: str) -> None:
     """In a fresh process: `build:FRAMES` builds the store; `train:FRAMES:WORKERS:B:H:STEPS`
     runs the iterator. Prints the memory as JSON."""
@@ -271,7 +253,7 @@ def _memory_child(arg: str) -> None:
         start = time.perf_counter()
         store = source.frame_store
         print(json.dumps({"seconds": time.perf_counter() - start, "root": str(store.root),
-                          "main": _memory()}))
+                          "main": common.memory()}))
         return
     import jax
 
@@ -283,7 +265,7 @@ def _memory_child(arg: str) -> None:
     unit = stats_lib.NormStats(mean=np.zeros(23), std=np.ones(23), q01=-np.ones(23),
                                q99=np.ones(23))
     sharding = common.batch_sharding()
-    before = _memory()
+    before = common.memory()
     iterator = pipeline.make_train_iterator(
         config, ActionLayout.preset(_LAYOUT), norm_stats={"actions": unit, "state": unit},
         action_horizon=horizon, global_batch_size=batch_size, sharding=sharding,
@@ -292,12 +274,12 @@ def _memory_child(arg: str) -> None:
         for _ in range(steps):
             jax.block_until_ready(next(iterator))
         workers_memory = []
-        for pid in _descendants(os.getpid()):
+        for pid in common.descendants(os.getpid()):
             command = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")
             role = ("resource tracker" if "resource_tracker" in command else
                     "Grain worker" if "python" in command else command[:40])
-            workers_memory.append({**_memory(pid), "role": role})
-        print(json.dumps({"main": _memory(), "main_before": before,
+            workers_memory.append({**common.memory(pid), "role": role})
+        print(json.dumps({"main": common.memory(), "main_before": before,
                           "workers": workers_memory}))
     finally:
         iterator.close()

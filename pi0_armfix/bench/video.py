@@ -2,6 +2,7 @@
 
     python -m pi0_armfix.bench video [--episodes=6] [--episode_frames=240] [--batch_size=16]
                                      [--steps=8] [--num_workers=2] [--gop=8] [--size=224]
+                                     [--stream_workers=0,1,2] [--stream_episodes=16]
 
 dataset    a LeRobot v2.1 root like BEHAVIOR-1K 2025's cameras: head 720², wrists 480², HEVC
            (libx265) with ONE keyframe per episode, `--episodes` x `--episode_frames` frames of
@@ -10,6 +11,12 @@ original   random frames read as training reads them (3 cameras, resized in the 
            `--size`²): ms per sample and frames decoded per sample. The cost grows with the
            position in the episode (decode from the episode's only keyframe); the line also
            extrapolates to B1K's mean episode (119 M frames / 10 000 episodes = 11 900 frames).
+stream     the training iterator on the ORIGINAL with `data.video_access='stream'` (episodes
+           decoded front to back, `--stream_episodes` open, window shuffle of 256), for each of
+           `--stream_workers` Grain workers: samples/s (3 cameras at `--size`², chunks, prompts,
+           batches as the train step gets them), the peak RSS of the main process and of each
+           worker (VmHWM), and the resume latency (a new iterator restored from the state after
+           the timed steps, to its first batch: each open episode decoded from its keyframe).
 reencode   `python -m pi0_armfix.tools.reencode_videos --size --gop` on it: frames/s on this
            machine, and the hours B1K's 3 x 119 M camera frames would take per core.
            Random reads of the copy with fresh decoders: the cost per sample at B1K's scale, where
@@ -26,6 +33,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +60,9 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--batch_size", type=int, default=16)
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--num_workers", type=int, default=2)
+    parser.add_argument("--stream_workers", default="0,1,2",
+                        help="Grain worker counts of the streamed training iterator")
+    parser.add_argument("--stream_episodes", type=int, default=16)
     return parser.parse_args(argv[1:])
 
 
@@ -133,26 +144,49 @@ def _tokenize(prompt: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def training_throughput(root: Path, size: int, batch_size: int, steps: int,
-                        num_workers: int) -> dict[str, float]:
+                        num_workers: int, video_access: str = "random",
+                        stream_episodes: int = 16) -> dict[str, Any]:
+    """The training iterator's samples/s; for a stream also the memory of its processes and the
+    latency of a resume from the state after the timed steps."""
     from pi0_armfix.data import dataset as dataset_lib
     from pi0_armfix.data import pipeline, sources
 
     config = common.data_config(str(root), num_workers)
+    config.data.stream_episodes = stream_episodes
     layout = ActionLayout.preset(_LAYOUT)
     source = sources.open_source(config.data, layout)
     stats = dataset_lib.dataset_norm_stats(config, layout, action_horizon=50, source=source,
                                            progress=False)
-    iterator = pipeline.make_train_iterator(
-        config, layout, norm_stats=stats, action_horizon=50, global_batch_size=batch_size,
-        sharding=common.batch_sharding(), tokenize=_tokenize, source=source,
-        image_size=(size, size))
+
+    def make():
+        return pipeline.make_train_iterator(
+            config, layout, norm_stats=stats, action_horizon=50, global_batch_size=batch_size,
+            sharding=common.batch_sharding(), tokenize=_tokenize, source=source,
+            image_size=(size, size), video_access=video_access)
+
+    iterator = make()
     try:
         batch = next(iterator)  # workers start, decoders open
         shapes = {c: tuple(batch["image"][c].shape[1:]) for c in batch["image"]}
         seconds = common.timed_steps(iterator, steps)
+        memory = {"main": common.memory()["VmHWM"],
+                  "workers": [common.memory(pid)["VmHWM"]
+                              for pid in common.descendants(os.getpid())
+                              if "resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_text()]}
+        state = iterator.get_state()
     finally:
         iterator.close()
-    return {"samples_per_s": steps * batch_size / seconds, "shapes": shapes}
+    result = {"samples_per_s": steps * batch_size / seconds, "shapes": shapes, "memory": memory}
+    if video_access == "stream":
+        resumed = make()
+        try:
+            resumed.set_state(state)
+            start = time.perf_counter()
+            next(resumed)
+            result["resume_s"] = time.perf_counter() - start
+        finally:
+            resumed.close()
+    return result
 
 
 def main(argv: list[str]) -> None:
@@ -171,6 +205,18 @@ def main(argv: list[str]) -> None:
           f"keyframe) -> at B1K's mean episode ({B1K_MEAN_EPISODE_FRAMES} frames) "
           f"~{reads['b1k_ms_per_sample'] / 1000:.1f} s per sample = "
           f"{1000 * cores / reads['b1k_ms_per_sample']:.2f} samples/s on {cores} cores")
+
+    for workers in sorted({int(w) for w in args.stream_workers.split(",") if w}):
+        result = training_throughput(root, args.size, args.batch_size, args.steps, workers,
+                                     "stream", args.stream_episodes)
+        memory = result["memory"]
+        total = memory["main"] + sum(memory["workers"])
+        print(f"stream from the original, {workers} workers: {result['samples_per_s']:.1f} "
+              f"samples/s (3 cameras {sorted(set(result['shapes'].values()))}, 50-step chunks, "
+              f"prompt tokens; {args.stream_episodes} episodes open per stream, window 256); "
+              f"peak RSS {total:.0f} MiB (main {memory['main']:.0f}"
+              + "".join(f", worker {m:.0f}" for m in memory["workers"]) + " MiB); resume to the "
+              f"first batch {result['resume_s']:.1f} s")
 
     with tempfile.TemporaryDirectory(dir=root.parent) as scratch:
         output = Path(scratch) / "reencoded"

@@ -36,7 +36,8 @@ episodes decoded front to back instead (`stream_batches`):
       -> mp_prefetch(num_workers=data.num_workers)   (when > 0)
 
 and the iterator state is Grain's (the episode order's position, each open episode's frame
-offset, the shuffle window), saved with the checkpoint.
+offset, the shuffle window), saved with the checkpoint. Each worker streams its own share of the
+episodes, so the order depends on `data.num_workers` (a resume keeps it).
 """
 
 from __future__ import annotations
@@ -257,12 +258,18 @@ class StreamTrainIterator(TrainIterator):
     def get_state(self) -> dict[str, Any]:
         if self._iterator is None:
             self._start()
-        return {**super().get_state(), "stream": self._iterator.get_state()}
+        return {**super().get_state(), "stream": self._iterator.get_state(),
+                "stream_workers": self._num_workers}
 
     def set_state(self, state: Mapping[str, Any]) -> None:
         if "stream" not in state:
             raise ValueError("the checkpoint's data iterator state is a random-access run's (no "
                              "'stream' position): resume it with data.video_access='random'")
+        # Each worker streams its own share of the episodes: the order depends on their number.
+        if int(state["stream_workers"]) != self._num_workers:
+            raise ValueError(f"the checkpoint's stream was read by {state['stream_workers']} "
+                             f"data workers, this run has data.num_workers={self._num_workers}: "
+                             f"resume with data.num_workers={state['stream_workers']}")
         super().set_state(state)
         self._restore = state["stream"]
 
