@@ -34,6 +34,7 @@ def test_video_benchmark_reads_the_original_reencodes_and_trains(tmp_path):
                  "--num_workers=0", "--stream_workers=0", "--stream_episodes=2")
     assert "original, random reads:" in out and "re-encode to 32²" in out
     assert "stream from the original, 0 workers:" in out and "resume to the first batch" in out
+    assert "diversity, stream" in out and "diversity, random access" in out
     assert "training iterator on the re-encoded copy, 0 workers" in out
     assert "(32, 32, 3)" in out
 

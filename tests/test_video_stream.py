@@ -155,3 +155,14 @@ def test_a_seek_into_a_long_gop_skips_unreferenced_frames_and_returns_the_same_f
         if wanted > video.SKIP_MARGIN:
             assert fresh.decoded < wanted  # unreferenced frames before the margin were skipped
         fresh.close()
+
+
+def test_a_stream_draws_from_its_open_episodes_where_random_access_draws_from_all():
+    from pi0_armfix.bench.video import sample_diversity
+
+    diversity = sample_diversity(200, 300, open_episodes=4, window=16, samples=2000, lags=(1,))
+    # 2000 samples of episodes of ~300 frames, 4 open: about 4 + 2000 / 300 episodes.
+    assert 4 <= diversity["stream"]["distinct"] <= 20
+    assert diversity["stream"]["same@1"] > 0.1
+    assert diversity["random access"]["distinct"] > 150
+    assert diversity["random access"]["same@1"] < 0.02

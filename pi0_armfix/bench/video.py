@@ -17,6 +17,11 @@ stream     the training iterator on the ORIGINAL with `data.video_access='stream
            batches as the train step gets them), the peak RSS of the main process and of each
            worker (VmHWM), and the resume latency (a new iterator restored from the state after
            the timed steps, to its first batch: each open episode decoded from its keyframe).
+diversity  which episodes the samples come from, at B1K's scale (10 000 episodes of 11 900 frames;
+           episode order and shuffle only, no decoding): over 10 000 consecutive samples the
+           number of distinct episodes, and the chance that two samples k apart share their
+           episode, for the stream against random access (openpi's loader draws every sample
+           uniformly from all frames).
 reencode   `python -m pi0_armfix.tools.reencode_videos --size --gop` on it: frames/s on this
            machine, and the hours B1K's 3 x 119 M camera frames would take per core.
            Random reads of the copy with fresh decoders: the cost per sample at B1K's scale, where
@@ -189,6 +194,51 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
     return result
 
 
+class _EpisodeLengths:
+    """Stands in for a table's images in `video_stream.stream_frames`: episodes of given lengths
+    whose frames are their row numbers (the order of samples without decoding a frame)."""
+
+    def __init__(self, lengths: np.ndarray):
+        self.starts = np.concatenate([[0], np.cumsum(lengths)])
+
+    def episode_reader(self, position: int) -> "_EpisodeLengths._Reader":
+        return self._Reader(int(self.starts[position]),
+                            int(self.starts[position + 1] - self.starts[position]))
+
+    class _Reader:
+        def __init__(self, start: int, length: int):
+            self.start, self.length = start, length
+
+        def images(self, offset: int) -> dict:
+            return {}
+
+        def close(self) -> None:
+            pass
+
+
+def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window: int,
+                     samples: int = 10_000, lags: tuple[int, ...] = (1, 16, 256, 1024)
+                     ) -> dict[str, dict[str, float]]:
+    """Distinct episodes among `samples` consecutive samples and the chance that two samples
+    `lag` apart share their episode, streamed and drawn at random."""
+    from pi0_armfix.data import video_stream
+
+    rng = np.random.default_rng(0)
+    lengths = rng.integers(mean_frames // 2, 3 * mean_frames // 2 + 1, episodes)
+    table = _EpisodeLengths(lengths)
+    stream = iter(video_stream.stream_frames(table, range(episodes), seed=0,
+                                             open_episodes=open_episodes, shuffle_window=window))
+    streamed = np.array([int(next(stream)["frame"]) for _ in range(samples)])
+    stream.close()
+    drawn = rng.integers(0, int(table.starts[-1]), samples)
+    result = {}
+    for name, frames in (("stream", streamed), ("random access", drawn)):
+        episode = np.searchsorted(table.starts, frames, side="right") - 1
+        result[name] = {"distinct": float(len(np.unique(episode))),
+                        **{f"same@{k}": float(np.mean(episode[k:] == episode[:-k])) for k in lags}}
+    return result
+
+
 def main(argv: list[str]) -> None:
     from pi0_armfix.tools.reencode_videos import reencode_dataset
 
@@ -217,6 +267,13 @@ def main(argv: list[str]) -> None:
               f"peak RSS {total:.0f} MiB (main {memory['main']:.0f}"
               + "".join(f", worker {m:.0f}" for m in memory["workers"]) + " MiB); resume to the "
               f"first batch {result['resume_s']:.1f} s")
+
+    diversity = sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, args.stream_episodes, 256)
+    for name, d in diversity.items():
+        print(f"diversity, {name} (B1K's 10 000 episodes of ~{B1K_MEAN_EPISODE_FRAMES} frames; "
+              f"10 000 consecutive samples): {d['distinct']:.0f} distinct episodes; same episode "
+              "at lag " + ", ".join(f"{k.split('@')[1]}: {v:.3f}" for k, v in d.items()
+                                    if k.startswith("same@")))
 
     with tempfile.TemporaryDirectory(dir=root.parent) as scratch:
         output = Path(scratch) / "reencoded"
