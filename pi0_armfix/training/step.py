@@ -151,7 +151,7 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
                                                     loss_cfg["ema_decay"])
         balancer = {"ema": ema, "count": count}
 
-    metrics = {"loss": loss, "grad_norm": optax.global_norm(grads), "lr": schedule(state.step)}
+    metrics = {"loss": loss, "grad_norm": optax.tree.norm(grads), "lr": schedule(state.step)}
     for i, g in enumerate(layout.group_names):
         metrics[f"loss/{g}"] = group_loss[i]
         metrics[f"weight/{g}"] = weights[i]
