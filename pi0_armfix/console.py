@@ -14,11 +14,17 @@ def quiet_library_logging() -> None:
     """Unless `--verbosity` was given: absl logging at WARNING (orbax logs every file it writes at
     INFO, JAX its backend probing), and no orbax records at all: its warnings are about options it
     adjusts itself (a read-only manager), its errors tracebacks of a failed read or write, which
-    the entrypoints report in one line naming the checkpoint."""
+    the entrypoints report in one line naming the checkpoint; nor asyncio's reports of the
+    sibling reads of such a failure."""
     if flags.FLAGS["verbosity"].present:
         return
     logging.set_verbosity(logging.WARNING)
     std_logging.getLogger("absl").addFilter(lambda record: "/orbax/" not in record.pathname)
+    # A failed read of a damaged checkpoint fails orbax's sibling reads too; whichever of them
+    # nobody awaited is printed by asyncio when collected, with its traceback, after the one-line
+    # report (or not, as the collection happens to fall).
+    std_logging.getLogger("asyncio").addFilter(
+        lambda record: "exception was never retrieved" not in record.getMessage())
 
 
 @contextlib.contextmanager

@@ -56,5 +56,8 @@ def descendants(pid: int) -> list[int]:
     """The pids of a process's children, theirs, and so on."""
     children = []
     for task in Path(f"/proc/{pid}/task").iterdir():
-        children += [int(c) for c in (task / "children").read_text().split()]
+        try:
+            children += [int(c) for c in (task / "children").read_text().split()]
+        except FileNotFoundError:  # a thread that ended while the tasks were listed
+            continue
     return [d for c in children for d in [c, *descendants(c)]]
