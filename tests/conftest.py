@@ -2,6 +2,7 @@
 
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -13,3 +14,9 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 # fast; every comparison in a test is made under the same flags (subprocesses get them too,
 # `train_fixtures.env`).
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
+# A persistent compilation cache per test process: the tiny programs that many tests compile alike
+# (the tiny model's init, sampler and train steps) compile once. Subprocesses get their own
+# (`train_fixtures.env`).
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      tempfile.mkdtemp(prefix="pi0_armfix_test_jax_cache_"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")

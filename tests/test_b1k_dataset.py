@@ -114,16 +114,17 @@ def test_every_tool_runs_on_the_b1k_fixture(b1k, tmp_path, capsys):
 def test_a_streamed_run_resumed_from_its_checkpoint_ends_bitwise_where_an_uninterrupted_one_ends(
         b1k, tmp_path):
     root, _ = b1k
-    options = {"train.total_steps": 6, "eval.every": 0, "data.stream_episodes": 2,
+    options = {"train.total_steps": 4, "eval.every": 0, "data.stream_episodes": 2,
                "data.stream_shuffle": 8}
     train.train_and_evaluate(b1k_config(root, **options), str(tmp_path / "straight"))
-    # Stopped after the checkpoint of step 2 (mid-way through open episodes), then resumed.
+    # Stopped after the checkpoint of step 2 (mid-way through open episodes and a shuffle
+    # window), then resumed.
     train.train_and_evaluate(b1k_config(root, **{**options, "train.total_steps": 2}),
                              str(tmp_path / "resumed"))
     train.train_and_evaluate(b1k_config(root, **options), str(tmp_path / "resumed"))
     assert tf.records(tmp_path / "resumed") == tf.records(tmp_path / "straight")
     straight, resumed = (checkpoint.Checkpoints(tmp_path / run / "checkpoints", read_only=True)
-                         .restore_for_eval(6, sharding.make_mesh(1), items=("params",))[0]
+                         .restore_for_eval(4, sharding.make_mesh(1), items=("params",))[0]
                          for run in ("straight", "resumed"))
     for a, b in zip(jax.tree.leaves(straight), jax.tree.leaves(resumed)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

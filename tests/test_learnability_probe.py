@@ -1,6 +1,7 @@
 """The learnability probe: it reads the demo cameras' cues back at the environment's rendering."""
 
 import numpy as np
+import pytest
 
 from pi0_armfix.sim import render
 from pi0_armfix.sim.world import DemoSpec
@@ -24,6 +25,7 @@ def test_probe_scenes_render_like_the_environments_cameras():
     assert not np.array_equal(images[0], images[1])  # the marker moves with the offset
 
 
+@pytest.mark.slow  # the slow lane: trains the probe's network
 def test_a_short_probe_reads_the_target_distance_from_the_head_camera():
     result = probe.probe_size(32, SPEC, train=800, test=200, steps=150)
     assert result["head"]["distance_rmse_m"] < 0.2  # the targets span 1.5 m

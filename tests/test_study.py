@@ -174,6 +174,7 @@ def test_the_world_episodes_widen_the_closed_loop_interval():
     assert wide[2] - wide[1] > narrow[2] - narrow[1]
 
 
+@pytest.mark.slow  # the slow lane: the study's processes (training, evaluation, closed loop)
 def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir, demo_root):
     overrides = {k: v for k, v in tf.tiny_overrides(demo_root).items()
                  if not k.startswith("train.total_steps") and k != "eval.every"}
