@@ -14,8 +14,8 @@ original   random frames read as training reads them (3 cameras, resized in the 
 stream     the training iterator on the ORIGINAL with `data.video_access='stream'` (episodes
            decoded front to back, `--stream_episodes` open, window shuffle of 256), for each of
            `--stream_workers` Grain workers: samples/s (3 cameras at `--size`², chunks, prompts,
-           batches as the train step gets them), the peak RSS of the main process and of each
-           worker (VmHWM), and the resume latency (a new iterator restored from the state after
+           batches as the train step gets them) over whole shuffle windows, the RSS of the main
+           process and the peak of each worker, and the resume latency (a new iterator restored from the state after
            the timed steps, to its first batch: each open episode decoded from its keyframe).
 diversity  which episodes the samples come from, at B1K's scale (10 000 episodes of 11 900 frames;
            episode order and shuffle only, no decoding): over 10 000 consecutive samples the
@@ -169,19 +169,24 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
             sharding=common.batch_sharding(), tokenize=_tokenize, source=source,
             image_size=(size, size), video_access=video_access)
 
+    # A stream yields a window of samples after filling it, then the next: time whole windows,
+    # after the first (filled before the first batch).
+    window_steps = -(-256 // batch_size) if video_access == "stream" else 0
+    steps = max(steps, 4 * window_steps)
     iterator = make()
     try:
         batch = next(iterator)  # workers start, decoders open
         shapes = {c: tuple(batch["image"][c].shape[1:]) for c in batch["image"]}
-        seconds = common.timed_steps(iterator, steps)
-        memory = {"main": common.memory()["VmHWM"],
+        seconds = common.timed_steps(iterator, steps, warmup=max(window_steps - 1, 0))
+        memory = {"main": common.memory()["VmRSS"],
                   "workers": [common.memory(pid)["VmHWM"]
                               for pid in common.descendants(os.getpid())
                               if "resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_text()]}
         state = iterator.get_state()
     finally:
         iterator.close()
-    result = {"samples_per_s": steps * batch_size / seconds, "shapes": shapes, "memory": memory}
+    result = {"samples_per_s": steps * batch_size / seconds, "shapes": shapes, "memory": memory,
+              "samples": steps * batch_size}
     if video_access == "stream":
         resumed = make()
         try:
@@ -262,11 +267,13 @@ def main(argv: list[str]) -> None:
         memory = result["memory"]
         total = memory["main"] + sum(memory["workers"])
         print(f"stream from the original, {workers} workers: {result['samples_per_s']:.1f} "
-              f"samples/s (3 cameras {sorted(set(result['shapes'].values()))}, 50-step chunks, "
-              f"prompt tokens; {args.stream_episodes} episodes open per stream, window 256); "
-              f"peak RSS {total:.0f} MiB (main {memory['main']:.0f}"
-              + "".join(f", worker {m:.0f}" for m in memory["workers"]) + " MiB); resume to the "
-              f"first batch {result['resume_s']:.1f} s")
+              f"samples/s over {result['samples']} samples (3 cameras "
+              f"{sorted(set(result['shapes'].values()))}, 50-step chunks, prompt tokens; "
+              f"{args.stream_episodes} episodes open per stream, window 256); RSS {total:.0f} MiB "
+              f"(main process now {memory['main']:.0f}"
+              + "".join(f", worker peak {m:.0f}" for m in memory["workers"]) + " MiB); resume to "
+              f"the first batch {result['resume_s']:.1f} s (reopening the open episodes, "
+              "decoding each to its offset, refilling the window)")
 
     diversity = sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, args.stream_episodes, 256)
     for name, d in diversity.items():
