@@ -68,28 +68,45 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--stream_workers", default="0,1,2",
                         help="Grain worker counts of the streamed training iterator")
     parser.add_argument("--stream_episodes", type=int, default=16)
+    parser.add_argument("--content", choices=("pan", "subpixel"), default="pan",
+                        help="the scene pans by whole pixels, or by fractions of one per frame")
     return parser.parse_args(argv[1:])
 
 
 # ---------------------------------------------------------------------- dataset
 
-def _camera_frames(rng: np.random.Generator, n: int, side: int) -> np.ndarray:
+def _camera_frames(rng: np.random.Generator, n: int, side: int, subpixel: bool = False
+                   ) -> np.ndarray:
     """uint8 [n, side, side, 3]: a textured scene panning under a moving object (what a codec
-    has to work for, unlike flat colours)."""
+    has to work for, unlike flat colours). `subpixel`: the scene pans by fractions of a pixel per
+    frame (interpolated), as a real camera's view drifts, which costs the decoder far more than
+    whole-pixel shifts."""
     texture = rng.integers(0, 256, (side // 8, side // 8, 3), np.uint8)
-    texture = np.repeat(np.repeat(texture, 8, 0), 8, 1)
+    texture = np.repeat(np.repeat(texture, 8, 0), 8, 1).astype(np.float32)
     frames = np.empty((n, side, side, 3), np.uint8)
     for t in range(n):
-        frame = np.roll(texture, (t * side // 240, t * side // 360), axis=(0, 1))
+        if subpixel:
+            dy, dx = t * 0.37, t * 0.23
+            iy, ix, fy, fx = int(dy), int(dx), dy - int(dy), dx - int(dx)
+            shifted = np.roll(texture, (iy, ix), axis=(0, 1))
+            below, right = np.roll(shifted, 1, axis=0), np.roll(shifted, 1, axis=1)
+            diagonal = np.roll(below, 1, axis=1)
+            frame = ((1 - fy) * (1 - fx) * shifted + fy * (1 - fx) * below
+                     + (1 - fy) * fx * right + fy * fx * diagonal).astype(np.uint8)
+        else:
+            frame = np.roll(texture, (t * side // 240, t * side // 360), axis=(0, 1)).astype(
+                np.uint8)
         y, x = (side // 4 + t * 3) % (side - side // 5), (side // 3 + t * 2) % (side - side // 5)
         frame[y:y + side // 5, x:x + side // 5] = (255, 120, 0)
         frames[t] = frame
     return frames
 
 
-def bench_root(episodes: int, frames: int, head: int, wrist: int) -> Path:
-    """The B1K-like video dataset, generated on first use (atomically, under a lock)."""
-    spec = {"episodes": episodes, "frames": frames, "head": head, "wrist": wrist, "v": 1}
+def bench_root(episodes: int, frames: int, head: int, wrist: int, content: str = "pan") -> Path:
+    """The B1K-like video dataset, generated on first use (atomically, under a lock);
+    `content`: 'pan' (whole-pixel shifts) or 'subpixel' (fractional-pixel pans)."""
+    spec = {"episodes": episodes, "frames": frames, "head": head, "wrist": wrist, "v": 1,
+            **({"content": content} if content != "pan" else {})}
     root = cache_root() / f"bench-b1k-video-{digest(spec)}"
     with build_lock(root):
         if (root / "meta" / "info.json").is_file():
@@ -107,7 +124,8 @@ def bench_root(episodes: int, frames: int, head: int, wrist: int) -> Path:
                 t = np.arange(frames)[:, None] / 30.0
                 actions = np.sin(t + rng.uniform(0, 6, 23)).astype(np.float32)
                 writer.add_episode(actions, actions + 0.01, "tidy up the kitchen",
-                                   {c: _camera_frames(rng, frames, s) for c, s in sides.items()})
+                                   {c: _camera_frames(rng, frames, s, content == "subpixel")
+                                    for c, s in sides.items()})
         os.rename(staging / "dataset", root)
         staging.rmdir()
         print(f"generated {episodes} x {frames} frames x 3 HEVC cameras into {root} in "
@@ -248,10 +266,11 @@ def main(argv: list[str]) -> None:
     from pi0_armfix.tools.reencode_videos import reencode_dataset
 
     args = _parse(argv)
-    root = bench_root(args.episodes, args.episode_frames, args.head, args.wrist)
+    root = bench_root(args.episodes, args.episode_frames, args.head, args.wrist, args.content)
     cores = os.cpu_count()
     print(f"dataset: {root} ({args.episodes} episodes x {args.episode_frames} frames; HEVC "
-          f"{args.head}² head, {args.wrist}² wrists, one keyframe per episode; {cores} cores)")
+          f"{args.head}² head, {args.wrist}² wrists, one keyframe per episode, {args.content} "
+          f"content; {cores} cores)")
 
     reads = random_reads(root, args.size, args.samples)
     print(f"original, random reads: {reads['ms_per_sample']:.0f} ms per sample (3 cameras -> "
