@@ -15,8 +15,9 @@ stream     the training iterator on the ORIGINAL with `data.video_access='stream
            decoded front to back, `--stream_episodes` open, window shuffle of 256), for each of
            `--stream_workers` Grain workers: samples/s (3 cameras at `--size`², chunks, prompts,
            batches as the train step gets them) over whole shuffle windows, the RSS of the main
-           process and the peak of each worker, and the resume latency (a new iterator restored from the state after
-           the timed steps, to its first batch: each open episode decoded from its keyframe).
+           process and the peak of each worker, and the resume latency (a new iterator restored
+           from the state after the timed steps, to its first batch: each open episode decoded
+           from its keyframe).
 diversity  which episodes the samples come from, at B1K's scale (10 000 episodes of 11 900 frames;
            episode order and shuffle only, no decoding): over 10 000 consecutive samples the
            number of distinct episodes, and the chance that two samples k apart share their
@@ -51,6 +52,7 @@ _LAYOUT = "b1k_r1pro"
 _CAMERAS = ("observation.images.rgb.head", "observation.images.rgb.left_wrist",
             "observation.images.rgb.right_wrist")
 B1K_MEAN_EPISODE_FRAMES = 11_900
+STREAM_WINDOW = 256  # samples of the stream's window shuffle (data.stream_shuffle)
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
@@ -176,6 +178,7 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
 
     config = common.data_config(str(root), num_workers)
     config.data.stream_episodes = stream_episodes
+    config.data.stream_shuffle = STREAM_WINDOW
     layout = ActionLayout.preset(_LAYOUT)
     source = sources.open_source(config.data, layout)
     stats = dataset_lib.dataset_norm_stats(config, layout, action_horizon=50, source=source,
@@ -189,17 +192,17 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
 
     # A stream yields a window of samples after filling it, then the next: time whole windows,
     # after the first (filled before the first batch).
-    window_steps = -(-256 // batch_size) if video_access == "stream" else 0
+    window_steps = -(-STREAM_WINDOW // batch_size) if video_access == "stream" else 0
     steps = max(steps, 4 * window_steps)
     iterator = make()
     try:
         batch = next(iterator)  # workers start, decoders open
         shapes = {c: tuple(batch["image"][c].shape[1:]) for c in batch["image"]}
         seconds = common.timed_steps(iterator, steps, warmup=max(window_steps - 1, 0))
+        workers = [pid for pid in common.descendants(os.getpid())
+                   if "resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_text()]
         memory = {"main": common.memory()["VmRSS"],
-                  "workers": [common.memory(pid)["VmHWM"]
-                              for pid in common.descendants(os.getpid())
-                              if "resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_text()]}
+                  "workers": [common.memory(pid)["VmHWM"] for pid in workers]}
         state = iterator.get_state()
     finally:
         iterator.close()
@@ -288,13 +291,14 @@ def main(argv: list[str]) -> None:
         print(f"stream from the original, {workers} workers: {result['samples_per_s']:.1f} "
               f"samples/s over {result['samples']} samples (3 cameras "
               f"{sorted(set(result['shapes'].values()))}, 50-step chunks, prompt tokens; "
-              f"{args.stream_episodes} episodes open per stream, window 256); RSS {total:.0f} MiB "
-              f"(main process now {memory['main']:.0f}"
+              f"{args.stream_episodes} episodes open per stream, window {STREAM_WINDOW}); "
+              f"RSS {total:.0f} MiB (main process now {memory['main']:.0f}"
               + "".join(f", worker peak {m:.0f}" for m in memory["workers"]) + " MiB); resume to "
               f"the first batch {result['resume_s']:.1f} s (reopening the open episodes, "
               "decoding each to its offset, refilling the window)")
 
-    diversity = sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, args.stream_episodes, 256)
+    diversity = sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, args.stream_episodes,
+                                 STREAM_WINDOW)
     for name, d in diversity.items():
         print(f"diversity, {name} (B1K's 10 000 episodes of ~{B1K_MEAN_EPISODE_FRAMES} frames; "
               f"10 000 consecutive samples): {d['distinct']:.0f} distinct episodes; same episode "

@@ -38,8 +38,8 @@ def action_normalizer(norm_stats: Mapping[str, stats_lib.NormStats], real_dim: i
 
 def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
                          norm_mode: str, action_horizon: int) -> np.ndarray:
-    """Each action dim's open/close boundary (`action_space.gripper_boundary`) in normalized units, padded: `[action_dim]`, or `[H, action_dim]` when normalized per
-    timestep."""
+    """Each action dim's open/close boundary (`action_space.gripper_boundary`) in normalized
+    units, padded: `[action_dim]`, or `[H, action_dim]` when normalized per timestep."""
     normalizer = action_normalizer(norm_stats, layout.real_dim, norm_mode, action_horizon)
     actions = stats_lib.fit_width(norm_stats["actions"], layout.real_dim, "norm stats 'actions'")
     return transforms.pad_last(normalizer(gripper_boundary(actions.q01, actions.q99)),

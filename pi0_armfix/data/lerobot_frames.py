@@ -103,10 +103,6 @@ class LeRobotFrameImages:
         position = int(np.searchsorted(self._starts, frame, side="right")) - 1
         return self._read(position, frame, self._video)
 
-    @property
-    def num_episodes(self) -> int:
-        return len(self._episodes)
-
     def episode_length(self, position: int) -> int:
         """Frames of the table's episode at `position`."""
         return int(self._starts[position + 1] - self._starts[position])

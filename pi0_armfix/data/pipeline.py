@@ -70,6 +70,28 @@ ConfigLike = Mapping[str, Any]
 
 # ---------------------------------------------------------------------- the Grain chain
 
+def _check_batch_size(global_batch_size: int, process_count: int) -> None:
+    if global_batch_size < 1 or global_batch_size % process_count:
+        raise ValueError(f"train.batch_size = {global_batch_size} must be a positive multiple of "
+                         f"the number of processes ({process_count})")
+
+
+def _batch_transform(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
+                     norm_stats: Mapping[str, stats_lib.NormStats], norm_mode: str | None,
+                     action_horizon: int, tokenize: Tokenize | None, actions_only: bool = False,
+                     image_size: tuple[int, int] = (224, 224)) -> BatchTransform:
+    """The run's `BatchTransform` (either chain's), its delta actions checked against the state
+    layout; `norm_mode` None: `data.norm`, else z-score."""
+    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
+    if mask is not None:
+        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
+                                            table.state.shape[1])
+    return BatchTransform(table, layout, norm_stats=norm_stats,
+                          norm_mode=norm_mode or data_cfg.get("norm") or "zscore",
+                          action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
+                          actions_only=actions_only, image_size=image_size)
+
+
 def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
                   seed: int, norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                   global_batch_size: int, process_index: int = 0, process_count: int = 1,
@@ -79,23 +101,17 @@ def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
     """The infinite MapDataset of this process's numpy batches (element i = step i), and the
     curriculum (for the phase of a step). `norm_mode`: the run's resolved normalization (default:
     `data.norm`, else z-score)."""
-    if global_batch_size < 1 or global_batch_size % process_count:
-        raise ValueError(f"train.batch_size = {global_batch_size} must be a positive multiple of "
-                         f"the number of processes ({process_count})")
+    _check_batch_size(global_batch_size, process_count)
     curriculum = curriculum_lib.Curriculum.from_config(data_cfg, seed)
-    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
-    if mask is not None:
-        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
-                                            table.state.shape[1])
+    transform = _batch_transform(table, layout, data_cfg, norm_stats=norm_stats,
+                                 norm_mode=norm_mode, action_horizon=action_horizon,
+                                 tokenize=tokenize, actions_only=actions_only,
+                                 image_size=image_size)
     frames = source_frames(table, layout, data_cfg, curriculum.sources, norm_stats["actions"])
     streams = [grain.MapDataset.source(frames[name]).shuffle(seed=stream_seed(seed, i)).repeat()
                for i, name in enumerate(curriculum.sources)]
     selector = SampleSelector(curriculum, streams, global_batch_size=global_batch_size,
                               process_index=process_index, process_count=process_count)
-    transform = BatchTransform(table, layout, norm_stats=norm_stats,
-                               norm_mode=norm_mode or data_cfg.get("norm") or "zscore",
-                               action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
-                               actions_only=actions_only, image_size=image_size)
     batches = (grain.MapDataset.range(sys.maxsize // global_batch_size)
                .map(selector.frames_of_step)
                .map(transform))
@@ -119,19 +135,12 @@ def stream_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLi
                    norm_mode: str | None = None) -> grain.IterDataset:
     """The infinite IterDataset of this process's numpy batches from episodes streamed front to
     back (the module docstring); every episode of `table` trains."""
-    if global_batch_size < 1 or global_batch_size % process_count:
-        raise ValueError(f"train.batch_size = {global_batch_size} must be a positive multiple of "
-                         f"the number of processes ({process_count})")
+    _check_batch_size(global_batch_size, process_count)
     if table.images is None or not hasattr(table.images, "episode_reader"):
         raise ValueError("data.video_access = 'stream' needs a LeRobot dataset's video cameras")
-    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
-    if mask is not None:
-        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
-                                            table.state.shape[1])
-    transform = BatchTransform(table, layout, norm_stats=norm_stats,
-                               norm_mode=norm_mode or data_cfg.get("norm") or "zscore",
-                               action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
-                               image_size=image_size)
+    transform = _batch_transform(table, layout, data_cfg, norm_stats=norm_stats,
+                                 norm_mode=norm_mode, action_horizon=action_horizon,
+                                 tokenize=tokenize, image_size=image_size)
     frames = video_stream.stream_frames(
         table.images, range(len(table.episode_lengths)), seed=seed,
         open_episodes=int(data_cfg.get("stream_episodes", 16)),
@@ -290,20 +299,21 @@ def make_train_iterator(config: ConfigLike, layout: ActionLayout, *,
         source = sources.open_source(data, layout)
     table = source.load_table(dataset_lib.training_episodes(config, source),
                               images=not actions_only, image_size=image_size)
+    seed = int(config.get("seed", 0))
     norm_mode = model_config_lib.norm_mode(config) if "model" in config else None
-    options = dict(sharding=sharding, global_batch_size=global_batch_size,
-                   seed=int(config.get("seed", 0)), num_workers=int(data.get("num_workers", 0)),
+    options = dict(sharding=sharding, global_batch_size=global_batch_size, seed=seed,
+                   num_workers=int(data.get("num_workers", 0)),
                    prefetch=int(data.get("prefetch", 2)))
     if video_access == "stream" and not actions_only:
         batches = stream_batches(
-            table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,
+            table, layout, data, seed=seed, norm_stats=norm_stats,
             action_horizon=action_horizon, global_batch_size=global_batch_size,
             process_index=jax.process_index(), process_count=jax.process_count(),
             tokenize=tokenize, image_size=image_size, norm_mode=norm_mode)
-        return StreamTrainIterator(batches, curriculum_lib.Curriculum.from_config(
-            data, int(config.get("seed", 0))), **options)
+        return StreamTrainIterator(batches, curriculum_lib.Curriculum.from_config(data, seed),
+                                   **options)
     batches, curriculum = train_batches(
-        table, layout, data, seed=int(config.get("seed", 0)), norm_stats=norm_stats,
+        table, layout, data, seed=seed, norm_stats=norm_stats,
         action_horizon=action_horizon, global_batch_size=global_batch_size,
         process_index=jax.process_index(), process_count=jax.process_count(),
         tokenize=tokenize, actions_only=actions_only, image_size=image_size,

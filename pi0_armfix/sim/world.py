@@ -77,20 +77,23 @@ from pi0_armfix.state_space import STATE_PRESETS
 # Where the world poses the torso (its first three joints; the fourth stays 0) and the arms:
 # around the published B1K 2025 action statistics, `[4, joints]` rows mean, std, q01, q99, rounded
 # to 4 decimals (the precision the recorded demo was generated with).
-B1K_2025_NORM_STATS = Path(__file__).resolve().parents[1] / "reference" / "b1k_2025_norm_stats.json"
+B1K_2025_NORM_STATS = (Path(__file__).resolve().parents[1] / "reference"
+                       / "b1k_2025_norm_stats.json")
 _LAYOUT = ActionLayout.preset("b1k_r1pro")
 _TORSO_START = _LAYOUT.groups["torso"][0]
 
 
-def _published_action_stats(dims: slice) -> np.ndarray:
+def _published_action_stats() -> np.ndarray:
+    """`[4, 23]`: the published actions' mean, std, q01, q99, rounded to 4 decimals."""
     with open(B1K_2025_NORM_STATS) as f:
         actions = json.load(f)["norm_stats"]["actions"]
-    return np.round(np.array([actions[k] for k in ("mean", "std", "q01", "q99")])[:, dims], 4)
+    return np.round(np.array([actions[k] for k in ("mean", "std", "q01", "q99")]), 4)
 
 
-_TORSO = _published_action_stats(slice(_TORSO_START, _TORSO_START + 3))
-_LEFT_ARM = _published_action_stats(slice(*_LAYOUT.groups["left_arm"]))
-_RIGHT_ARM = _published_action_stats(slice(*_LAYOUT.groups["right_arm"]))
+_PUBLISHED = _published_action_stats()
+_TORSO = _PUBLISHED[:, _TORSO_START:_TORSO_START + 3]
+_LEFT_ARM = _PUBLISHED[:, slice(*_LAYOUT.groups["left_arm"])]
+_RIGHT_ARM = _PUBLISHED[:, slice(*_LAYOUT.groups["right_arm"])]
 # The torso's joints move together (a crouch): signs of their loadings on one latent posture.
 TORSO_LOADING = np.array([1.0, -1.0, -1.0])
 
