@@ -30,8 +30,9 @@ every phase of a kind succeeded (and the whole task), why the phases failed, the
 and the world episodes (resampled like the held-out ones, from the per-episode outcomes kept in
 `result.json`). A finished run without them gets them on the next call.
 
-A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1k`); every
-`--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
+A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1k`), optionally
+with overrides of its own after `@` (`arm_focused@data.video_access=random`: two variants of one
+file compare); every `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
 configs with other normalizations or delta actions compare).
 
@@ -80,17 +81,28 @@ RESULT_FILE = "result.json"
 
 
 def run_folder(workdir: Path, config: str, seed: int) -> Path:
-    return workdir / config.replace(":", "_") / f"seed_{seed}"
+    return workdir / config.replace(":", "_").replace("/", "_") / f"seed_{seed}"
+
+
+def parse_config(config: str) -> tuple[str, str, list[str]]:
+    """A study's config name -> (file name of configs/, its argument ('' for none), overrides of
+    its own): `arm_focused`, `arm_focused:b1k`, `arm_focused@data.video_access=random` (every
+    `@key=value` is passed to this config's runs only)."""
+    head, *overrides = config.split("@")
+    name, _, arg = head.partition(":")
+    return name, arg, overrides
 
 
 def train_command(config: str, seed: int, steps: int, folder: Path,
                   overrides: Sequence[str]) -> list[str]:
-    """The `pi0_armfix.train` command line of one run."""
-    name, colon, arg = config.partition(":")
-    return [sys.executable, "-m", "pi0_armfix.train", f"--config=configs/{name}.py{colon}{arg}",
+    """The `pi0_armfix.train` command line of one run (`overrides`: the study's, then the
+    config's own)."""
+    name, arg, own = parse_config(config)
+    return [sys.executable, "-m", "pi0_armfix.train",
+            f"--config=configs/{name}.py" + (f":{arg}" if arg else ""),
             f"--workdir={folder}", f"--config.seed={seed}",
             f"--config.train.total_steps={steps}", f"--config.eval.every={steps}",
-            *[f"--config.{o}" for o in overrides]]
+            *[f"--config.{o}" for o in [*overrides, *own]]]
 
 
 def final_evaluation(folder: Path) -> dict[str, float]:
@@ -350,7 +362,7 @@ def main(argv: Sequence[str]) -> None:
     configs = [c for c in FLAGS.configs if c]
     if not configs:
         raise SystemExit("pi0_armfix.study: --configs names no config")
-    missing = [c for c in configs if not (_configs_dir() / f"{c.partition(':')[0]}.py").is_file()]
+    missing = [c for c in configs if not (_configs_dir() / f"{parse_config(c)[0]}.py").is_file()]
     if missing:
         raise SystemExit(f"pi0_armfix.study: --configs names {missing}, which are not files of "
                          f"{_configs_dir()}")
@@ -360,6 +372,10 @@ def main(argv: Sequence[str]) -> None:
     if bad:
         raise SystemExit(f"pi0_armfix.study: --override {bad} must be key=value "
                          "(e.g. data.root=/data/b1k)")
+    bad = [c for c in configs if any("=" not in o for o in parse_config(c)[2])]
+    if bad:
+        raise SystemExit(f"pi0_armfix.study: --configs {bad}: what follows a config's '@' must "
+                         "be key=value (e.g. arm_focused@data.video_access=random)")
     if FLAGS.primary and FLAGS.primary not in configs:
         raise SystemExit(f"pi0_armfix.study: --primary={FLAGS.primary} is not one of --configs "
                          f"{configs}")

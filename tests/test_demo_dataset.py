@@ -13,7 +13,7 @@ import pytest
 from ml_collections import ConfigDict
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import demo
+from pi0_armfix.data import demo, video
 from pi0_armfix.data.lerobot import LeRobotSource
 from pi0_armfix.data.sources import open_source
 from pi0_armfix.sim.world import B1K_2025_NORM_STATS
@@ -231,3 +231,19 @@ def test_the_demo_in_lerobot_v30_holds_the_same_frames(tmp_path):
     assert images.keys() == expected.keys()
     for camera in images:
         np.testing.assert_array_equal(images[camera], expected[camera])
+
+
+def test_the_demo_with_video_cameras_holds_the_same_frames_up_to_the_codec(tmp_path):
+    spec = dataclasses.replace(demo.DemoSpec(), num_episodes=2)
+    videos = LeRobotSource(demo.write_demo_dataset(
+        tmp_path / "video", spec, video=demo.VideoSpec(codec="libx265", gop=8)), LAYOUT)
+    pngs = LeRobotSource(demo.write_demo_dataset(tmp_path / "png", spec), LAYOUT)
+    mp4s = sorted((tmp_path / "video" / "videos").rglob("*.mp4"))
+    assert len(mp4s) == 2 * len(demo.CAMERAS)
+    assert video.keyframe_interval(mp4s[0])[::3] == ("hevc", 8)
+    table, expected = videos.load_table(), pngs.load_table()
+    for frame in (0, 7, 9, 150):  # 7 and 9: shown before / after a keyframe's neighbours
+        images, truth = table.images(frame), expected.images(frame)
+        for camera in images:
+            error = np.abs(images[camera].astype(int) - truth[camera].astype(int)).mean()
+            assert error < 3, (frame, camera, error)  # crf 10: close to the rendered pixels

@@ -360,3 +360,16 @@ def test_a_torn_result_json_is_named_with_the_fix(tmp_path):
     (folder / study.RESULT_FILE).write_text('{"config": "uniform", "se')
     with pytest.raises(ValueError, match=r"uniform/seed_0/result.json is not JSON .*delete it"):
         study.load_result(folder)
+
+
+def test_a_config_with_overrides_of_its_own_passes_them_to_its_runs_only(tmp_path):
+    assert study.parse_config("arm_focused:b1k@data.video_access=random@seed=3") == (
+        "arm_focused", "b1k", ["data.video_access=random", "seed=3"])
+    command = study.train_command("arm_focused@data.video_access=random", 2, 10, tmp_path,
+                                  ["data.root=/d"])
+    assert "--config=configs/arm_focused.py" in command
+    assert command[-2:] == ["--config.data.root=/d", "--config.data.video_access=random"]
+    plain = study.train_command("arm_focused", 2, 10, tmp_path, ["data.root=/d"])
+    assert plain[-1] == "--config.data.root=/d"
+    assert (study.run_folder(tmp_path, "arm_focused@data.root=/a/b", 0)
+            == tmp_path / "arm_focused@data.root=_a_b" / "seed_0")

@@ -68,28 +68,43 @@ def generate_episode(spec: DemoSpec, index: int) -> dict:
                        CAMERAS[2]: images["right_wrist"]}}
 
 
-def _write(root: Path, spec: DemoSpec, version: str) -> None:
+def _write(root: Path, spec: DemoSpec, version: str, video: VideoSpec | None) -> None:
     size = (spec.image_size, spec.image_size)
+    encoding = (dict(image_format="png") if video is None else
+                dict(image_format="video", video_codec=video.codec, video_gop=video.gop,
+                     video_crf=video.crf, video_options=(
+                         {"x265-params": "log-level=none"} if video.codec == "libx265" else None)))
     with LeRobotWriter(root, version=version, fps=spec.fps, cameras={c: size for c in CAMERAS},
-                       image_format="png") as writer:
+                       **encoding) as writer:
         for index in tqdm(range(spec.num_episodes), desc="demo episodes", unit="ep"):
             episode = generate_episode(spec, index)
             writer.add_episode(episode["actions"], episode["state"], episode["task"],
                                episode["images"])
 
 
-def write_demo_dataset(output: str | Path, spec: DemoSpec = DemoSpec(), version: str = "v2.1"
-                       ) -> Path:
-    """Writes the demo as a LeRobot root of `version` (the cached default demo: v2.1) at `output`
-    (which must not exist), atomically: into a temporary sibling folder first, renamed when
-    complete."""
+@dataclasses.dataclass(frozen=True)
+class VideoSpec:
+    """The cameras as mp4 video features instead of PNG images inside the parquet files: `codec`
+    (a PyAV encoder; "libx265" is B1K's HEVC), `gop` frames between keyframes (B1K 2025: one
+    keyframe per episode, so any gop at least the longest episode; B1K 2026: 8), `crf` the
+    encoder's quality (lower is closer to the rendered pixels)."""
+    codec: str = "libx265"
+    gop: int = 8
+    crf: int = 10
+
+
+def write_demo_dataset(output: str | Path, spec: DemoSpec = DemoSpec(), version: str = "v2.1",
+                       video: VideoSpec | None = None) -> Path:
+    """Writes the demo as a LeRobot root of `version` (the cached default demo: v2.1, PNG
+    cameras; `video`: mp4 cameras) at `output` (which must not exist), atomically: into a
+    temporary sibling folder first, renamed when complete."""
     output = Path(output)
     if output.exists():
         raise ValueError(f"{output} already exists; choose a new output folder")
     output.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial-", dir=output.parent))
     try:
-        _write(staging / "dataset", spec, version)
+        _write(staging / "dataset", spec, version, video)
         os.rename(staging / "dataset", output)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

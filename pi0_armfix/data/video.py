@@ -100,6 +100,30 @@ class VideoDecoder:
         self._decoder = self._container.decode(self._stream)
         self._position = -1
 
+    def _redecoding_frames(self, wanted: int, seek_from: float | None):
+        """The decoder's frames; after a seek, seeks further back while its first frame comes
+        after `wanted`. A container indexes keyframes by decoding time, and with B-frames an
+        open-GOP keyframe (HEVC's CRA, x265's default) decodes before the frames shown just
+        before it, which the decoder drops when it starts there: a seek to such a frame lands
+        after it. Each retry goes twice as far back (from one GOP's worth of frames)."""
+        back = 0.0
+        while True:
+            first = seek_from is not None
+            for frame in self._decoder:
+                if first:
+                    first = False
+                    number = (int(round(frame.time * self.fps)) if frame.time is not None
+                              else 0)
+                    if number > wanted and seek_from > 0:
+                        self.decoded += 1
+                        back = max(2 * back, self.max_gap / self.fps)
+                        seek_from = max(wanted / self.fps - back, 0.0)
+                        self._seek(seek_from)
+                        break
+                yield frame
+            else:
+                return
+
     def _array(self, frame) -> np.ndarray:
         if self._resize:
             frame = self._reformatter.reformat(frame, width=self.width, height=self.height,
@@ -115,11 +139,13 @@ class VideoDecoder:
         if wanted in self._frames:
             self._frames.move_to_end(wanted)
             return self._frames[wanted]
+        seek_from = None  # seconds the decoder last sought to, while its first frame is due
         if self._decoder is None or not (self._position < wanted <= self._position + self.max_gap):
-            self._seek(seconds)
+            seek_from = seconds
+            self._seek(seek_from)
         context = self._stream.codec_context
         try:
-            for frame in self._decoder:
+            for frame in self._redecoding_frames(wanted, seek_from):
                 self.decoded += 1
                 # A stream without timestamps is numbered by decoding order from its start.
                 number = (int(round(frame.time * self.fps)) if frame.time is not None
