@@ -131,8 +131,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # How camera frames are read (pi0_armfix.data.video_stream): 'random' = each sample's frame on
     # request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded front to
     # back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC has one
-    # keyframe per episode); 'auto' = 'stream' when keyframes lie more than 32 frames apart and
-    # there is no curriculum, else 'random'. The banner says which and why.
+    # keyframe per episode; a curriculum's weights choose the episodes opened); 'auto' = 'stream'
+    # when keyframes lie more than 32 frames apart, else 'random'. The banner says which and why.
     config.data.video_access = "auto"
     config.data.stream_episodes = 16  # 'stream': episodes open (decoding) at once
     config.data.stream_shuffle = 256  # 'stream': samples mixed by the window shuffle

@@ -194,8 +194,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     keyframes = (source.video_keyframes()
                  if config.data.images and hasattr(source, "video_keyframes") else None)
     video_access, video_why = video_stream.choose_access(
-        config.data.video_access, keyframes, curriculum=bool(config.data.curriculum),
-        open_episodes=config.data.stream_episodes, shuffle_window=config.data.stream_shuffle)
+        config.data.video_access, keyframes, open_episodes=config.data.stream_episodes, shuffle_window=config.data.stream_shuffle)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     for line in banner(config, workdir, model_config, layout, mesh, source,
                        video_why if keyframes is not None else ""):

@@ -13,7 +13,7 @@ from pi0_armfix.configs import arm_curriculum, arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import evaluate, train
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import selection
+from pi0_armfix.data import selection, video_stream
 from pi0_armfix.data.lerobot import LeRobotSource
 from pi0_armfix.training import checkpoint, sharding
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
@@ -128,3 +128,26 @@ def test_a_streamed_run_resumed_from_its_checkpoint_ends_bitwise_where_an_uninte
                          for run in ("straight", "resumed"))
     for a, b in zip(jax.tree.leaves(straight), jax.tree.leaves(resumed)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_a_curriculum_streams_only_the_episodes_of_its_phase(b1k, tmp_path, capsys,
+                                                             monkeypatch):
+    root, _ = b1k
+    listed = tmp_path / "arm_heavy.json"
+    listed.write_text('{"episodes": [10010]}')
+    config = b1k_config(root, **{"train.total_steps": 3, "eval.every": 0,
+                                 "data.arm_heavy_episodes": str(listed),
+                                 "data.stream_episodes": 2, "data.stream_shuffle": 4})
+    config.data.curriculum = ((3, {"arm_heavy": 1.0}),)
+    opened = []
+    original = video_stream.EpisodeStream.__init__
+
+    def recording(self, images, position):
+        opened.append(position)
+        original(self, images, position)
+
+    monkeypatch.setattr(video_stream.EpisodeStream, "__init__", recording)
+    train.train_and_evaluate(config, str(tmp_path / "run"))
+    assert "streamed" in capsys.readouterr().out
+    # The training episodes are 10, 20, 10010, 10020 (two held out): 10010 is position 2.
+    assert opened and set(opened) == {2}

@@ -24,7 +24,8 @@ def table(tmp_path_factory):
 
 def _stream(table, **changes):
     options = dict(seed=0, open_episodes=3, shuffle_window=8) | changes
-    return video_stream.stream_frames(table.images, range(len(table.episode_lengths)), **options)
+    order = video_stream.episode_order(range(len(table.episode_lengths)), seed=options["seed"])
+    return video_stream.stream_frames(table.images, order, **options)
 
 
 def _identified(table, sample) -> tuple[int, int]:
@@ -114,9 +115,9 @@ def test_stream_options_below_one_are_an_error_naming_them(table):
         _stream(table, open_episodes=0)
 
 
-def _access(requested, keyframes, curriculum=False):
-    return video_stream.choose_access(requested, keyframes, curriculum=curriculum,
-                                      open_episodes=16, shuffle_window=256)
+def _access(requested, keyframes):
+    return video_stream.choose_access(requested, keyframes, open_episodes=16,
+                                      shuffle_window=256)
 
 
 def test_auto_streams_long_gop_video_and_reads_short_gop_video_on_request():
@@ -127,14 +128,12 @@ def test_auto_streams_long_gop_video_and_reads_short_gop_video_on_request():
     assert _access("auto", None)[0] == "random"  # no video camera
 
 
-def test_auto_reads_on_request_when_a_curriculum_draws_samples_by_source_and_says_why():
-    mode, why = _access("auto", ("hevc 720x720 (head)", None), curriculum=True)
-    assert mode == "random" and "curriculum" in why and "slow" in why
+def test_random_reads_of_long_gop_video_say_they_are_slow_and_name_the_stream():
+    mode, why = _access("random", ("hevc 720x720 (head)", None))
+    assert mode == "random" and "slow" in why and "data.video_access='stream'" in why
 
 
 def test_a_stream_the_data_or_config_cannot_have_is_an_error_naming_the_key_and_the_fix():
-    with pytest.raises(ValueError, match="data.video_access = 'stream'.*data.curriculum"):
-        _access("stream", ("hevc 720x720 (head)", None), curriculum=True)
     with pytest.raises(ValueError, match="no camera of the dataset is a video"):
         _access("stream", None)
     with pytest.raises(ValueError, match="data.video_access = 'fast' must be one of"):
@@ -166,3 +165,43 @@ def test_a_stream_draws_from_its_open_episodes_where_random_access_draws_from_al
     assert diversity["stream"]["same@1"] > 0.1
     assert diversity["random access"]["distinct"] > 150
     assert diversity["random access"]["same@1"] < 0.02
+
+
+# Ten episodes: the first two long (1000 frames), the others 100; `arm_heavy` draws the first two.
+_LENGTHS = np.array([1000, 1000] + [100] * 8)
+_SOURCES = {"full": np.arange(10), "arm_heavy": np.array([0, 1])}
+
+
+def _curriculum_order(phases, **options):
+    from pi0_armfix.data.curriculum import Curriculum, parse_curriculum
+
+    curriculum = Curriculum(parse_curriculum(phases), seed=0)
+    return video_stream.curriculum_episode_order(
+        curriculum, [_SOURCES[name] for name in curriculum.sources], _LENGTHS,
+        **dict(seed=0, global_batch_size=10, open_episodes=2) | options)
+
+
+def test_a_mix_opens_episodes_so_that_each_source_gets_its_weight_of_the_frames():
+    order = _curriculum_order([(10, {"full": 0.5, "arm_heavy": 0.5})])
+    opened = np.array([order[i] for i in range(20_000)])
+    frames = _LENGTHS[opened]
+    long_share = frames[opened < 2].sum() / frames.sum()
+    # Half the frames from arm_heavy (all long), half from full (long in 2000 of its 2800).
+    assert abs(long_share - (0.5 + 0.5 * 2000 / 2800)) < 0.02
+    assert set(opened.tolist()) == set(range(10))
+
+
+def test_a_phase_switch_changes_the_episodes_opened_from_when_they_are_read():
+    # Episodes average 280 frames; 2 open; batches of 10: phase 0 (steps < 56) covers the
+    # openings read before sample 560, i.e. openings 0 .. 3.
+    order = _curriculum_order([(56, {"arm_heavy": 1.0}), (100, {"full": 1.0})])
+    opened = [order[i] for i in range(200)]
+    assert set(opened[:4]) <= {0, 1}
+    assert set(opened[4:]) - {0, 1}  # the full dataset from then on
+
+
+def test_processes_open_alternate_openings_of_the_same_draw():
+    mix = [(10, {"full": 1.0, "arm_heavy": 1.0})]
+    single = _curriculum_order(mix)
+    halves = [_curriculum_order(mix, process_index=p, process_count=2) for p in (0, 1)]
+    assert [halves[i % 2][i // 2] for i in range(100)] == [single[i] for i in range(100)]

@@ -252,8 +252,9 @@ def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window
     rng = np.random.default_rng(0)
     lengths = rng.integers(mean_frames // 2, 3 * mean_frames // 2 + 1, episodes)
     table = _EpisodeLengths(lengths)
-    stream = iter(video_stream.stream_frames(table, range(episodes), seed=0,
-                                             open_episodes=open_episodes, shuffle_window=window))
+    stream = iter(video_stream.stream_frames(
+        table, video_stream.episode_order(range(episodes), seed=0), seed=0,
+        open_episodes=open_episodes, shuffle_window=window))
     streamed = np.array([int(next(stream)["frame"]) for _ in range(samples)])
     stream.close()
     drawn = rng.integers(0, int(table.starts[-1]), samples)

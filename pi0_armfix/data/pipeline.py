@@ -51,6 +51,7 @@ from typing import Any
 
 import grain
 import jax
+import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import curriculum as curriculum_lib
@@ -62,7 +63,7 @@ from pi0_armfix.data import transforms
 from pi0_armfix.data import video_stream
 from pi0_armfix.data.batching import BatchTransform, Tokenize
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.sampling import SampleSelector, source_frames, stream_seed
+from pi0_armfix.data.sampling import SampleSelector, source_episodes, source_frames, stream_seed
 from pi0_armfix.model import config as model_config_lib
 
 ConfigLike = Mapping[str, Any]
@@ -134,18 +135,31 @@ def stream_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLi
                    tokenize: Tokenize | None = None, image_size: tuple[int, int] = (224, 224),
                    norm_mode: str | None = None) -> grain.IterDataset:
     """The infinite IterDataset of this process's numpy batches from episodes streamed front to
-    back (the module docstring); every episode of `table` trains."""
+    back (the module docstring); every episode of `table` trains, or, with a curriculum or an
+    arm-heavy mix, those its sources draw, by their weights (`curriculum_episode_order`)."""
     _check_batch_size(global_batch_size, process_count)
     if table.images is None or not hasattr(table.images, "episode_reader"):
         raise ValueError("data.video_access = 'stream' needs a LeRobot dataset's video cameras")
     transform = _batch_transform(table, layout, data_cfg, norm_stats=norm_stats,
                                  norm_mode=norm_mode, action_horizon=action_horizon,
                                  tokenize=tokenize, image_size=image_size)
+    open_episodes = int(data_cfg.get("stream_episodes", 16))
+    curriculum = curriculum_lib.Curriculum.from_config(data_cfg, seed)
+    if curriculum.sources == ("full",) and len(curriculum.phases) == 1:
+        order = video_stream.episode_order(range(table.num_episodes), seed=seed,
+                                           process_index=process_index,
+                                           process_count=process_count)
+    else:
+        chosen = source_episodes(table, layout, data_cfg, curriculum.sources,
+                                 norm_stats["actions"])
+        order = video_stream.curriculum_episode_order(
+            curriculum, [np.flatnonzero(chosen[name]) for name in curriculum.sources],
+            table.episode_lengths, seed=seed, global_batch_size=global_batch_size,
+            open_episodes=open_episodes, process_index=process_index,
+            process_count=process_count)
     frames = video_stream.stream_frames(
-        table.images, range(len(table.episode_lengths)), seed=seed,
-        open_episodes=int(data_cfg.get("stream_episodes", 16)),
-        shuffle_window=int(data_cfg.get("stream_shuffle", 256)),
-        process_index=process_index, process_count=process_count)
+        table.images, order, seed=seed, open_episodes=open_episodes,
+        shuffle_window=int(data_cfg.get("stream_shuffle", 256)))
     return frames.batch(global_batch_size // process_count, drop_remainder=True).map(
         _StreamBatch(transform))
 

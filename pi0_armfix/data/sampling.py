@@ -103,13 +103,23 @@ class SampleSelector:
 def source_frames(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike,
                   names: Sequence[str], action_stats: stats_lib.NormStats
                   ) -> dict[str, EpisodeFrames]:
-    """The frames of the table that each named curriculum source draws from. The on-the-fly
-    arm-heavy selection measures motion in z-score units of `action_stats`, as
+    """The frames of the table that each named curriculum source draws from (its episodes:
+    `source_episodes`)."""
+    return {name: EpisodeFrames.of_table(table, None if name == "full" else chosen)
+            for name, chosen in source_episodes(table, layout, data_cfg, names,
+                                                action_stats).items()}
+
+
+def source_episodes(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike,
+                    names: Sequence[str], action_stats: stats_lib.NormStats
+                    ) -> dict[str, np.ndarray]:
+    """`[E]` bool per named curriculum source: the table's episodes it draws from. The
+    on-the-fly arm-heavy selection measures motion in z-score units of `action_stats`, as
     `filter_arm_heavy_episodes` does with the run's stats, so both select the same episodes."""
-    frames = {}
+    episodes_of = {}
     for name in names:
         if name == "full":
-            frames[name] = EpisodeFrames.of_table(table)
+            episodes_of[name] = np.ones(table.num_episodes, bool)
             continue
         listed = data_cfg.get("arm_heavy_episodes") or ""
         if listed:
@@ -125,9 +135,9 @@ def source_frames(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLik
         if not chosen.any():
             raise ValueError(f"curriculum source 'arm_heavy': {where} selects none of the "
                              f"{table.num_episodes} training episodes")
-        frames[name] = EpisodeFrames.of_table(table, chosen)
+        episodes_of[name] = chosen
         logging.info("curriculum source 'arm_heavy': %d of %d training episodes (%s)",
                      int(chosen.sum()), table.num_episodes, where)
-    return frames
+    return episodes_of
 
 

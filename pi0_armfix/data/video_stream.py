@@ -15,7 +15,8 @@ window shuffle of `shuffle_window` samples:
       -> WindowShuffleIterDataset(window_size=shuffle_window)  the samples of each window of
                          that many shuffled
 
-    frames = stream_frames(images, positions, seed=0, open_episodes=16, shuffle_window=256)
+    order = episode_order(positions, seed=0)   # or curriculum_episode_order(...)
+    frames = stream_frames(images, order, seed=0, open_episodes=16, shuffle_window=256)
     it = iter(frames)
     sample = next(it)        # {"frame": int64 table row, "images": {camera: uint8 [h, w, 3]}}
     state = it.get_state()   # episode order position, each open episode's frame offset, window
@@ -25,6 +26,13 @@ A sample's neighbours come from at most `open_episodes` episodes (those open), a
 holds `shuffle_window / open_episodes` consecutive frames of each: the correlation between
 samples a stream trades for decoding each frame once. A restored iterator reopens its episodes
 and decodes each from its keyframe up to its offset (the restart cost of a resume).
+
+A curriculum or an arm-heavy mix (`data.curriculum`) acts on which episodes are opened
+(`curriculum_episode_order`): each opening draws its source with the weights of the phase the
+run is in when that episode starts to be read, in proportion to the weight over the source's mean
+episode length so that each source's share of the frames is its weight, as it is with random
+access. A phase switch reaches the batches as the episodes open at the switch are read, and the
+weights hold for the episodes opened, not for each batch.
 
 `data.video_access` chooses between this and reading each sample's frame on request
 (`choose_access`): 'auto' streams video whose keyframes lie more than `STREAM_ABOVE_GOP` frames
@@ -41,7 +49,9 @@ import grain
 import numpy as np
 from grain import experimental as grain_experimental
 
+from pi0_armfix.data.curriculum import Curriculum, counter_uniform
 from pi0_armfix.data.lerobot_frames import LeRobotFrameImages
+from pi0_armfix.data.sampling import stream_seed
 
 
 ACCESS_MODES = ("auto", "stream", "random")
@@ -51,7 +61,7 @@ STREAM_ABOVE_GOP = 32
 
 
 def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
-                  curriculum: bool, open_episodes: int, shuffle_window: int) -> tuple[str, str]:
+                  open_episodes: int, shuffle_window: int) -> tuple[str, str]:
     """`(mode, why)`: how a run reads its camera frames, 'stream' or 'random', and the banner's
     sentence saying why.
 
@@ -59,8 +69,6 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
       requested: `data.video_access`, one of `ACCESS_MODES`.
       keyframes: the source's `(video description, frames between keyframes or None for a
         long GOP)`, or None when no camera is a video.
-      curriculum: the run has a curriculum or an arm-heavy mix (`data.curriculum`), which draws
-        each sample from its phase's weighted sources: read on request.
     Raises:
       ValueError naming `data.video_access` and the fix, for an unknown mode or a stream the
       data or the config cannot have.
@@ -75,13 +83,8 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
     description, interval = keyframes
     gop = ("one keyframe in its first packets (a long GOP)" if interval is None
            else f"a keyframe every {interval} frames")
-    if requested == "stream" and curriculum:
-        raise ValueError("data.video_access = 'stream' cannot draw the samples of "
-                         "data.curriculum's weighted sources: set data.video_access='random' "
-                         "(or 'auto'), or data.curriculum=()")
     long_gop = interval is None or interval > STREAM_ABOVE_GOP
-    mode = requested if requested != "auto" else (
-        "stream" if long_gop and not curriculum else "random")
+    mode = requested if requested != "auto" else ("stream" if long_gop else "random")
     chosen = "data.video_access" + (" = 'auto'" if requested == "auto" else "")
     if mode == "stream":
         return mode, (f"{description}, {gop}: streamed ({chosen}), {open_episodes} episodes "
@@ -90,9 +93,8 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
     if not long_gop:
         return mode, (f"{description}, {gop}: frames read on request ({chosen}), each decoding "
                       "at most that many")
-    reason = "the curriculum draws samples by source" if requested == "auto" else chosen
-    return mode, (f"{description}, {gop}: frames read on request ({reason}), each decoding from "
-                  "the episode's start: slow; data.video_access='stream' (no curriculum) or "
+    return mode, (f"{description}, {gop}: frames read on request ({chosen}), each decoding from "
+                  "the episode's start: slow; data.video_access='stream' or "
                   "tools.reencode_videos")
 
 
@@ -148,17 +150,78 @@ def episode_order(positions: Sequence[int], *, seed: int, process_index: int = 0
     return order[process_index::process_count]
 
 
-def stream_frames(images: LeRobotFrameImages, positions: Sequence[int], *, seed: int,
-                  open_episodes: int, shuffle_window: int, process_index: int = 0,
-                  process_count: int = 1) -> grain.IterDataset:
-    """This process's infinite stream of frames of the episodes at `positions` of the table
-    (see the module docstring)."""
+class _WeightedEpisodes(Sequence):
+    """Opening i -> the table position of the episode it opens (`curriculum_episode_order`)."""
+
+    def __init__(self, curriculum: Curriculum, orders: Sequence[grain.MapDataset],
+                 probs: Sequence[tuple[float, ...]], *, frames_per_opening: float,
+                 openings_before_reading: int, global_batch_size: int):
+        self._curriculum, self._orders, self._probs = curriculum, list(orders), list(probs)
+        self._frames_per_opening = frames_per_opening
+        self._openings_before_reading = openings_before_reading
+        self._global_batch_size = global_batch_size
+
+    def __len__(self) -> int:
+        return 2**62  # infinite: every source's order repeats
+
+    def __getitem__(self, i: int) -> int:
+        # Open streams are read at the same rate, so opening i starts to be read once about
+        # (i - openings_before_reading) episodes' worth of frames have gone into batches.
+        sample = max(i - self._openings_before_reading, 0) * self._frames_per_opening
+        phase = self._curriculum.phase_at(int(sample) // self._global_batch_size)
+        cumulative = np.cumsum(self._probs[phase])
+        u = counter_uniform(self._curriculum.seed, i)
+        source = min(int(np.searchsorted(cumulative, u, side="right")), len(cumulative) - 1)
+        return int(self._orders[source][i])
+
+
+def curriculum_episode_order(curriculum: Curriculum, source_positions: Sequence[np.ndarray],
+                             episode_lengths: np.ndarray, *, seed: int, global_batch_size: int,
+                             open_episodes: int, process_index: int = 0, process_count: int = 1
+                             ) -> grain.MapDataset:
+    """The infinite order in which this process opens episodes under a curriculum or an
+    arm-heavy mix: opening i (counted over all processes) draws its source with the weights of
+    the phase the run is in when it starts to be read (estimated from the mean episode length),
+    each source in proportion to its weight over its mean episode length (so that sources get
+    their weights' share of the frames), and opens element i of that source's seeded,
+    repeated permutation. Process `process_index` takes every `process_count`-th opening.
+
+    Args:
+      curriculum: the run's phases and draw seed; `curriculum.sources[k]` draws from the table
+        positions `source_positions[k]` `[e_k]`.
+      episode_lengths: `[E]` frames of each episode of the table.
+      global_batch_size, open_episodes: the run's (for when an opening is read).
+    """
+    if not 0 <= process_index < process_count:
+        raise ValueError(f"process_index {process_index} outside [0, {process_count})")
+    lengths = np.asarray(episode_lengths, np.float64)
+    for name, positions in zip(curriculum.sources, source_positions):
+        if not len(positions):
+            raise ValueError(f"curriculum source {name!r} has no episodes to stream")
+    mean_length = [float(lengths[np.asarray(p)].mean()) for p in source_positions]
+    probs = []
+    for phase in curriculum.phases:
+        per_frame = {s: w / mean_length[curriculum.sources.index(s)]
+                     for s, w in phase.weights.items()}
+        total = sum(per_frame.values())
+        probs.append(tuple(per_frame.get(s, 0.0) / total for s in curriculum.sources))
+    orders = [grain.MapDataset.source(list(map(int, p))).shuffle(seed=stream_seed(seed, k))
+              .repeat() for k, p in enumerate(source_positions)]
+    frames_per_opening = float(np.mean(lengths)) if len(lengths) else 1.0
+    episodes = _WeightedEpisodes(curriculum, orders, probs, frames_per_opening=frames_per_opening,
+                                 openings_before_reading=open_episodes * process_count,
+                                 global_batch_size=global_batch_size)
+    return grain.MapDataset.source(episodes)[process_index::process_count]
+
+
+def stream_frames(images: LeRobotFrameImages, order: grain.MapDataset, *, seed: int,
+                  open_episodes: int, shuffle_window: int) -> grain.IterDataset:
+    """This process's infinite stream of frames of the episodes in `order` (this process's
+    `episode_order` or `curriculum_episode_order`; see the module docstring)."""
     if open_episodes < 1 or shuffle_window < 1:
         raise ValueError(f"open_episodes ({open_episodes}) and shuffle_window ({shuffle_window}) "
                          "must be >= 1")
-    episodes = episode_order(positions, seed=seed, process_index=process_index,
-                             process_count=process_count).map(
-                                 lambda position: EpisodeStream(images, position))
+    episodes = order.map(lambda position: EpisodeStream(images, position))
     interleaved = grain_experimental.InterleaveIterDataset(episodes, cycle_length=open_episodes)
     return grain_experimental.WindowShuffleIterDataset(interleaved, window_size=shuffle_window,
                                                        seed=seed)
