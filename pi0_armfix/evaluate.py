@@ -28,7 +28,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
 import jax
-import ml_collections
 import numpy as np
 from absl import app, flags
 from etils import epath
@@ -38,6 +37,7 @@ from pi0_armfix import console, hysteresis, inference
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
@@ -119,36 +119,37 @@ class Evaluator:
     Built once per run (reads the held-out episodes, compiles the sampler on first use).
 
     Args:
-      config: the run config (`data`, `eval`, `seed`).
-      layout, model_config: the run's action layout and model.
+      spec: the run's data spec (its layout, held-out split, normalization, seed).
+      eval_cfg: the run's `eval` section.
+      model_config: the run's model.
       norm_stats: the run's `{"actions", "state"}` statistics.
       tokenize: the run's prompt tokenizer.
       mesh: the run's mesh; params_sharding: NamedShardings of the params.
-      source: the run's opened data source (None = open the one `config.data` names).
+      source: the run's opened data source (None = open the one `spec` names).
       noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
     """
 
-    def __init__(self, config: ml_collections.ConfigDict, layout: ActionLayout,
+    def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
                  model_config: model_config_lib.Pi0Config,
                  norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
                  mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
                  noise_factor: np.ndarray | None = None):
-        eval_cfg = config.eval
+        layout = spec.layout
         check_eval_config(eval_cfg, layout, mesh.size)
         self.layout = layout
         self.eval_cfg = eval_cfg
         self.groups = eval_groups(eval_cfg, layout)
         self.chunks = heldout_lib.HeldOutChunks(
-            config, layout, norm_stats, horizon=model_config.action_horizon,
+            spec, eval_cfg, norm_stats, horizon=model_config.action_horizon,
             sums=functools.partial(eval_metrics.chunk_sums, layout=layout,
                                       gripper_groups=self.groups["gripper_groups"],
                                       switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
             tokenize=tokenize, image_size=model_config.image_resolution, source=source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
-        self.seed = int(config.seed)
+        self.seed = spec.seed
         self._sample = jax.jit(
             functools.partial(flow_model.sample_actions, config=model_config,
-                              num_steps=eval_cfg.num_steps, noise_factor=noise_factor),
+                              num_steps=eval_cfg["num_steps"], noise_factor=noise_factor),
             in_shardings=(params_sharding, None, self.batch_sharding),
             out_shardings=sharding_lib.replicated(mesh))
 
@@ -233,10 +234,11 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     writable_folder(out)  # before the sampling, not after
     model_config, params = run.model_config, run.params
     mesh = sharding_lib.make_mesh(1)
-    source = sources.open_source(config.data, layout)
+    spec = DataSpec.from_config(config, layout)
+    source = sources.open_source(spec.options, layout)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     with jax.set_mesh(mesh):
-        evaluator = Evaluator(config, layout, model_config, run.norm_stats, tokenize, mesh=mesh,
+        evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
                               params_sharding=sharding_lib.tree_shardings(params, mesh),
                               source=source, noise_factor=inference.run_noise_factor(
                                   workdir, config, layout, model_config))

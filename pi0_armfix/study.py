@@ -65,6 +65,7 @@ from tqdm import tqdm
 from pi0_armfix import console, evaluate, inference, study_stats
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import json_files
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
@@ -331,7 +332,8 @@ def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
         return None
     groups = evaluate.eval_groups(run.config.eval, run.layout)
     chunks = heldout_lib.HeldOutChunks(
-        run.config, run.layout, run.norm_stats, horizon=run.model_config.action_horizon,
+        DataSpec.from_config(run.config, run.layout), run.config.eval, run.norm_stats,
+        horizon=run.model_config.action_horizon,
         sums=functools.partial(eval_metrics.chunk_sums, layout=run.layout,
                                   gripper_groups=groups["gripper_groups"],
                                   switch_tolerance=run.config.eval.switch_tolerance))

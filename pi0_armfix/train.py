@@ -47,6 +47,7 @@ import contextlib
 import dataclasses
 import errno
 import functools
+import json
 import os
 import re
 import sys
@@ -71,17 +72,16 @@ from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import run_inputs
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import flow_model, pretrained
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint, finite_checkpoints, fingerprint, plots, preemption
 from pi0_armfix.training import metrics_log
-from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 from pi0_armfix.training import workdir_lock
+from pi0_armfix.training.run_spec import RunSpec
 
 
 NORM_STATS_FILE = "norm_stats.json"
@@ -109,34 +109,27 @@ class DataError(RuntimeError):
     reads only a sample of episodes)."""
 
 
-def check_train_config(train: Mapping[str, Any]) -> None:
-    for field in ("total_steps", "log_every", "checkpoint_every", "keep_checkpoints"):
-        if int(train[field]) <= 0:
-            raise ValueError(f"train.{field} = {train[field]} must be positive")
-    if train["resume"] not in fingerprint.RESUME_MODES:
-        raise ValueError(f"train.resume = {train['resume']!r}: use one of "
-                         f"{fingerprint.RESUME_MODES}")
+def _create_state(spec: RunSpec, params: Any) -> state_lib.TrainState:
+    return state_lib.create_train_state(params, tx=spec.tx, loss_cfg=spec.loss,
+                                        layout=spec.layout, ema_decay=spec.optim["ema_decay"])
 
 
-def _init_state(config: ml_collections.ConfigDict, model_config, layout: ActionLayout, tx,
-                state_shardings, params_shardings) -> state_lib.TrainState:
+def _init_state(spec: RunSpec, state_shardings, params_shardings) -> state_lib.TrainState:
     """The step-0 state: pretrained params (`model.pretrained`) or a random init, sharded."""
-    create = functools.partial(state_lib.create_train_state, tx=tx, loss_cfg=config.loss,
-                               layout=layout, ema_decay=config.optim.ema_decay)
-    if config.model.pretrained:
-        params = pretrained.load_pretrained(config.model.pretrained, model_config,
+    if spec.model_section["pretrained"]:
+        params = pretrained.load_pretrained(spec.model_section["pretrained"], spec.model,
                                             shardings=params_shardings)
-        return jax.jit(create, in_shardings=(params_shardings,),
+        return jax.jit(functools.partial(_create_state, spec), in_shardings=(params_shardings,),
                        out_shardings=state_shardings)(params)
-    init = lambda rng: create(flow_model.init_params(model_config, rng))  # noqa: E731
-    return jax.jit(init, out_shardings=state_shardings)(jax.random.key(config.seed))
+    init = lambda rng: _create_state(spec, flow_model.init_params(spec.model, rng))  # noqa: E731
+    return jax.jit(init, out_shardings=state_shardings)(jax.random.key(spec.seed))
 
 
 @dataclasses.dataclass
 class Run:
-    """A run ready for its next step: everything built from the config, the state restored."""
+    """A run ready for its next step: everything built from its spec, the state restored."""
 
-    config: ml_collections.ConfigDict
+    spec: RunSpec
     workdir: epath.Path
     layout: ActionLayout
     mesh: jax.sharding.Mesh
@@ -151,53 +144,36 @@ class Run:
 
 
 def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
-    """Validates the config, opens the data, builds or restores the state, compiles the step:
-    everything a user can get wrong fails here, before any step."""
+    """Resolves the config (`RunSpec`), opens the data, builds or restores the state, compiles
+    the step: everything a user can get wrong fails here, before any step."""
     workdir = epath.Path(workdir).absolute()
     is_main = jax.process_index() == 0
-    layout = ActionLayout.from_config(config.layout)
-    model_config = model_config_lib.from_model_config(config.model)
-    # Resolved once, before the fingerprint: a run records the normalization it used.
-    config.data.norm = model_config_lib.norm_mode(config)
-    if model_config.action_dim != layout.action_dim:
-        raise ValueError(f"layout.action_dim = {layout.action_dim} but the model (preset "
-                         f"{config.model.preset!r}, model.action_dim={config.model.action_dim}) "
-                         f"has action_dim {model_config.action_dim}: set both to the same width "
-                         "(actions wider than 32 need model.action_dim; pretrained pi0 params "
-                         "need 32)")
-    step_lib.check_loss_config(config.loss, layout)
-    check_train_config(config.train)
     if workdir.exists() and not workdir.is_dir():
         raise ValueError(f"--workdir {workdir} is a file, not a folder: name a new or existing "
                          "run folder")
-    if config.model.pretrained:
-        pretrained.check_pretrained(config.model.pretrained, model_config)
-    if config.data.root is None:
-        raise ValueError("data.root is unset: the b1k scale needs --config.data.root=<LeRobot "
-                         "B1K root> ('' = the built-in demo dataset)")
-    tx, schedule = optimizer_lib.make_optimizer(config.optim, config.train.total_steps)
-    _, warmup_note = optimizer_lib.effective_warmup(config.optim, config.train.total_steps)
-    if warmup_note:
-        _say(f"note: {warmup_note}")
-    mesh = sharding_lib.make_mesh(config.sharding.fsdp)
-    sharding_lib.check_batch_size(config.train.batch_size, mesh, "train.batch_size")
+    spec = RunSpec.resolve(config)
+    layout, model_config, data = spec.layout, spec.model, spec.data
+    if spec.warmup_note:
+        _say(f"note: {spec.warmup_note}")
+    mesh = sharding_lib.make_mesh(spec.fsdp)
+    sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size")
     batch_sharding = sharding_lib.batch_sharding(mesh)
-    if config.eval.every > 0:
-        evaluate.check_eval_config(config.eval, layout, mesh.size)
+    if spec.evaluates:
+        evaluate.check_eval_config(spec.eval, layout, mesh.size)
 
     # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
     # passes over the data before they all hold.
-    source = sources.open_source(config.data, layout)
-    for warning in dataset_lib.check_data(config, layout, source,
+    source = sources.open_source(data.options, layout)
+    for warning in dataset_lib.check_data(data, source,
                                           action_horizon=model_config.action_horizon):
         _say(f"warning: {warning}")
     keyframes = (source.video_keyframes()
-                 if config.data.images and hasattr(source, "video_keyframes") else None)
+                 if data.get("images") and hasattr(source, "video_keyframes") else None)
     video_access, video_why = video_stream.choose_access(
-        config.data.video_access, keyframes, open_episodes=config.data.stream_episodes, shuffle_window=config.data.stream_shuffle)
-    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
-    for line in banner(config, workdir, model_config, layout, mesh, source,
-                       video_why if keyframes is not None else ""):
+        data.get("video_access"), keyframes, open_episodes=int(data.get("stream_episodes")),
+        shuffle_window=int(data.get("stream_shuffle")))
+    tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
+    for line in banner(spec, workdir, mesh, source, video_why if keyframes is not None else ""):
         _say(line)
 
     workdir.mkdir(parents=True, exist_ok=True)
@@ -207,56 +183,55 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
             on_error.callback(lock.close)
         holds_run = (checkpoint.has_checkpoints(workdir / "checkpoints")
                      or (workdir / NORM_STATS_FILE).exists())
-        for note in fingerprint.check_resume(workdir, config.to_dict(), holds_run=holds_run,
+        for note in fingerprint.check_resume(workdir, spec.config_json, holds_run=holds_run,
                                              may_write=is_main):
             _say(f"note: {note}")
         if jax.process_count() > 1:  # the others read the folder process 0 may have archived
             multihost_utils.sync_global_devices("workdir checked")
         if is_main:
-            (workdir / fingerprint.CONFIG_FILE).write_text(config.to_json_best_effort(indent=2))
+            (workdir / fingerprint.CONFIG_FILE).write_text(json.dumps(spec.config_json,
+                                                                      indent=2))
             # What serving the run needs of its data: a run folder serves without it.
             run_inputs.save(workdir, source, tokenize.model_proto)
         resuming = checkpoint.has_checkpoints(workdir / "checkpoints")
         norm_stats = dataset_lib.load_or_compute_norm_stats(
-            config, layout, action_horizon=model_config.action_horizon,
+            data, action_horizon=model_config.action_horizon,
             cache_path=workdir / NORM_STATS_FILE, progress=is_main, source=source,
-            resuming=resuming, keep_cached=resuming and config.train.resume == "force")
+            resuming=resuming, keep_cached=resuming and spec.train["resume"] == "force")
         noise_factor = None
-        if chunk_stats_lib.needed(config):
+        if spec.uses_chunk_stats:
             chunk = chunk_stats_lib.load_or_compute_chunk_stats(
-                config, layout, action_horizon=model_config.action_horizon, folder=workdir,
+                data, action_horizon=model_config.action_horizon, folder=workdir,
                 source=source, resuming=resuming)
-            if config.data.norm_per_timestep:
+            if data.get("norm_per_timestep"):
                 norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}
-            if config.loss.noise_beta < 1.0:
+            if spec.loss["noise_beta"] < 1.0:
                 noise_factor = noise_lib.correlated_noise_factor(
-                    chunk.correlation, config.loss.noise_beta,
+                    chunk.correlation, spec.loss["noise_beta"],
                     horizon=model_config.action_horizon, real_dim=layout.real_dim,
                     action_dim=layout.action_dim)
         train_iter = pipeline.make_train_iterator(
-            config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
-            global_batch_size=config.train.batch_size, sharding=batch_sharding,
+            data, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
+            global_batch_size=spec.train["batch_size"], sharding=batch_sharding,
             tokenize=tokenize, source=source, image_size=model_config.image_resolution,
             video_access=video_access)
 
         abstract_state = jax.eval_shape(
-            lambda: state_lib.create_train_state(
-                flow_model.init_params(model_config, jax.random.key(0)), tx=tx,
-                loss_cfg=config.loss, layout=layout, ema_decay=config.optim.ema_decay))
+            lambda: _create_state(spec, flow_model.init_params(model_config, jax.random.key(0))))
         state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
         evaluator = None
-        if config.eval.every > 0:
-            evaluator = evaluate.Evaluator(config, layout, model_config, norm_stats, tokenize,
+        if spec.evaluates:
+            evaluator = evaluate.Evaluator(data, spec.eval, model_config, norm_stats, tokenize,
                                            mesh=mesh, params_sharding=state_shardings.params,
                                            source=source, noise_factor=noise_factor)
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
-                                       every=config.train.checkpoint_every,
-                                       keep=config.train.keep_checkpoints)
+                                       every=spec.train["checkpoint_every"],
+                                       keep=spec.train["keep_checkpoints"])
         latest = ckpts.latest_step()
-        if latest is not None and latest > config.train.total_steps:
+        if latest is not None and latest > spec.train["total_steps"]:
             raise ConfigurationError(
                 f"workdir {workdir} holds a run at step {latest}, past train.total_steps = "
-                f"{config.train.total_steps}: nothing to train. Evaluate it (python -m "
+                f"{spec.train['total_steps']}: nothing to train. Evaluate it (python -m "
                 f"pi0_armfix.evaluate --workdir={workdir}), or set train.total_steps above "
                 f"{latest} to train on")
         with jax.set_mesh(mesh):
@@ -269,21 +244,20 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                 train_iter.set_state(data_state)
                 _say(f"resumed from {ckpts.directory / str(start)}")
             else:
-                state = _init_state(config, model_config, layout, tx, state_shardings,
-                                    state_shardings.params)
+                state = _init_state(spec, state_shardings, state_shardings.params)
         train_step = jax.jit(
-            functools.partial(step_lib.train_step, base_rng=jax.random.key(config.seed),
-                              model_config=model_config, loss_cfg=config.loss, layout=layout,
-                              tx=tx, schedule=schedule, ema_decay=config.optim.ema_decay,
-                              noise_factor=noise_factor,
+            functools.partial(step_lib.train_step, base_rng=jax.random.key(spec.seed),
+                              model_config=model_config, loss_cfg=spec.loss, layout=layout,
+                              tx=spec.tx, schedule=spec.schedule,
+                              ema_decay=spec.optim["ema_decay"], noise_factor=noise_factor,
                               switch_threshold=batching.normalized_midpoints(
-                                  norm_stats, layout, config.data.norm,
+                                  norm_stats, layout, data.norm,
                                   model_config.action_horizon)),
             in_shardings=(state_shardings, batch_sharding),
             out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
             donate_argnums=0)
         on_error.pop_all()
-        return Run(config=config, workdir=workdir, layout=layout, mesh=mesh, start=start,
+        return Run(spec=spec, workdir=workdir, layout=layout, mesh=mesh, start=start,
                    state=state, train_step=train_step, train_iter=train_iter, checkpoints=ckpts,
                    evaluator=evaluator,
                    norm_stats_json={"norm_stats": {k: v.to_json()
@@ -291,42 +265,44 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                    lock=lock)
 
 
-def banner(config: ml_collections.ConfigDict, workdir: epath.Path, model_config,
-           layout: ActionLayout, mesh: jax.sharding.Mesh, source, video: str = "") -> list[str]:
+def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
+           video: str = "") -> list[str]:
     """What a run is, in a few lines, before it starts on its long work (`video`: how its
     camera frames are read, and why)."""
+    model_config, layout, data = spec.model, spec.layout, spec.data
     num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
         flow_model.param_shapes(model_config)))
-    held_out = source.num_episodes - len(dataset_lib.training_episodes(config, source))
+    held_out = source.num_episodes - len(dataset_lib.training_episodes(data, source))
     frames = int(np.sum(source.episode_lengths))
-    root = getattr(source, "root", config.data.root)
-    loss = config.loss.strategy
+    root = getattr(source, "root", data.get("root"))
+    loss = spec.loss["strategy"]
     if loss_lib.loss_strategy(loss).config_weights == "group":
-        loss += " " + ", ".join(f"{g} {w:g}" for g, w in config.loss.group_weights.items())
+        loss += " " + ", ".join(f"{g} {w:g}" for g, w in spec.loss["group_weights"].items())
     axes = ", ".join(f"{name}={size}" for name, size in mesh.shape.items())
     selection = getattr(source, "state_selection", None)
     preset = selection.preset if selection is not None else None
-    state = (f"{selection.stored_width}-D {config.data.state_key!r} -> state preset "
+    state = (f"{selection.stored_width}-D {data.get('state_key')!r} -> state preset "
              f"{preset.name!r} ({preset.width}-D in the action order"
              + (f"; written for {preset.dataset})" if preset.dataset else ")")
              if preset is not None else f"{source.state_width}-D, as stored"
-             + (" (data.state_indices)" if config.data.get("state_indices") else ""))
+             + (" (data.state_indices)" if data.get("state_indices") else ""))
     return [
         f"run       {workdir}",
         f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "
         f"process(es); mesh {axes}",
-        f"model     {config.model.preset}: {num_params / 1e6:.1f} M params, {model_config.dtype} "
+        f"model     {spec.model_section['preset']}: {num_params / 1e6:.1f} M params, "
+        f"{model_config.dtype} "
         f"activations, {model_config.action_horizon}-step chunks of {layout.action_dim} dims",
-        f"data      {root}{' (the embedded demo)' if not config.data.root else ''}: "
+        f"data      {root}{' (the embedded demo)' if not data.get('root') else ''}: "
         f"{source.num_episodes} episodes ({held_out} held out), {frames:,} frames at "
         f"{source.fps:g} fps, cameras {dict(source.cameras) or 'none'}",
         f"state     {state}",
         *([f"video     {video}"] if video else []),
         f"loss      {loss}",
-        f"schedule  {config.train.total_steps} steps of batch {config.train.batch_size}, lr "
-        f"{config.optim.lr:g}; a record every {config.train.log_every} steps, a checkpoint every "
-        f"{config.train.checkpoint_every}, held-out evaluation "
-        + (f"every {config.eval.every}" if config.eval.every > 0 else "off"),
+        f"schedule  {spec.train['total_steps']} steps of batch {spec.train['batch_size']}, lr "
+        f"{spec.optim['lr']:g}; a record every {spec.train['log_every']} steps, a checkpoint "
+        f"every {spec.train['checkpoint_every']}, held-out evaluation "
+        + (f"every {spec.eval['every']}" if spec.evaluates else "off"),
     ]
 
 
@@ -340,10 +316,11 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
       DataError: a dataset file could not be read.
       Stopped: `stop` was requested (SIGTERM, SIGINT): the run stopped after a step.
     """
-    config, workdir, state, train_iter = run.config, run.workdir, run.state, run.train_iter
+    spec, workdir, state, train_iter = run.spec, run.workdir, run.state, run.train_iter
+    train = spec.train
     stop = stop or preemption.StopRequest()
     is_main = jax.process_index() == 0
-    total_steps = config.train.total_steps
+    total_steps = train["total_steps"]
     ckpts = run.checkpoints
     finite = finite_checkpoints.FiniteCheckpoints(ckpts, run.start)
     writer = metrics_log.MetricsWriter(workdir, resume_step=run.start)
@@ -356,8 +333,8 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     in_flight: collections.deque = collections.deque()  # losses of the dispatched steps
 
     def save(step: int, force: bool = False) -> None:
-        if force or step % config.train.checkpoint_every == 0:
-            finite.save(step, state, data_state, run.norm_stats_json, config)
+        if force or step % train["checkpoint_every"] == 0:
+            finite.save(step, state, data_state, run.norm_stats_json, spec.config_json)
 
     try:
         with jax.set_mesh(run.mesh), tqdm(total=total_steps, initial=run.start, desc="train",
@@ -397,7 +374,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                 bar.update()
 
                 last = step == total_steps
-                if step % config.train.log_every == 0 or last:
+                if step % train["log_every"] == 0 or last:
                     window = finite.take_window()
                     elapsed = time.perf_counter() - window_start
                     record = {**finite_checkpoints.summarize(window), "phase": phase,
@@ -409,11 +386,11 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                 save(step, force=last)
                 if last:  # no step follows the final state: its own finiteness is the check
                     finite.confirm_final(step)
-                if run.evaluator is not None and (step % config.eval.every == 0 or last):
+                if run.evaluator is not None and (step % spec.eval["every"] == 0 or last):
                     _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
         if done < total_steps:  # stopped by a signal
-            if config.train.save_on_preemption and done > finite.saved:
+            if train["save_on_preemption"] and done > finite.saved:
                 save(done, force=True)
             ckpts.wait()  # the save in flight, if any, is finished
             saved = finite.saved

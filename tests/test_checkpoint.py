@@ -8,7 +8,6 @@ import textwrap
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import pytest
 
@@ -32,7 +31,7 @@ def _abstract(state, mesh):
 
 
 def _config():
-    return ml_collections.ConfigDict({"loss": {"strategy": "per_group"}, "seed": 3})
+    return {"loss": {"strategy": "per_group"}, "seed": 3}
 
 
 def test_restore_returns_the_saved_state_and_data_iterator_state(tmp_path):
@@ -129,7 +128,7 @@ def test_a_process_killed_while_finalizing_a_save_leaves_the_previous_checkpoint
         import os, jax.numpy as jnp, ml_collections
         from orbax.checkpoint._src.path import atomicity
         from pi0_armfix.training import checkpoint
-        config = ml_collections.ConfigDict({{"seed": 0}})
+        config = {{"seed": 0}}
         ckpts = checkpoint.Checkpoints({str(tmp_path)!r}, every=1)
         ckpts.save(1, {{"w": jnp.full((8,), 1.0)}}, {{"step": 1}}, {{}}, config)
         ckpts.wait()

@@ -17,6 +17,7 @@ from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import selection
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix.data.data_spec import DataSpec
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",
@@ -191,7 +192,7 @@ def test_config_trains_at_tiny_scale(name, tmp_path, demo_root):
         config = load(name)
         config.update_from_flattened_dict({"data.root": str(demo_root), "eval.episodes": 2})
         horizon = model_config_lib.from_model_config(config.model).action_horizon
-        plain = dataset_lib.dataset_norm_stats(config, B1K, action_horizon=horizon,
+        plain = dataset_lib.dataset_norm_stats(DataSpec.from_config(config, B1K), action_horizon=horizon,
                                             progress=False)["actions"]
         balanced = json.loads((workdir / "norm_stats.json").read_text())["norm_stats"]["actions"]
         arm = B1K.group_dims("left_arm")

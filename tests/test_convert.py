@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import jax
-import ml_collections
 import numpy as np
 import optax
 import orbax.checkpoint as ocp
@@ -46,7 +45,7 @@ def _write_run_checkpoint(workdir, params, step=5):
     state = create_train_state(params, tx=optax.adamw(1e-3), loss_cfg={"strategy": "per_group"},
                                layout=ActionLayout.preset("b1k_r1pro"), ema_decay=0.99)
     state = state.replace(ema_params=jax.tree.map(lambda x: 0.5 * x, params))
-    config = ml_collections.ConfigDict({"model": {"preset": "tiny", "dtype": "", "action_horizon": 0}})
+    config = {"model": {"preset": "tiny", "dtype": "", "action_horizon": 0}}
     checkpoints = Checkpoints(os.path.join(workdir, "checkpoints"), every=1)
     data_state = {"step": step, "global_batch_size": 2, "seed": 0}
     checkpoints.save(step, state, data_state, NORM_STATS, config, force=True)

@@ -11,6 +11,7 @@ from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import pipeline, transforms
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 BATCH = 6
@@ -34,12 +35,12 @@ def episode_list(tmp_path, episodes):
 
 def iterator(table, data, seed=0):
     stats = stats_lib.compute_norm_stats(stats_lib.table_blocks(table), progress=False)
-    dataset, curriculum = pipeline.train_batches(
-        table, LAYOUT, {"norm": "zscore", **data}, seed=seed, norm_stats=stats,
-        action_horizon=2, global_batch_size=BATCH, actions_only=True)
+    spec = DataSpec.from_config({"seed": seed, "data": {"norm": "zscore", **data}}, LAYOUT)
+    dataset = pipeline.train_batches(table, spec, norm_stats=stats, action_horizon=2,
+                                     global_batch_size=BATCH, actions_only=True)
     mesh = jax.make_mesh((1,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    run = pipeline.TrainIterator(dataset, curriculum, sharding=sharding,
+    run = pipeline.TrainIterator(dataset, spec.curriculum, sharding=sharding,
                                  global_batch_size=BATCH, seed=seed)
     normalizer = transforms.Normalizer.from_stats(stats["actions"], "zscore")
     return run, normalizer

@@ -16,6 +16,7 @@ from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import sampling, sources, transforms
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
@@ -288,16 +289,16 @@ def test_filter_writes_the_manipulation_episodes(config, tmp_path):
 def test_curriculum_on_the_fly_selects_what_the_filter_lists(config, tmp_path):
     layout = ActionLayout.from_config(config.layout)
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    stats = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=horizon)
-    source = sources.open_source(config.data, layout)
-    table = source.load_table(dataset_lib.training_episodes(config, source), images=False)
+    spec = DataSpec.from_config(config, layout)
+    stats = dataset_lib.load_or_compute_norm_stats(spec, action_horizon=horizon)
+    source = sources.open_source(spec.options, layout)
+    table = source.load_table(dataset_lib.training_episodes(spec, source), images=False)
     listed = config.copy_and_resolve_references()
     listed.data.arm_heavy_episodes = str(tmp_path / "arm_heavy.json")
     filter_arm_heavy_episodes.run(config, listed.data.arm_heavy_episodes)
-    on_the_fly = sampling.source_frames(table, layout, config.data, ("arm_heavy",),
-                                        stats["actions"])
-    from_file = sampling.source_frames(table, layout, listed.data, ("arm_heavy",),
-                                       stats["actions"])
+    on_the_fly = sampling.source_frames(table, spec, ("arm_heavy",), stats["actions"])
+    from_file = sampling.source_frames(table, DataSpec.from_config(listed, layout),
+                                       ("arm_heavy",), stats["actions"])
     np.testing.assert_array_equal(on_the_fly["arm_heavy"], from_file["arm_heavy"])
 
 

@@ -17,6 +17,7 @@ from pi0_armfix.data.frame_store import FrameStore, FrameColumn
 from pi0_armfix.data.lerobot import LeRobotSource
 from pi0_armfix.data.lerobot_meta import VERSIONS
 from pi0_armfix.data.sampling import EpisodeFrames
+from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 
@@ -202,12 +203,12 @@ def _iterator(root, *, batch_size, num_workers=0, images=False, process_index=0,
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
     tokenize = (lambda prompt: (np.arange(8, dtype=np.int32), np.ones(8, bool))) if images \
         else None
-    batches, curriculum = pipeline.train_batches(
-        source.load_table(images=images, image_size=(16, 16)), LAYOUT, config.data, seed=3,
-        norm_stats=stats, action_horizon=4, global_batch_size=batch_size,
-        process_index=process_index, process_count=process_count, tokenize=tokenize,
-        actions_only=not images)
-    return pipeline.TrainIterator(batches, curriculum, sharding=sharding,
+    spec = DataSpec.from_config(config, LAYOUT)
+    batches = pipeline.train_batches(
+        source.load_table(images=images, image_size=(16, 16)), spec, norm_stats=stats,
+        action_horizon=4, global_batch_size=batch_size, process_index=process_index,
+        process_count=process_count, tokenize=tokenize, actions_only=not images)
+    return pipeline.TrainIterator(batches, spec.curriculum, sharding=sharding,
                                   global_batch_size=batch_size, seed=3,
                                   num_workers=num_workers), source
 
@@ -268,7 +269,7 @@ def test_nan_in_the_actions_is_named_by_episode_and_file_in_the_stats_pass(tmp_p
     config = ml_collections.ConfigDict({"eval": {"episodes": 0}, "data": {"root": str(root)}})
     with pytest.raises(ValueError, match=r"actions of episode 2 \(file .*episode_000002\.parquet"
                                          r"\) holds nan in dim 5"):
-        dataset_lib.dataset_norm_stats(config, LAYOUT, action_horizon=4, progress=False)
+        dataset_lib.dataset_norm_stats(DataSpec.from_config(config, LAYOUT), action_horizon=4, progress=False)
 
 
 def test_nan_in_the_actions_is_named_when_the_frame_store_is_built(tmp_path):

@@ -17,6 +17,7 @@ from pi0_armfix.data.lerobot_meta import VERSIONS
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data.sources import open_source
 from pi0_armfix.data.video import VideoDecoder
+from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 
@@ -406,9 +407,9 @@ def test_a_pass_that_reads_no_images_never_probes_the_videos(tmp_path):
     root = _without_videos(tmp_path)
     config = _config(root)
     source = open_source(config.data, LAYOUT)
-    dataset_lib.check_data(config, LAYOUT, source, images=False)  # the stats and analysis tools
+    dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=False)  # the stats and analysis tools
     with pytest.raises(ValueError, match="missing video file"):
-        dataset_lib.check_data(config, LAYOUT, source, images=True)
+        dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=True)
 
 
 def test_data_images_false_trains_a_dataset_without_its_cameras(tmp_path):
@@ -416,6 +417,6 @@ def test_data_images_false_trains_a_dataset_without_its_cameras(tmp_path):
     config = _config(root, images=False)
     source = open_source(config.data, LAYOUT)
     assert source.cameras == {}
-    dataset_lib.check_data(config, LAYOUT, source, images=True)
+    dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=True)
     table = source.load_table()
     assert table.images is None and table.num_episodes == 3

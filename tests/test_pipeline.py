@@ -21,6 +21,7 @@ from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 REPO = Path(__file__).resolve().parents[1]
@@ -58,15 +59,20 @@ def frame_table(lengths=(7, 3, 12, 5, 9, 1, 6), seed=0) -> EpisodeTable:
                         images=ColourImages())
 
 
+def spec_of(data=None, seed=0):
+    """The data spec of a run on an in-memory table: z-score, every episode trains."""
+    return DataSpec.from_config({"seed": seed, "data": {"norm": "zscore", **(data or {})}},
+                                LAYOUT)
+
+
 def table_stats(table):
     return stats_lib.compute_norm_stats(stats_lib.table_blocks(table), progress=False)
 
 
 def batches_of(table, *, batch_size=8, steps=6, data=None, seed=0, process_index=0,
                process_count=1, actions_only=True, tokenize=None):
-    data = {"norm": "zscore", **(data or {})}
-    dataset, _ = pipeline.train_batches(
-        table, LAYOUT, data, seed=seed, norm_stats=table_stats(table), action_horizon=HORIZON,
+    dataset = pipeline.train_batches(
+        table, spec_of(data, seed), norm_stats=table_stats(table), action_horizon=HORIZON,
         global_batch_size=batch_size, process_index=process_index, process_count=process_count,
         tokenize=tokenize, actions_only=actions_only)
     return [dataset[i] for i in range(steps)]
@@ -84,10 +90,11 @@ def single_device_sharding():
 
 
 def iterator_of(table, *, batch_size=8, seed=0, num_workers=0):
-    dataset, curriculum = pipeline.train_batches(
-        table, LAYOUT, {"norm": "zscore"}, seed=seed, norm_stats=table_stats(table),
-        action_horizon=HORIZON, global_batch_size=batch_size, actions_only=True)
-    return pipeline.TrainIterator(dataset, curriculum, sharding=single_device_sharding(),
+    spec = spec_of(seed=seed)
+    dataset = pipeline.train_batches(
+        table, spec, norm_stats=table_stats(table), action_horizon=HORIZON,
+        global_batch_size=batch_size, actions_only=True)
+    return pipeline.TrainIterator(dataset, spec.curriculum, sharding=single_device_sharding(),
                                   global_batch_size=batch_size, seed=seed,
                                   num_workers=num_workers)
 
@@ -174,11 +181,11 @@ def test_delta_actions_are_relative_to_the_current_state():
     table.state = np.concatenate([table.actions[:, :20] + 0.5], axis=1)
     data = {"delta_action_mask": list(range(7, 14)),
             "state_groups": {"left_arm": (7, 14)}}
-    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table), data, LAYOUT,
-                                      action_horizon=HORIZON, progress=False)
-    dataset, _ = pipeline.train_batches(table, LAYOUT, {"norm": "zscore", **data}, seed=0,
-                                        norm_stats=stats, action_horizon=HORIZON,
-                                        global_batch_size=8, actions_only=True)
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table), spec_of(data),
+                                         action_horizon=HORIZON, progress=False)
+    dataset = pipeline.train_batches(table, spec_of(data), norm_stats=stats,
+                                     action_horizon=HORIZON, global_batch_size=8,
+                                     actions_only=True)
     batch = dataset[0]
     raw = transforms.Normalizer.from_stats(stats["actions"], "zscore").inverse(batch["actions"])
     frames = np.rint(raw[:, 0, 0]).astype(int)
@@ -218,8 +225,9 @@ def passthrough_stats(width):
 
 def test_delta_action_stats_are_over_every_chunk_step_the_batches_hold():
     table = arm_table()
-    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5), ARM_DELTA,
-                                      LAYOUT, action_horizon=HORIZON, progress=False)
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5),
+                                         spec_of(ARM_DELTA), action_horizon=HORIZON,
+                                         progress=False)
     targets = chunk_targets(table, {"actions": passthrough_stats(23),
                                     "state": passthrough_stats(20)})
     arm = slice(7, 14)
@@ -236,8 +244,8 @@ def test_delta_action_stats_are_over_every_chunk_step_the_batches_hold():
 
 def test_normalized_delta_targets_have_unit_std():
     table = arm_table()
-    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table), ARM_DELTA, LAYOUT,
-                                      action_horizon=HORIZON, progress=False)
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table), spec_of(ARM_DELTA),
+                                         action_horizon=HORIZON, progress=False)
     normalized = chunk_targets(table, stats)[:, 7:14]
     np.testing.assert_allclose(normalized.std(0), 1.0, atol=1e-3)
     np.testing.assert_allclose(normalized.mean(0), 0.0, atol=1e-3)
@@ -318,12 +326,14 @@ def test_worker_processes_give_the_same_batches():
 def test_global_arrays_are_sharded_over_the_batch_axis():
     script = textwrap.dedent("""
         import numpy as np, jax
-        from tests.test_pipeline import frame_table, table_stats, LAYOUT
+        from tests.test_pipeline import frame_table, spec_of, table_stats
         from pi0_armfix.data import pipeline
         table = frame_table()
-        dataset, curriculum = pipeline.train_batches(
-            table, LAYOUT, {"norm": "zscore"}, seed=0, norm_stats=table_stats(table),
-            action_horizon=4, global_batch_size=8, actions_only=True)
+        spec = spec_of()
+        dataset = pipeline.train_batches(
+            table, spec, norm_stats=table_stats(table), action_horizon=4, global_batch_size=8,
+            actions_only=True)
+        curriculum = spec.curriculum
         mesh = jax.make_mesh((4,), ("batch",), axis_types=(jax.sharding.AxisType.Auto,))
         sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
         it = pipeline.TrainIterator(dataset, curriculum, sharding=sharding,
@@ -359,11 +369,11 @@ def lerobot_config(tmp_path_factory):
 
 def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    heldout = dataset_lib.heldout_table(lerobot_config, layout)
+    heldout = dataset_lib.heldout_table(DataSpec.from_config(lerobot_config, layout))
     np.testing.assert_array_equal(heldout.episode_index, [4, 5])
-    stats = dataset_lib.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    stats = dataset_lib.load_or_compute_norm_stats(DataSpec.from_config(lerobot_config, layout), action_horizon=HORIZON,
                                                 cache_path=tmp_path / "norm_stats.json")
-    run = pipeline.make_train_iterator(lerobot_config, layout, norm_stats=stats,
+    run = pipeline.make_train_iterator(DataSpec.from_config(lerobot_config, layout), norm_stats=stats,
                                        action_horizon=HORIZON, global_batch_size=8,
                                        sharding=single_device_sharding(),
                                        tokenize=CountingTokenizer())
@@ -380,18 +390,18 @@ def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config
 def test_norm_stats_are_computed_once_then_read_from_the_cache(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
     cache = tmp_path / "norm_stats.json"
-    computed = dataset_lib.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    computed = dataset_lib.load_or_compute_norm_stats(DataSpec.from_config(lerobot_config, layout), action_horizon=HORIZON,
                                                    cache_path=cache, progress=False)
     assert cache.is_file()
     stats_lib.save_norm_stats(cache, {k: v.replace(mean=v.mean + 1) for k, v in computed.items()})
-    cached = dataset_lib.load_or_compute_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    cached = dataset_lib.load_or_compute_norm_stats(DataSpec.from_config(lerobot_config, layout), action_horizon=HORIZON,
                                                  cache_path=cache)
     np.testing.assert_allclose(cached["actions"].mean, computed["actions"].mean + 1)
 
 
 def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    stats = dataset_lib.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    stats = dataset_lib.dataset_norm_stats(DataSpec.from_config(lerobot_config, layout), action_horizon=HORIZON,
                                         progress=False)
     source = sources.open_source(lerobot_config.data, layout)
     training = source.load_table(source.episode_index[:4], images=False)
@@ -402,7 +412,7 @@ def test_norm_stats_cover_the_training_episodes_only(lerobot_config):
 
 def test_a_padded_norm_stats_file_serves_the_real_width(lerobot_config, tmp_path):
     layout = ActionLayout.from_config(lerobot_config.layout)
-    stats = dataset_lib.dataset_norm_stats(lerobot_config, layout, action_horizon=HORIZON,
+    stats = dataset_lib.dataset_norm_stats(DataSpec.from_config(lerobot_config, layout), action_horizon=HORIZON,
                                         progress=False)
     padded = {k: stats_lib.NormStats(*(np.pad(getattr(v, f), (0, 32 - v.width))
                                        for f in stats_lib.FIELDS)) for k, v in stats.items()}
@@ -410,9 +420,9 @@ def test_a_padded_norm_stats_file_serves_the_real_width(lerobot_config, tmp_path
     stats_lib.save_norm_stats(path, padded)
     config = lerobot_config.copy_and_resolve_references()
     config.data.norm_stats = str(path)
-    loaded = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=HORIZON)
+    loaded = dataset_lib.load_or_compute_norm_stats(DataSpec.from_config(config, layout), action_horizon=HORIZON)
     assert loaded["actions"].width == 23 and loaded["state"].width == 32
-    run = pipeline.make_train_iterator(config, layout, norm_stats=loaded, action_horizon=HORIZON,
+    run = pipeline.make_train_iterator(DataSpec.from_config(config, layout), norm_stats=loaded, action_horizon=HORIZON,
                                        global_batch_size=4, sharding=single_device_sharding(),
                                        actions_only=True)
     assert next(run)["state"].shape == (4, 32)
@@ -422,7 +432,7 @@ def test_too_many_held_out_episodes_is_an_error(lerobot_config):
     config = lerobot_config.copy_and_resolve_references()
     config.eval.episodes = 6
     with pytest.raises(ValueError, match="eval.episodes = 6"):
-        dataset_lib.heldout_table(config, ActionLayout.from_config(config.layout))
+        dataset_lib.heldout_table(DataSpec.from_config(config, ActionLayout.from_config(config.layout)))
 
 
 class StateTokenizer:

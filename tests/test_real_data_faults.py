@@ -28,6 +28,7 @@ from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import sources
 from pi0_armfix.data.lerobot import LeRobotSource
 from pi0_armfix.tools import compute_norm_stats
+from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 
@@ -118,12 +119,12 @@ def test_cached_norm_stats_of_other_data_are_recomputed_or_refused(tmp_path):
 
     def stats(root, **kwargs):
         config = config_for(root, eval__episodes=1)
-        return dataset_lib.load_or_compute_norm_stats(config, LAYOUT, action_horizon=4,
+        return dataset_lib.load_or_compute_norm_stats(DataSpec.from_config(config, LAYOUT), action_horizon=4,
                                                       cache_path=cache, progress=False, **kwargs)
 
     first = stats(roots[0])
     second = stats(roots[1])  # a fix-and-rerun in the same workdir with other data
-    fresh = dataset_lib.dataset_norm_stats(config_for(roots[1], eval__episodes=1), LAYOUT,
+    fresh = dataset_lib.dataset_norm_stats(DataSpec.from_config(config_for(roots[1], eval__episodes=1), LAYOUT),
                                            action_horizon=4, progress=False)
     assert not np.allclose(first["actions"].mean, second["actions"].mean)
     np.testing.assert_array_equal(second["actions"].mean, fresh["actions"].mean)
@@ -137,9 +138,9 @@ def test_the_norm_stats_key_follows_the_state_group_slices(tmp_path):
     config = config_for(root, eval__episodes=1, data__delta_action_mask=(7, 8),
                         data__state_groups=groups)
     source = sources.open_source(config.data, LAYOUT)
-    before = dataset_lib.norm_stats_key(config, LAYOUT, source, action_horizon=4)
+    before = dataset_lib.norm_stats_key(DataSpec.from_config(config, LAYOUT), source, action_horizon=4)
     config.data.state_groups = {**groups, "left_arm": (6, 13)}
-    after = dataset_lib.norm_stats_key(config, LAYOUT, source, action_horizon=4)
+    after = dataset_lib.norm_stats_key(DataSpec.from_config(config, LAYOUT), source, action_horizon=4)
     assert before["data.state_groups"]["left_arm"] == [7, 14]
     assert after["data.state_groups"]["left_arm"] == [6, 13]
 
@@ -154,10 +155,10 @@ def test_a_last_row_past_the_end_of_its_video_is_named_before_training(tmp_path)
     source = sources.open_source(config.data, LAYOUT)
     with pytest.raises(ValueError, match=r"episode_00000010.mp4 has no frame at 0.4667 s.*"
                                          r"data.video_tolerance_frames=1.*episode 10"):
-        dataset_lib.check_data(config, LAYOUT, source)
+        dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source)
     config.data.video_tolerance_frames = 1.0
     source = sources.open_source(config.data, LAYOUT)
-    dataset_lib.check_data(config, LAYOUT, source)
+    dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source)
     table = source.load_table([10])
     last = table.images(table.num_frames - 1)["base_0_rgb"]  # reads the video's last frame
     assert identify_frame(last, 0, table.num_frames, 0) == table.num_frames - 1
@@ -267,7 +268,7 @@ def test_git_lfs_pointer_files_are_named_as_such(tmp_path, target):
                                "oid sha256:4d7a2146\nsize 1234567\n")
     config = config_for(root, data__state_preset="b1k_r1pro")
     with pytest.raises(ValueError, match=rf"{target} is a git-LFS pointer file.*git lfs pull"):
-        dataset_lib.check_data(config, LAYOUT, sources.open_source(config.data, LAYOUT))
+        dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), sources.open_source(config.data, LAYOUT))
 
 
 def test_a_nan_in_a_selected_state_dim_is_named_by_its_stored_dim(tmp_path):
@@ -283,7 +284,7 @@ def test_a_nan_in_a_selected_state_dim_is_named_by_its_stored_dim(tmp_path):
     config = config_for(root, data__state_preset="b1k_r1pro")
     with pytest.raises(ValueError, match=r"state of episode 10 .* holds nan in dim 9 \(stored "
                                          r"'observation.state' dim 160\)"):
-        dataset_lib.dataset_norm_stats(config, LAYOUT, action_horizon=4,
+        dataset_lib.dataset_norm_stats(DataSpec.from_config(config, LAYOUT), action_horizon=4,
                                        source=sources.open_source(config.data, LAYOUT))
 
 
@@ -307,7 +308,7 @@ def test_a_curriculum_phase_longer_than_the_run_is_said_before_training(tmp_path
         write_dataset(tmp_path / "ds", make_episodes(12, cameras={}), "v2.1"),
         train__total_steps=10))
     source = sources.open_source(config.data, LAYOUT)
-    warnings = dataset_lib.check_data(config, LAYOUT, source, images=False)
+    warnings = dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=False)
     assert any("phase 0 lasts until step 300, but train.total_steps = 10" in w for w in warnings)
 
 

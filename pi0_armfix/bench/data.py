@@ -41,6 +41,7 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.bench import common
 from pi0_armfix.cache import cache_root
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.lerobot_writer import LeRobotWriter
 
 _LAYOUT = "b1k_r1pro"
@@ -158,18 +159,18 @@ def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup
     from pi0_armfix.data import pipeline
     from pi0_armfix.data import stats as stats_lib
 
-    config = common.data_config(str(root), num_workers)
-    layout = ActionLayout.preset(_LAYOUT)
+    spec = DataSpec.from_config(common.data_config(str(root), num_workers),
+                                ActionLayout.preset(_LAYOUT))
     stats_path = root / "bench_norm_stats.json"
     if not stats_path.is_file():
         stats_lib.save_norm_stats(stats_path, dataset_lib.dataset_norm_stats(
-            config, layout, action_horizon=horizon))
+            spec, action_horizon=horizon))
     stats = stats_lib.load_norm_stats(stats_path)
     sharding = common.batch_sharding()
     start = time.perf_counter()
-    iterator = pipeline.make_train_iterator(config, layout, norm_stats=stats,
-                                            action_horizon=horizon, global_batch_size=batch_size,
-                                            sharding=sharding, actions_only=True)
+    iterator = pipeline.make_train_iterator(spec, norm_stats=stats, action_horizon=horizon,
+                                            global_batch_size=batch_size, sharding=sharding,
+                                            actions_only=True)
     setup = time.perf_counter() - start
     try:
         seconds = common.timed_steps(iterator, steps, warmup)
@@ -261,13 +262,14 @@ def _memory_child(arg: str) -> None:
     from pi0_armfix.data import stats as stats_lib
 
     workers, batch_size, horizon, steps = (int(p) for p in parts[2:])
-    config = common.data_config(source.root, workers)
+    spec = DataSpec.from_config(common.data_config(source.root, workers),
+                                ActionLayout.preset(_LAYOUT))
     unit = stats_lib.NormStats(mean=np.zeros(23), std=np.ones(23), q01=-np.ones(23),
                                q99=np.ones(23))
     sharding = common.batch_sharding()
     before = common.memory()
     iterator = pipeline.make_train_iterator(
-        config, ActionLayout.preset(_LAYOUT), norm_stats={"actions": unit, "state": unit},
+        spec, norm_stats={"actions": unit, "state": unit},
         action_horizon=horizon, global_batch_size=batch_size, sharding=sharding,
         actions_only=True, source=source)
     try:

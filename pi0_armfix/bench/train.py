@@ -30,6 +30,7 @@ from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import pipeline, sources
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
@@ -47,12 +48,13 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     model_config = model_config_lib.from_model_config(config.model)
     mesh = sharding_lib.make_mesh(config.sharding.fsdp)
     batch_sharding = sharding_lib.batch_sharding(mesh)
-    source = sources.open_source(config.data, layout)
+    spec = DataSpec.from_config(config, layout)
+    source = sources.open_source(spec.options, layout)
     norm_stats = dataset_lib.load_or_compute_norm_stats(
-        config, layout, action_horizon=model_config.action_horizon, source=source)
+        spec, action_horizon=model_config.action_horizon, source=source)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     batches = pipeline.make_train_iterator(
-        config, layout, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
+        spec, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
         global_batch_size=config.train.batch_size, sharding=batch_sharding, tokenize=tokenize,
         source=source)
     batch = next(batches)

@@ -175,18 +175,19 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
     latency of a resume from the state after the timed steps."""
     from pi0_armfix.data import dataset as dataset_lib
     from pi0_armfix.data import pipeline, sources
+    from pi0_armfix.data.data_spec import DataSpec
 
     config = common.data_config(str(root), num_workers)
     config.data.stream_episodes = stream_episodes
     config.data.stream_shuffle = STREAM_WINDOW
-    layout = ActionLayout.preset(_LAYOUT)
-    source = sources.open_source(config.data, layout)
-    stats = dataset_lib.dataset_norm_stats(config, layout, action_horizon=50, source=source,
+    spec = DataSpec.from_config(config, ActionLayout.preset(_LAYOUT))
+    source = sources.open_source(spec.options, spec.layout)
+    stats = dataset_lib.dataset_norm_stats(spec, action_horizon=50, source=source,
                                            progress=False)
 
     def make():
         return pipeline.make_train_iterator(
-            config, layout, norm_stats=stats, action_horizon=50, global_batch_size=batch_size,
+            spec, norm_stats=stats, action_horizon=50, global_batch_size=batch_size,
             sharding=common.batch_sharding(), tokenize=_tokenize, source=source,
             image_size=(size, size), video_access=video_access)
 

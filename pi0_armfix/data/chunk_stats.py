@@ -28,18 +28,17 @@ import dataclasses
 import json
 import os
 import tempfile
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import sources
 from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
 
 PER_TIMESTEP_FILE = "norm_stats_per_timestep.json"
@@ -54,10 +53,9 @@ class ChunkStats:
     correlation: np.ndarray
 
 
-def needed(config: Mapping[str, Any]) -> bool:
-    """Whether the config uses chunk statistics (either lever)."""
-    return bool(config["data"].get("norm_per_timestep")) or float(
-        config["loss"].get("noise_beta", 1.0)) < 1.0
+def needed(spec: DataSpec, noise_beta: float) -> bool:
+    """Whether a run uses chunk statistics (either lever; `noise_beta`: `loss.noise_beta`)."""
+    return bool(spec.get("norm_per_timestep")) or float(noise_beta) < 1.0
 
 
 def chunk_starts(num_frames: int, max_chunks: int) -> np.ndarray:
@@ -101,25 +99,23 @@ def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
     return ChunkStats(stats_lib.NormStats(**fields), correlation)
 
 
-def chunk_stats_key(config: Mapping[str, Any], layout: ActionLayout, source, *,
-                    action_horizon: int) -> dict[str, Any]:
+def chunk_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str, Any]:
     """What the chunk statistics are computed from: the norm stats' key (data, selection, delta
     actions), the horizon and the sample size."""
-    key = dataset_lib.norm_stats_key(config, layout, source, action_horizon=action_horizon)
+    key = dataset_lib.norm_stats_key(spec, source, action_horizon=action_horizon)
     key["model.action_horizon"] = int(action_horizon)
-    key["data.chunk_stats_chunks"] = int(config["data"].get("chunk_stats_chunks"))
+    key["data.chunk_stats_chunks"] = int(spec.get("chunk_stats_chunks"))
     return key
 
 
-def load_or_compute_chunk_stats(config: Mapping[str, Any], layout: ActionLayout, *,
-                                action_horizon: int, folder: str | Path, source=None,
-                                resuming: bool = False) -> ChunkStats:
-    """The run's chunk statistics: read from `folder` when their key equals this config's, else
+def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: str | Path,
+                                source=None, resuming: bool = False) -> ChunkStats:
+    """The run's chunk statistics: read from `folder` when their key equals this run's, else
     computed from the training episodes and written there. A run with checkpoints refuses stats
     of other data (its weights were trained with the old ones)."""
     folder = Path(folder)
-    source = source if source is not None else sources.open_source(config["data"], layout)
-    key = chunk_stats_key(config, layout, source, action_horizon=action_horizon)
+    source = source if source is not None else sources.open_source(spec.options, spec.layout)
+    key = chunk_stats_key(spec, source, action_horizon=action_horizon)
     key_path = folder / (CORRELATION_FILE + ".key.json")
     paths = (folder / PER_TIMESTEP_FILE, folder / CORRELATION_FILE)
     if all(p.is_file() for p in paths):
@@ -132,10 +128,9 @@ def load_or_compute_chunk_stats(config: Mapping[str, Any], layout: ActionLayout,
                              f"config (differing: {differing}) and the run's checkpoints were "
                              "trained with it: resume with the config it was started with, or "
                              "start a new --workdir")
-    mask = transforms.delta_action_mask(config["data"].get("delta_action_mask"), layout)
-    table = source.load_table(dataset_lib.training_episodes(config, source), images=False)
-    stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=mask,
-                                max_chunks=int(config["data"].get("chunk_stats_chunks")))
+    table = source.load_table(dataset_lib.training_episodes(spec, source), images=False)
+    stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=spec.delta_mask,
+                                max_chunks=int(spec.get("chunk_stats_chunks")))
     save_per_timestep(paths[0], stats.per_timestep)
     # Through a temporary file and a rename, like the norm stats: every process of a run writes.
     with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{CORRELATION_FILE}.", suffix=".npy",

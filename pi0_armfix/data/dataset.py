@@ -1,9 +1,10 @@
-"""The dataset a config names, opened once: its train / held-out split, the checks that run before
+"""The dataset a run names, opened once: its train / held-out split, the checks that run before
 any pass over it, and the passes that compute its statistics.
 
-    source = sources.open_source(config.data, layout)       # once per run; pass it down
-    check_data(config, layout, source, ...)                 # every check that can fail, no pass
-    stats = load_or_compute_norm_stats(config, layout, source=source, action_horizon=H,
+    spec = DataSpec.from_config(config, layout)              # the config read once
+    source = sources.open_source(spec.options, spec.layout)  # once per run; pass it down
+    check_data(spec, source, ...)                            # every check that can fail, no pass
+    stats = load_or_compute_norm_stats(spec, source=source, action_horizon=H,
                                        cache_path=workdir / "norm_stats.json")
 
 Split: the dataset's last `eval.episodes` episodes are held out (evaluation only); the rest train.
@@ -27,7 +28,6 @@ from typing import Any
 import numpy as np
 
 from pi0_armfix import state_space
-from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import motion as motion_lib
@@ -36,9 +36,8 @@ from pi0_armfix.data import sources
 from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
-
-ConfigLike = Mapping[str, Any]
 # The per-frame statistics of the absolute actions, kept beside openpi's two entries: the
 # evaluation's units (`pi0_armfix.evaluate.evaluation_scale`) whatever the normalization (balanced
 # stats rescale "actions") or representation (delta dims hold chunk deltas in "actions").
@@ -60,28 +59,23 @@ def split_episodes(episode_index: np.ndarray, num_heldout: int
     return episode_index[:cut], episode_index[cut:]
 
 
-def _num_heldout(config: ConfigLike) -> int:
-    evaluation = config.get("eval") or {}
-    return int(evaluation.get("episodes", 0))
+def _source(spec: DataSpec, source):
+    return source if source is not None else sources.open_source(spec.options, spec.layout)
 
 
-def _source(config: ConfigLike, layout: ActionLayout, source):
-    return source if source is not None else sources.open_source(config["data"], layout)
+def training_episodes(spec: DataSpec, source) -> np.ndarray:
+    """Dataset ids of the episodes the run trains on (all but the held-out ones)."""
+    return split_episodes(source.episode_index, spec.heldout_episodes)[0]
 
 
-def training_episodes(config: ConfigLike, source) -> np.ndarray:
-    """Dataset ids of the episodes the config trains on (all but the held-out ones)."""
-    return split_episodes(source.episode_index, _num_heldout(config))[0]
-
-
-def select_episodes(config: ConfigLike, source, which: str = "train") -> np.ndarray:
+def select_episodes(spec: DataSpec, source, which: str = "train") -> np.ndarray:
     """Dataset ids of the training episodes (`which="train"`) or of every episode (`"all"`)."""
     if which not in EPISODE_CHOICES:
         raise ValueError(f"--episodes={which!r}: choose one of {list(EPISODE_CHOICES)}")
-    return source.episode_index if which == "all" else training_episodes(config, source)
+    return source.episode_index if which == "all" else training_episodes(spec, source)
 
 
-def describe_episodes(config: ConfigLike, source, episodes: np.ndarray) -> str:
+def describe_episodes(spec: DataSpec, source, episodes: np.ndarray) -> str:
     """"reading 8 of 12 episodes (ids 10..20030), 9,310 frames; held out: ..." for the tools."""
     frames = num_frames(source, episodes)
     line = (f"reading {len(episodes)} of {source.num_episodes} episodes (ids {_ids(episodes)}), "
@@ -89,7 +83,7 @@ def describe_episodes(config: ConfigLike, source, episodes: np.ndarray) -> str:
     left_out = np.setdiff1d(source.episode_index, episodes)
     if len(left_out):
         line += (f"; left out: the {len(left_out)} held-out episodes (eval.episodes="
-                 f"{_num_heldout(config)}: ids {_ids(left_out)}); --episodes=all reads them too")
+                 f"{spec.heldout_episodes}: ids {_ids(left_out)}); --episodes=all reads them too")
     return line
 
 
@@ -103,25 +97,23 @@ def num_frames(source, episodes: np.ndarray) -> int:
     return int(source.episode_lengths[np.isin(source.episode_index, episodes)].sum())
 
 
-def heldout_table(config: ConfigLike, layout: ActionLayout, *, images: bool = True,
-                  source=None) -> EpisodeTable:
+def heldout_table(spec: DataSpec, *, images: bool = True, source=None) -> EpisodeTable:
     """The held-out episodes (the dataset's last `eval.episodes`) for evaluation."""
-    source = _source(config, layout, source)
-    heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
+    source = _source(spec, source)
+    heldout = split_episodes(source.episode_index, spec.heldout_episodes)[1]
     if not len(heldout):
         raise ValueError("eval.episodes is 0: there are no held-out episodes to evaluate on")
     return source.load_table(heldout, images=images)
 
 
-def training_blocks(config: ConfigLike, layout: ActionLayout,
-                    keys: Sequence[str] = ("actions", "state"), *, source=None,
+def training_blocks(spec: DataSpec, keys: Sequence[str] = ("actions", "state"), *, source=None,
                     episodes: np.ndarray | None = None
                     ) -> tuple[Iterator[dict[str, np.ndarray]], int]:
     """A stream of blocks (`Source.iter_blocks`) of `episodes` (default: the training episodes),
     and their number of frames."""
-    source = _source(config, layout, source)
+    source = _source(spec, source)
     if episodes is None:
-        episodes = training_episodes(config, source)
+        episodes = training_episodes(spec, source)
     return (stats_lib.checked_blocks(source.iter_blocks(keys, episodes), source.episode_file,
                                      getattr(source, "dim_name", None)),
             num_frames(source, episodes))
@@ -136,8 +128,7 @@ def heldout_chunk_count(lengths: np.ndarray, horizon: int) -> int:
     return int(np.sum(-(-np.asarray(lengths, np.int64) // stride)))
 
 
-def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool = True,
-               action_horizon: int = 1
+def check_data(spec: DataSpec, source, *, images: bool = True, action_horizon: int = 1
                ) -> list[str]:
     """Every check of the data that can fail, before any pass over it (cheap: metadata, plus the
     probe of `data.probe_episodes` episodes' files and first/last video frames).
@@ -150,19 +141,18 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
     Returns:
       warnings to print once (e.g. batch cameras that no stored camera feeds).
     """
-    data = config["data"]
+    layout = spec.layout
     where = str(getattr(source, "root", "the dataset"))
-    heldout = split_episodes(source.episode_index, _num_heldout(config))[1]
-    evaluation = config.get("eval") or {}
-    if int(evaluation.get("every", 0)) > 0:
+    heldout = split_episodes(source.episode_index, spec.heldout_episodes)[1]
+    if spec.eval_every > 0:
         lengths = source.episode_lengths[np.isin(source.episode_index, heldout)]
         chunks = heldout_chunk_count(lengths, action_horizon)
-        if chunks < int(evaluation["batch_size"]):
+        if chunks < spec.eval_batch_size:
             raise ValueError(
-                f"eval.every = {evaluation['every']} evaluates on the held-out episodes, but the "
+                f"eval.every = {spec.eval_every} evaluates on the held-out episodes, but the "
                 f"{len(heldout)} held out (eval.episodes) hold {chunks} chunks of H = "
                 f"{action_horizon} ({int(lengths.sum())} frames, a chunk every H - 1), fewer "
-                f"than eval.batch_size = {evaluation['batch_size']}: raise eval.episodes, lower "
+                f"than eval.batch_size = {spec.eval_batch_size}: raise eval.episodes, lower "
                 "eval.batch_size, or set eval.every=0")
     if source.state_width > layout.action_dim:
         stored = getattr(source, "stored_state_width", source.state_width)
@@ -171,17 +161,16 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
                 f"{state_space.STATE_PRESETS[presets[0]].width} dims in the action order) or "
                 if presets else "")
         raise ValueError(
-            f"{where}: the state ({data.get('state_key') or 'observation.state'!r}) has "
+            f"{where}: the state ({spec.get('state_key', 'observation.state')!r}) has "
             f"{source.state_width} dims, more than layout.action_dim={layout.action_dim}: it "
             f"cannot be padded into the model's state. Select the dims the policy needs: "
             f"{hint}data.state_indices=(...)")
-    mask = transforms.delta_action_mask(data.get("delta_action_mask"), layout)
-    if mask is not None:
-        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data),
+    if spec.delta_mask is not None:
+        transforms.check_delta_state_layout(spec.delta_mask, layout, spec.state_groups,
                                             source.state_width)
-    curriculum = curriculum_lib.Curriculum.from_config(data, int(config.get("seed", 0)))
+    curriculum = spec.curriculum
     if "arm_heavy" in curriculum.sources:
-        listed = data.get("arm_heavy_episodes") or ""
+        listed = spec.get("arm_heavy_episodes", "")
         if listed:
             chosen = curriculum_lib.load_episode_list(listed)
             unknown = np.setdiff1d(chosen, source.episode_index)
@@ -190,14 +179,14 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
                     f"data.arm_heavy_episodes ({listed}) lists {len(unknown)} episode(s) that "
                     f"{where} does not have (ids {_ids(unknown)}): it was made for other data; "
                     "rerun filter_arm_heavy_episodes on this dataset")
-            heldout = np.setdiff1d(chosen, training_episodes(config, source))
+            heldout = np.setdiff1d(chosen, training_episodes(spec, source))
             if len(heldout):
                 logging.warning("data.arm_heavy_episodes lists %d held-out episode(s) (ids %s): "
                                 "they are never trained on", len(heldout), _ids(heldout))
         else:
             motion_lib.arm_heavy_groups(layout)
     warnings = []
-    total_steps = int((config.get("train") or {}).get("total_steps", 0))
+    total_steps = spec.total_steps
     for number, phase in enumerate(curriculum.phases[:-1]):
         if total_steps and phase.until_step >= total_steps:
             warnings.append(
@@ -211,14 +200,14 @@ def check_data(config: ConfigLike, layout: ActionLayout, source, *, images: bool
             source.cameras, getattr(source, "camera_names", ()), where)
         if missing:
             warnings.append(missing)
-    source.probe(int(data.get("probe_episodes", 4)), videos=images)
+    source.probe(int(spec.get("probe_episodes", 4)), videos=images)
     return warnings
 
 
 # ---------------------------------------------------------------------- normalization statistics
-def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
-                     layout: ActionLayout, *, action_horizon: int, total_frames: int | None = None,
-                     progress: bool = True) -> dict[str, stats_lib.NormStats]:
+def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, action_horizon: int,
+                     total_frames: int | None = None, progress: bool = True
+                     ) -> dict[str, stats_lib.NormStats]:
     """Statistics `{"actions", "state", "actions_absolute"}` of a stream of blocks
     (`Source.iter_blocks`), with the actions in the model's action space, and the absolute actions
     per frame beside them (the evaluation's common units, whatever the representation).
@@ -234,12 +223,11 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
 
     Args:
       blocks: `{"actions": [n, A], "state": [n, S], "episode_index": [n]}`, episodes in order.
-      data_cfg: `config.data` (`delta_action_mask`, `state_groups`).
-      layout: the action layout.
+      spec: the run's data spec (its layout, delta mask and state groups).
       action_horizon: H of the model's chunks (`config.model.action_horizon` resolved against the
         preset by the caller).
     """
-    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
+    mask, layout = spec.delta_mask, spec.layout
     if mask is None:
         stats = stats_lib.compute_norm_stats(blocks, total_frames=total_frames, progress=progress)
         return {**stats, ABSOLUTE_ACTIONS: stats["actions"]}
@@ -250,8 +238,7 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
     def chunk_steps(block: stats_lib.Block) -> stats_lib.Block:
         actions = np.asarray(block["actions"], np.float32)  # the table's dtype
         state = np.asarray(block["state"], np.float32)
-        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
-                                            state.shape[1])
+        transforms.check_delta_state_layout(mask, layout, spec.state_groups, state.shape[1])
         episode = np.asarray(block["episode_index"])
         starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
                                  [len(episode)]])
@@ -273,53 +260,50 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], data_cfg: ConfigLike,
     return stats
 
 
-def dataset_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
-                       progress: bool = True, source=None, episodes: np.ndarray | None = None
+def dataset_norm_stats(spec: DataSpec, *, action_horizon: int, progress: bool = True,
+                       source=None, episodes: np.ndarray | None = None
                        ) -> dict[str, stats_lib.NormStats]:
     """Plain statistics `{"actions", "state"}` of `episodes` (default: the training episodes),
     one streaming pass (`block_norm_stats`: the relative dims of `data.delta_action_mask` over
     chunks of H = `action_horizon`)."""
-    blocks, total = training_blocks(config, layout, ("actions", "state"), source=source,
+    blocks, total = training_blocks(spec, ("actions", "state"), source=source,
                                     episodes=episodes)
-    return block_norm_stats(blocks, config["data"], layout, action_horizon=action_horizon,
-                            total_frames=total, progress=progress)
+    return block_norm_stats(blocks, spec, action_horizon=action_horizon, total_frames=total,
+                            progress=progress)
 
 
-def dataset_motion(config: ConfigLike, layout: ActionLayout, action_stats: stats_lib.NormStats,
+def dataset_motion(spec: DataSpec, action_stats: stats_lib.NormStats,
                    norm_mode: str = "zscore", *, progress: bool = True, source=None,
                    episodes: np.ndarray | None = None) -> motion_lib.MotionSummary:
     """Frame-to-frame motion of `episodes` (default: the training episodes), in `norm_mode` units
     of `action_stats`."""
-    blocks, total = training_blocks(config, layout, ("actions",), source=source,
-                                    episodes=episodes)
-    return motion_lib.compute_motion(blocks, layout,
+    blocks, total = training_blocks(spec, ("actions",), source=source, episodes=episodes)
+    return motion_lib.compute_motion(blocks, spec.layout,
                                      *motion_lib.normalized_units(action_stats, norm_mode),
                                      total_frames=total, progress=progress)
 
 
-def balanced_dataset_norm_stats(config: ConfigLike, layout: ActionLayout, max_scale: float, *,
-                                action_horizon: int, progress: bool = True, source=None,
+def balanced_dataset_norm_stats(spec: DataSpec, max_scale: float, *, action_horizon: int, progress: bool = True, source=None,
                                 episodes: np.ndarray | None = None
                                 ) -> tuple[dict[str, stats_lib.NormStats],
                                            list[motion_lib.BalanceReport]]:
     """`dataset_norm_stats` with balanced action statistics (`motion.balanced_norm_stats`): two
     streaming passes (statistics, then motion)."""
-    source = _source(config, layout, source)
-    stats = dataset_norm_stats(config, layout, action_horizon=action_horizon, progress=progress,
+    source = _source(spec, source)
+    stats = dataset_norm_stats(spec, action_horizon=action_horizon, progress=progress,
                                source=source, episodes=episodes)
-    summary = dataset_motion(config, layout, stats["actions"], progress=progress, source=source,
+    summary = dataset_motion(spec, stats["actions"], progress=progress, source=source,
                              episodes=episodes)
-    stats["actions"], reports = motion_lib.balanced_norm_stats(stats["actions"], summary, layout,
-                                                               max_scale)
+    stats["actions"], reports = motion_lib.balanced_norm_stats(stats["actions"], summary,
+                                                               spec.layout, max_scale)
     return stats, reports
 
 
-def norm_stats_key(config: ConfigLike, layout: ActionLayout, source, *, action_horizon: int
-                   ) -> dict[str, Any]:
+def norm_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str, Any]:
     """What the run's statistics are computed from: the dataset's identity (root, metadata,
     episode ids and lengths), the feature selection, the training split and the stats options.
     JSON-able; two equal keys give equal statistics."""
-    data = config["data"]
+    data, layout = spec.options, spec.layout
     root = Path(getattr(source, "root", "") or ".").resolve()
     info = root / "meta" / "info.json"
     identity = hashlib.sha256()
@@ -327,24 +311,24 @@ def norm_stats_key(config: ConfigLike, layout: ActionLayout, source, *, action_h
         identity.update(info.read_bytes())
     identity.update(np.asarray(source.episode_index, np.int64).tobytes())
     identity.update(np.asarray(source.episode_lengths, np.int64).tobytes())
-    mask = transforms.delta_action_mask(data.get("delta_action_mask"), layout)
+    mask = spec.delta_mask
     key = {
         "data.root": str(root),
         "dataset": identity.hexdigest(),
-        "training episodes": len(training_episodes(config, source)),
-        "eval.episodes": _num_heldout(config),
+        "training episodes": len(training_episodes(spec, source)),
+        "eval.episodes": spec.heldout_episodes,
         "layout.real_dim": layout.real_dim,
     }
     for field in ("format", "action_key", "state_key", "state_indices", "action_indices",
                   "balanced_norm"):
         key[f"data.{field}"] = _jsonable(data.get(field))
-    key["data.state_preset"] = selection_lib.state_preset(data)
+    key["data.state_preset"] = spec.state_preset
     if data.get("balanced_norm"):
         key["data.balanced_max_scale"] = float(data.get("balanced_max_scale", 10.0))
         key["layout.groups"] = {g: list(b) for g, b in layout.groups.items()}
     if mask is not None:
         key["data.delta_action_mask"] = np.flatnonzero(mask).tolist()
-        key["data.state_groups"] = _jsonable(selection_lib.state_groups(data))
+        key["data.state_groups"] = _jsonable(spec.state_groups)
         key["model.action_horizon"] = int(action_horizon)
     return key
 
@@ -362,7 +346,7 @@ def _key_path(cache_path: Path) -> Path:
     return cache_path.with_name(cache_path.stem + ".key.json")
 
 
-def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, action_horizon: int,
+def load_or_compute_norm_stats(spec: DataSpec, *, action_horizon: int,
                                cache_path: str | Path | None = None, progress: bool = True,
                                source=None, resuming: bool = False,
                                keep_cached: bool = False,
@@ -372,23 +356,23 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
 
     Order: `data.norm_stats` if set (read as is: a file written by `recompute_balanced_norm_stats`
     is used unchanged, whatever `data.balanced_norm` says); else `cache_path` if it exists and its
-    key (`norm_stats_key`) equals this config's; else `dataset_norm_stats`, balanced
+    key (`norm_stats_key`) equals this run's; else `dataset_norm_stats`, balanced
     (`motion.balanced_norm_stats`, capped at `data.balanced_max_scale`) when `data.balanced_norm`,
     written to `cache_path` with its key. A cache whose key differs is recomputed, or refused
     when `resuming` (a run whose checkpoints were trained with the cached stats), or kept with
     `keep_cached` (a run resumed with `train.resume=force`: its params were trained with them),
-    its key rewritten to this config's. `episodes`:
+    its key rewritten to this run's. `episodes`:
     those the statistics are computed over (default: the training episodes; the tools' --episodes
     only, without a cache). The state entry
     keeps the file's width (openpi pads it); `BatchTransform` cuts it to the dataset's state width.
     """
-    data = config["data"]
+    layout = spec.layout
     widths = {"actions": layout.real_dim, "state": None}
     optional = {ABSOLUTE_ACTIONS: layout.real_dim}
-    if data.get("norm_stats"):
-        return stats_lib.load_norm_stats(data["norm_stats"], widths, optional)
-    source = _source(config, layout, source)
-    key = norm_stats_key(config, layout, source, action_horizon=action_horizon)
+    if spec.get("norm_stats"):
+        return stats_lib.load_norm_stats(spec.get("norm_stats"), widths, optional)
+    source = _source(spec, source)
+    key = norm_stats_key(spec, source, action_horizon=action_horizon)
     if episodes is not None and cache_path is not None:
         raise ValueError("load_or_compute_norm_stats: a cache holds the training episodes' stats")
     if cache_path is not None and Path(cache_path).is_file():
@@ -408,21 +392,21 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
                 json_files.write_json_atomic(_key_path(cache_path), key)
                 return stats_lib.load_norm_stats(cache_path, widths, optional)
             raise ValueError(
-                f"{cache_path} was computed from other data or options than this config "
+                f"{cache_path} was computed from other data or options than this run's config "
                 f"(differing: {differing}) and the run's checkpoints were trained with it: "
                 "resume with the config it was started with, or start a new --workdir")
         logging.warning("%s was computed from other data or options (differing: %s): "
                         "recomputing it", cache_path, differing)
-    if data.get("balanced_norm"):
+    if spec.get("balanced_norm"):
         stats, reports = balanced_dataset_norm_stats(
-            config, layout, float(data.get("balanced_max_scale", 10.0)),
+            spec, float(spec.get("balanced_max_scale", 10.0)),
             action_horizon=action_horizon, progress=progress, source=source, episodes=episodes)
         for report in reports:
             logging.info("balanced norm stats (%s): motion RMS before %s after %s",
                          report.mode, report.before, report.after)
     else:
-        stats = dataset_norm_stats(config, layout, action_horizon=action_horizon,
-                                   progress=progress, source=source, episodes=episodes)
+        stats = dataset_norm_stats(spec, action_horizon=action_horizon, progress=progress,
+                                   source=source, episodes=episodes)
     if cache_path is not None:
         stats_lib.save_norm_stats(cache_path, stats)
         json_files.write_json_atomic(_key_path(Path(cache_path)), key)
@@ -430,7 +414,7 @@ def load_or_compute_norm_stats(config: ConfigLike, layout: ActionLayout, *, acti
 
 
 def differing_keys(cached: Mapping[str, Any] | None, key: Mapping[str, Any]) -> list[str]:
-    """The entries in which a cache's key differs from this config's (`norm_stats_key`)."""
+    """The entries in which a cache's key differs from this run's (`norm_stats_key`)."""
     cached = cached or {}
     return sorted(k for k in set(key) | set(cached) if cached.get(k) != key.get(k))
 

@@ -1,8 +1,9 @@
 """The Grain input pipeline: shuffled action chunks of the training episodes as global jax.Arrays.
 
-    it = make_train_iterator(config, layout, norm_stats=stats, action_horizon=H, source=source,
+    it = make_train_iterator(spec, norm_stats=stats, action_horizon=H, source=source,
                              global_batch_size=config.train.batch_size, sharding=batch_sharding,
                              tokenize=tokenize)      # tokenize(prompt) -> (int32 [L], bool [L])
+                             # spec: the run's `DataSpec`
                              # actions_only=True: state/actions/action_is_pad only (no images,
                              # no prompt) for benchmarks and tools
     batch = next(it)        # the contract's batch dict of global jax.Arrays laid out by `sharding`
@@ -53,18 +54,16 @@ import grain
 import jax
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import sources
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
 from pi0_armfix.data import video_stream
 from pi0_armfix.data.batching import BatchTransform, Tokenize
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.sampling import SampleSelector, source_episodes, source_frames, stream_seed
-from pi0_armfix.model import config as model_config_lib
 
 ConfigLike = Mapping[str, Any]
 
@@ -77,46 +76,39 @@ def _check_batch_size(global_batch_size: int, process_count: int) -> None:
                          f"the number of processes ({process_count})")
 
 
-def _batch_transform(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
-                     norm_stats: Mapping[str, stats_lib.NormStats], norm_mode: str | None,
-                     action_horizon: int, tokenize: Tokenize | None, actions_only: bool = False,
+def _batch_transform(table: EpisodeTable, spec: DataSpec, *,
+                     norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
+                     tokenize: Tokenize | None, actions_only: bool = False,
                      image_size: tuple[int, int] = (224, 224)) -> BatchTransform:
     """The run's `BatchTransform` (either chain's), its delta actions checked against the state
-    layout; `norm_mode` None: `data.norm`, else z-score."""
-    mask = transforms.delta_action_mask(data_cfg.get("delta_action_mask"), layout)
-    if mask is not None:
-        transforms.check_delta_state_layout(mask, layout, selection_lib.state_groups(data_cfg),
+    layout."""
+    if spec.delta_mask is not None:
+        transforms.check_delta_state_layout(spec.delta_mask, spec.layout, spec.state_groups,
                                             table.state.shape[1])
-    return BatchTransform(table, layout, norm_stats=norm_stats,
-                          norm_mode=norm_mode or data_cfg.get("norm") or "zscore",
-                          action_horizon=action_horizon, delta_mask=mask, tokenize=tokenize,
-                          actions_only=actions_only, image_size=image_size)
+    return BatchTransform(table, spec.layout, norm_stats=norm_stats, norm_mode=spec.norm,
+                          action_horizon=action_horizon, delta_mask=spec.delta_mask,
+                          tokenize=tokenize, actions_only=actions_only, image_size=image_size)
 
 
-def train_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
-                  seed: int, norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
+def train_batches(table: EpisodeTable, spec: DataSpec, *,
+                  norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                   global_batch_size: int, process_index: int = 0, process_count: int = 1,
                   tokenize: Tokenize | None = None, actions_only: bool = False,
-                  image_size: tuple[int, int] = (224, 224), norm_mode: str | None = None
-                  ) -> tuple[grain.MapDataset, curriculum_lib.Curriculum]:
-    """The infinite MapDataset of this process's numpy batches (element i = step i), and the
-    curriculum (for the phase of a step). `norm_mode`: the run's resolved normalization (default:
-    `data.norm`, else z-score)."""
+                  image_size: tuple[int, int] = (224, 224)) -> grain.MapDataset:
+    """The infinite MapDataset of this process's numpy batches (element i = step i)."""
     _check_batch_size(global_batch_size, process_count)
-    curriculum = curriculum_lib.Curriculum.from_config(data_cfg, seed)
-    transform = _batch_transform(table, layout, data_cfg, norm_stats=norm_stats,
-                                 norm_mode=norm_mode, action_horizon=action_horizon,
-                                 tokenize=tokenize, actions_only=actions_only,
-                                 image_size=image_size)
-    frames = source_frames(table, layout, data_cfg, curriculum.sources, norm_stats["actions"])
+    curriculum, seed = spec.curriculum, spec.seed
+    transform = _batch_transform(table, spec, norm_stats=norm_stats,
+                                 action_horizon=action_horizon, tokenize=tokenize,
+                                 actions_only=actions_only, image_size=image_size)
+    frames = source_frames(table, spec, curriculum.sources, norm_stats["actions"])
     streams = [grain.MapDataset.source(frames[name]).shuffle(seed=stream_seed(seed, i)).repeat()
                for i, name in enumerate(curriculum.sources)]
     selector = SampleSelector(curriculum, streams, global_batch_size=global_batch_size,
                               process_index=process_index, process_count=process_count)
-    batches = (grain.MapDataset.range(sys.maxsize // global_batch_size)
-               .map(selector.frames_of_step)
-               .map(transform))
-    return batches, curriculum
+    return (grain.MapDataset.range(sys.maxsize // global_batch_size)
+            .map(selector.frames_of_step)
+            .map(transform))
 
 
 class _StreamBatch:
@@ -129,29 +121,28 @@ class _StreamBatch:
         return self.transform(frames["frame"], images=frames["images"])
 
 
-def stream_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike, *,
-                   seed: int, norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
+def stream_batches(table: EpisodeTable, spec: DataSpec, *,
+                   norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
                    global_batch_size: int, process_index: int = 0, process_count: int = 1,
-                   tokenize: Tokenize | None = None, image_size: tuple[int, int] = (224, 224),
-                   norm_mode: str | None = None) -> grain.IterDataset:
+                   tokenize: Tokenize | None = None, image_size: tuple[int, int] = (224, 224)
+                   ) -> grain.IterDataset:
     """The infinite IterDataset of this process's numpy batches from episodes streamed front to
     back (the module docstring); every episode of `table` trains, or, with a curriculum or an
     arm-heavy mix, those its sources draw, by their weights (`curriculum_episode_order`)."""
     _check_batch_size(global_batch_size, process_count)
     if table.images is None or not hasattr(table.images, "episode_reader"):
         raise ValueError("data.video_access = 'stream' needs a LeRobot dataset's video cameras")
-    transform = _batch_transform(table, layout, data_cfg, norm_stats=norm_stats,
-                                 norm_mode=norm_mode, action_horizon=action_horizon,
-                                 tokenize=tokenize, image_size=image_size)
-    open_episodes = int(data_cfg.get("stream_episodes", 16))
-    curriculum = curriculum_lib.Curriculum.from_config(data_cfg, seed)
+    transform = _batch_transform(table, spec, norm_stats=norm_stats,
+                                 action_horizon=action_horizon, tokenize=tokenize,
+                                 image_size=image_size)
+    open_episodes = int(spec.get("stream_episodes", 16))
+    curriculum, seed = spec.curriculum, spec.seed
     if curriculum.sources == ("full",) and len(curriculum.phases) == 1:
         order = video_stream.episode_order(range(table.num_episodes), seed=seed,
                                            process_index=process_index,
                                            process_count=process_count)
     else:
-        chosen = source_episodes(table, layout, data_cfg, curriculum.sources,
-                                 norm_stats["actions"])
+        chosen = source_episodes(table, spec, curriculum.sources, norm_stats["actions"])
         order = video_stream.curriculum_episode_order(
             curriculum, [np.flatnonzero(chosen[name]) for name in curriculum.sources],
             table.episode_lengths, seed=seed, global_batch_size=global_batch_size,
@@ -159,7 +150,7 @@ def stream_batches(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLi
             process_count=process_count)
     frames = video_stream.stream_frames(
         table.images, order, seed=seed, open_episodes=open_episodes,
-        shuffle_window=int(data_cfg.get("stream_shuffle", 256)))
+        shuffle_window=int(spec.get("stream_shuffle", 256)))
     return frames.batch(global_batch_size // process_count, drop_remainder=True).map(
         _StreamBatch(transform))
 
@@ -297,39 +288,29 @@ class StreamTrainIterator(TrainIterator):
         self._restore = state["stream"]
 
 
-def make_train_iterator(config: ConfigLike, layout: ActionLayout, *,
-                        norm_stats: Mapping[str, stats_lib.NormStats], action_horizon: int,
-                        global_batch_size: int, sharding: jax.sharding.Sharding,
-                        tokenize: Tokenize | None = None, actions_only: bool = False,
-                        source=None, image_size: tuple[int, int] = (224, 224),
+def make_train_iterator(spec: DataSpec, *, norm_stats: Mapping[str, stats_lib.NormStats],
+                        action_horizon: int, global_batch_size: int,
+                        sharding: jax.sharding.Sharding, tokenize: Tokenize | None = None,
+                        actions_only: bool = False, source=None,
+                        image_size: tuple[int, int] = (224, 224),
                         video_access: str = "random") -> TrainIterator:
-    """Training batches of `config` (see the module docstring). This process reads its slice
+    """Training batches of a run's data `spec` (see the module docstring). This process reads its slice
     `jax.process_index()` of `jax.process_count()` of every global batch. `source`: the run's
     opened source (None = open it); `image_size`: of the zero images of a dataset with no
     camera, and the size video frames are decoded to fit inside; `video_access`: the run's
     resolved `video_stream.choose_access` mode."""
-    data = config["data"]
     if source is None:
-        source = sources.open_source(data, layout)
-    table = source.load_table(dataset_lib.training_episodes(config, source),
+        source = sources.open_source(spec.options, spec.layout)
+    table = source.load_table(dataset_lib.training_episodes(spec, source),
                               images=not actions_only, image_size=image_size)
-    seed = int(config.get("seed", 0))
-    norm_mode = model_config_lib.norm_mode(config) if "model" in config else None
-    options = dict(sharding=sharding, global_batch_size=global_batch_size, seed=seed,
-                   num_workers=int(data.get("num_workers", 0)),
-                   prefetch=int(data.get("prefetch", 2)))
+    options = dict(sharding=sharding, global_batch_size=global_batch_size, seed=spec.seed,
+                   num_workers=int(spec.get("num_workers", 0)),
+                   prefetch=int(spec.get("prefetch", 2)))
+    chain = dict(norm_stats=norm_stats, action_horizon=action_horizon,
+                 global_batch_size=global_batch_size, process_index=jax.process_index(),
+                 process_count=jax.process_count(), tokenize=tokenize, image_size=image_size)
     if video_access == "stream" and not actions_only:
-        batches = stream_batches(
-            table, layout, data, seed=seed, norm_stats=norm_stats,
-            action_horizon=action_horizon, global_batch_size=global_batch_size,
-            process_index=jax.process_index(), process_count=jax.process_count(),
-            tokenize=tokenize, image_size=image_size, norm_mode=norm_mode)
-        return StreamTrainIterator(batches, curriculum_lib.Curriculum.from_config(data, seed),
+        return StreamTrainIterator(stream_batches(table, spec, **chain), spec.curriculum,
                                    **options)
-    batches, curriculum = train_batches(
-        table, layout, data, seed=seed, norm_stats=norm_stats,
-        action_horizon=action_horizon, global_batch_size=global_batch_size,
-        process_index=jax.process_index(), process_count=jax.process_count(),
-        tokenize=tokenize, actions_only=actions_only, image_size=image_size,
-        norm_mode=norm_mode)
-    return TrainIterator(batches, curriculum, **options)
+    return TrainIterator(train_batches(table, spec, actions_only=actions_only, **chain),
+                         spec.curriculum, **options)

@@ -12,19 +12,16 @@ shuffle permutes indices without a table, so memory is per episode, not per fram
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Sequence
 
 import grain
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
-
-ConfigLike = Mapping[str, Any]
 
 
 class EpisodeFrames(Sequence):
@@ -100,19 +97,16 @@ class SampleSelector:
         return np.array([self(k) for k in range(first, first + self.local_batch_size)], np.int64)
 
 
-def source_frames(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike,
-                  names: Sequence[str], action_stats: stats_lib.NormStats
-                  ) -> dict[str, EpisodeFrames]:
+def source_frames(table: EpisodeTable, spec: DataSpec, names: Sequence[str],
+                  action_stats: stats_lib.NormStats) -> dict[str, EpisodeFrames]:
     """The frames of the table that each named curriculum source draws from (its episodes:
     `source_episodes`)."""
     return {name: EpisodeFrames.of_table(table, None if name == "full" else chosen)
-            for name, chosen in source_episodes(table, layout, data_cfg, names,
-                                                action_stats).items()}
+            for name, chosen in source_episodes(table, spec, names, action_stats).items()}
 
 
-def source_episodes(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigLike,
-                    names: Sequence[str], action_stats: stats_lib.NormStats
-                    ) -> dict[str, np.ndarray]:
+def source_episodes(table: EpisodeTable, spec: DataSpec, names: Sequence[str],
+                    action_stats: stats_lib.NormStats) -> dict[str, np.ndarray]:
     """`[E]` bool per named curriculum source: the table's episodes it draws from. The
     on-the-fly arm-heavy selection measures motion in z-score units of `action_stats`, as
     `filter_arm_heavy_episodes` does with the run's stats, so both select the same episodes."""
@@ -121,15 +115,15 @@ def source_episodes(table: EpisodeTable, layout: ActionLayout, data_cfg: ConfigL
         if name == "full":
             episodes_of[name] = np.ones(table.num_episodes, bool)
             continue
-        listed = data_cfg.get("arm_heavy_episodes") or ""
+        listed = spec.get("arm_heavy_episodes", "")
         if listed:
             episodes = curriculum_lib.load_episode_list(listed)
             where = f"data.arm_heavy_episodes ({listed})"
         else:
             summary = motion_lib.compute_motion(
-                stats_lib.table_blocks(table, ("actions",)), layout,
+                stats_lib.table_blocks(table, ("actions",)), spec.layout,
                 *motion_lib.normalized_units(action_stats, "zscore"), progress=False)
-            episodes, _ = motion_lib.arm_heavy_episodes(summary, layout)
+            episodes, _ = motion_lib.arm_heavy_episodes(summary, spec.layout)
             where = "the default arm-heavy thresholds (data.arm_heavy_episodes = '')"
         chosen = np.isin(table.episode_index, episodes)
         if not chosen.any():

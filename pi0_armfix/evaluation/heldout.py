@@ -21,15 +21,13 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import batching, transforms
+from pi0_armfix.data import batching
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.evaluation import baselines as baselines_lib
 from pi0_armfix.evaluation import ceiling as ceiling_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.sim.world import DemoSpec
 
 CEILING = "ceiling"  # the reference name of the expert's redraw (the demo only)
@@ -73,15 +71,15 @@ class HeldOutChunks:
     """The held-out chunks of a run and the reference predictors' metrics on them.
 
     Args:
-      config: the run config (`data`, `eval`).
-      layout: the run's action layout.
+      spec: the run's data spec (layout, held-out split, normalization, delta dims).
+      eval_cfg: the run's `eval` section (`batch_size`, `max_chunks`).
       norm_stats: the run's statistics.
       horizon: H.
       sums: `(chunks [N, H, A], true, valid, gripper_threshold=) -> per-chunk sums` (evaluation
         units): the evaluation's `metrics.chunk_sums` with its layout, groups and tolerance.
       tokenize, image_size: the run's tokenizer and image size for model batches; without
         `tokenize` only actions are read (no images, no prompts).
-      source: the run's opened data source (None = open the one `config.data` names).
+      source: the run's opened data source (None = open the one `spec` names).
 
     Attributes:
       frames `[N]`, episodes `[N]` (each chunk's held-out episode, 0 .. E-1), batches (model
@@ -91,20 +89,18 @@ class HeldOutChunks:
       persistence, and reference_sums: `{name: per-chunk sums}` of the same.
     """
 
-    def __init__(self, config: Any, layout: ActionLayout,
+    def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
                  norm_stats: Mapping[str, stats_lib.NormStats], *, horizon: int,
                  sums: Callable[..., dict[str, np.ndarray]], tokenize=None,
                  image_size: tuple[int, int] = (224, 224), source=None):
-        eval_cfg = config.eval
-        table = dataset_lib.heldout_table(config, layout, source=source,
-                                          images=tokenize is not None)
+        layout = spec.layout
+        table = dataset_lib.heldout_table(spec, source=source, images=tokenize is not None)
         self.transform = batching.BatchTransform(
-            table, layout, norm_stats=norm_stats, norm_mode=model_config_lib.norm_mode(config),
-            action_horizon=horizon,
-            delta_mask=transforms.delta_action_mask(config.data.delta_action_mask, layout),
-            tokenize=tokenize, actions_only=tokenize is None, image_size=image_size)
-        batch_size = eval_cfg.batch_size
-        self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg.max_chunks,
+            table, layout, norm_stats=norm_stats, norm_mode=spec.norm, action_horizon=horizon,
+            delta_mask=spec.delta_mask, tokenize=tokenize, actions_only=tokenize is None,
+            image_size=image_size)
+        batch_size = eval_cfg["batch_size"]
+        self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg["max_chunks"],
                                          batch_size)
         self.episodes = np.searchsorted(table.episode_starts, self.frames, side="right") - 1
         if len(self.frames) == 0:
@@ -121,8 +117,8 @@ class HeldOutChunks:
         self.sums = lambda chunks: sums(chunks, self.true, self.valid,
                                         gripper_threshold=self.gripper_threshold)
         chunks = baselines_lib.baseline_chunks(table, self.frames, horizon, layout,
-                                               selection_lib.state_groups(config.data))
-        if not config.data.root and config.data.get("format", "lerobot") == "lerobot":
+                                               spec.state_groups)
+        if not spec.get("root") and spec.get("format", "lerobot") == "lerobot":
             chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
         self.reference_sums = {name: self.sums(c[..., :layout.real_dim] / self.scale)
                                for name, c in chunks.items()}

@@ -50,6 +50,7 @@ from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import mechanism as mechanism_lib
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import sources
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.data.transforms import DEGENERATE
@@ -174,20 +175,21 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
     layout = ActionLayout.from_config(config.layout)
     norm_mode = model_config_lib.norm_mode(config)
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    source = sources.open_source(config.data, layout)
-    dataset_lib.check_data(config, layout, source, images=False)
-    episodes = dataset_lib.training_episodes(config, source)
-    print(dataset_lib.describe_episodes(config, source, episodes))
-    norm_stats = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=horizon,
+    spec = DataSpec.from_config(config, layout)
+    source = sources.open_source(spec.options, layout)
+    dataset_lib.check_data(spec, source, images=False)
+    episodes = dataset_lib.training_episodes(spec, source)
+    print(dataset_lib.describe_episodes(spec, source, episodes))
+    norm_stats = dataset_lib.load_or_compute_norm_stats(spec, action_horizon=horizon,
                                                         source=source)
-    blocks, total = dataset_lib.training_blocks(config, layout, ("actions",), source=source)
+    blocks, total = dataset_lib.training_blocks(spec, ("actions",), source=source)
     actions = stats_lib.compute_stats(blocks, ("actions",), total_frames=total)["actions"]
     layout.check_real_dim(actions.width, source="the dataset's actions")
     constant = actions.std < DEGENERATE
-    summary = dataset_lib.dataset_motion(config, layout, norm_stats["actions"], norm_mode,
+    summary = dataset_lib.dataset_motion(spec, norm_stats["actions"], norm_mode,
                                          source=source)
     unit, active = motion_lib.normalized_units(norm_stats["actions"], norm_mode)
-    blocks, _ = dataset_lib.training_blocks(config, layout, ("actions", "state"), source=source)
+    blocks, _ = dataset_lib.training_blocks(spec, ("actions", "state"), source=source)
     sums = mechanism_lib.accumulate(stats_lib.whole_episode_blocks(blocks), actions.result(),
                                     norm_stats["state"], horizon)
     mechanism = mechanism_lib.group_mechanisms(sums, layout)

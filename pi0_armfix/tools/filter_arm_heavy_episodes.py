@@ -38,6 +38,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import sources
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 
 
@@ -47,13 +48,14 @@ def run(config: ml_collections.ConfigDict, output: str | Path,
     layout = ActionLayout.from_config(config.layout)
     motion_lib.arm_heavy_groups(layout)  # the layout can be filtered, before any pass
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    source = sources.open_source(config.data, layout)
-    chosen = dataset_lib.select_episodes(config, source, episodes)
-    dataset_lib.check_data(config, layout, source, images=False)
-    print(dataset_lib.describe_episodes(config, source, chosen))
-    stats = dataset_lib.load_or_compute_norm_stats(config, layout, action_horizon=horizon,
+    spec = DataSpec.from_config(config, layout)
+    source = sources.open_source(spec.options, layout)
+    chosen = dataset_lib.select_episodes(spec, source, episodes)
+    dataset_lib.check_data(spec, source, images=False)
+    print(dataset_lib.describe_episodes(spec, source, chosen))
+    stats = dataset_lib.load_or_compute_norm_stats(spec, action_horizon=horizon,
                                                    source=source, episodes=chosen)
-    summary = dataset_lib.dataset_motion(config, layout, stats["actions"], source=source,
+    summary = dataset_lib.dataset_motion(spec, stats["actions"], source=source,
                                          episodes=chosen)
     selected, per_episode = motion_lib.arm_heavy_episodes(summary, layout, thresholds)
     result = {"episodes": selected.tolist(), "per_episode": per_episode,

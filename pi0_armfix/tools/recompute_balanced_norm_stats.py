@@ -26,6 +26,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import motion as motion_lib
 from pi0_armfix.data import sources
+from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 
@@ -39,12 +40,13 @@ def run(config: ml_collections.ConfigDict, output: str | Path, max_scale: float 
     if max_scale is None:
         max_scale = float(config.data.get("balanced_max_scale", 10.0))
     horizon = model_config_lib.from_model_config(config.model).action_horizon
-    source = sources.open_source(config.data, layout)
-    chosen = dataset_lib.select_episodes(config, source, episodes)
-    dataset_lib.check_data(config, layout, source, images=False)
-    print(dataset_lib.describe_episodes(config, source, chosen))
+    spec = DataSpec.from_config(config, layout)
+    source = sources.open_source(spec.options, layout)
+    chosen = dataset_lib.select_episodes(spec, source, episodes)
+    dataset_lib.check_data(spec, source, images=False)
+    print(dataset_lib.describe_episodes(spec, source, chosen))
     stats, reports = dataset_lib.balanced_dataset_norm_stats(
-        config, layout, max_scale, action_horizon=horizon, source=source, episodes=chosen)
+        spec, max_scale, action_horizon=horizon, source=source, episodes=chosen)
     stats_lib.save_norm_stats(output, stats)
     return stats, reports
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import json
 import shutil
 import sys
 from collections.abc import Mapping, Sequence
@@ -143,10 +142,11 @@ class Checkpoints:
         return sorted(self._manager.all_steps())
 
     def save(self, step: int, state: Any, data_state: Mapping[str, Any],
-             norm_stats: Mapping[str, Any], config: ml_collections.ConfigDict, *,
+             norm_stats: Mapping[str, Any], config_json: Mapping[str, Any], *,
              force: bool = False) -> bool:
         """Starts an asynchronous save of `step` (after the previous save is finished and the
         checkpoints retention drops are deleted); True if one was started (see `every`).
+        `config_json`: the run's config as JSON values (`ConfigDict.to_json_best_effort`).
 
         Raises:
           SaveError: the previous save failed, or the disk has less room than `state` needs.
@@ -168,7 +168,7 @@ class Checkpoints:
                 state=ocp.args.StandardSave(state),
                 data=ocp.args.JsonSave(dict(data_state)),
                 norm_stats=ocp.args.JsonSave(dict(norm_stats)),
-                config=ocp.args.JsonSave(json.loads(config.to_json_best_effort())),
+                config=ocp.args.JsonSave(dict(config_json)),
             ), force=force)
 
     def check_for_errors(self) -> None:

@@ -94,14 +94,14 @@ class FiniteCheckpoints:
         return window
 
     def save(self, step: int, state: Any, data_state: Any, norm_stats_json: Any,
-             config: Any) -> None:
+             config_json: Any) -> None:
         """Saves `state` after `step` if every step of the window and its params are finite
         (else `NonFiniteLossError`, nothing saved); unconfirmed until the next step is known."""
         self._check_window()
         if not bool(all_finite(state)):
             raise self._error(f"the update of step {step} left non-finite parameters (its loss "
                               "and gradient were finite)", "It was not saved; ")
-        self.checkpoints.save(step, state, data_state, norm_stats_json, config, force=True)
+        self.checkpoints.save(step, state, data_state, norm_stats_json, config_json, force=True)
         self._unconfirmed, self.saved = step, step
 
     def confirm_final(self, step: int) -> None:

@@ -1,0 +1,96 @@
+"""The data side of a run, read from its config once: `DataSpec.from_config(config, layout)`.
+
+Every data function (`dataset`, `sampling`, `pipeline`, `chunk_stats`) takes the spec, never the
+config: which layout the actions follow, which episodes train and which are held out, how actions
+are represented (delta dims) and normalized, which state dims the policy sees, how samples are
+drawn (curriculum, stream) and read (workers, prefetch). The config's `data` section stays beside
+the typed fields as plain values (`options`), for the two readers that take it as a whole: opening
+the source (`sources.open_source`) and the statistics cache's key (`dataset.norm_stats_key`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data import curriculum as curriculum_lib
+from pi0_armfix.data import selection as selection_lib
+from pi0_armfix.data import transforms
+from pi0_armfix.model import config as model_config_lib
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DataSpec:
+    """What the data layer reads of a run's config, resolved (`from_config`).
+
+    Attributes:
+      layout: the action layout.
+      options: `config.data` as plain values.
+      seed: the run's seed (sample order, curriculum draws).
+      heldout_episodes: `eval.episodes`: the dataset's last episodes, never trained on.
+      eval_every, eval_batch_size: the held-out evaluation's schedule and batch (checked
+        against the held-out chunks before any pass).
+      total_steps: `train.total_steps` (0: not a training run).
+      norm: the normalization ('zscore', 'quantile', ...): `data.norm`, else the model's.
+      delta_mask: `[A]` bool, the action dims trained relative to the state; None = absolute.
+      state_preset: the state preset read ('' = every stored dim or `data.state_indices`).
+      state_groups: the state's {group: (start, stop)} in the action order, or None.
+      curriculum: the parsed `data.curriculum` (one phase of the full dataset when unset).
+    """
+
+    layout: ActionLayout
+    options: Mapping[str, Any]
+    seed: int = 0
+    heldout_episodes: int = 0
+    eval_every: int = 0
+    eval_batch_size: int = 0
+    total_steps: int = 0
+    norm: str = "zscore"
+    delta_mask: np.ndarray | None = None
+    state_preset: str = ""
+    state_groups: Mapping[str, Sequence[int]] | None = None
+    curriculum: curriculum_lib.Curriculum = dataclasses.field(
+        default_factory=lambda: curriculum_lib.Curriculum(curriculum_lib.parse_curriculum(()), 0))
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any], layout: ActionLayout,
+                    norm: str | None = None) -> "DataSpec":
+        """The spec of `config` (its `data`, `eval`, `train` and `seed`); `norm`: the run's
+        resolved normalization (default `data.norm`, else the model's, else z-score).
+
+        Raises:
+          ValueError naming the key, for a delta mask the layout cannot have or a malformed
+          curriculum.
+        """
+        data = config["data"]
+        options = _plain(data)
+        evaluation = config.get("eval") or {}
+        seed = int(config.get("seed", 0) or 0)
+        return cls(
+            layout=layout, options=options, seed=seed,
+            heldout_episodes=int(evaluation.get("episodes", 0)),
+            eval_every=int(evaluation.get("every", 0)),
+            eval_batch_size=int(evaluation.get("batch_size", 0)),
+            total_steps=int((config.get("train") or {}).get("total_steps", 0)),
+            norm=(norm or options.get("norm")
+                  or (model_config_lib.norm_mode(config) if "model" in config else "zscore")),
+            delta_mask=transforms.delta_action_mask(options.get("delta_action_mask"), layout),
+            state_preset=selection_lib.state_preset(options),
+            state_groups=selection_lib.state_groups(options),
+            curriculum=curriculum_lib.Curriculum.from_config(options, seed))
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """`data.<key>` as configured (None or missing: `default`)."""
+        value = self.options.get(key)
+        return default if value is None else value
+
+
+def _plain(section: Mapping[str, Any]) -> dict[str, Any]:
+    """A config section as a dict of its values (nested sections as dicts)."""
+    if hasattr(section, "to_dict"):
+        return section.to_dict()
+    return {k: _plain(v) if isinstance(v, Mapping) else v for k, v in section.items()}
