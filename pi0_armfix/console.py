@@ -1,11 +1,15 @@
-"""What the command-line entrypoints print: quiet library logging unless asked for, and a user's
-error as one line."""
+"""The command line of the entrypoints: flag parsing whose every mistake is one line naming the
+flag, the installed experiment configs (`--config=<name>` from any folder), quiet library logging
+unless asked for, and a user's error as one line."""
 
 from __future__ import annotations
 
 import contextlib
 import logging as std_logging
+import os
+import re
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from absl import flags, logging
 
@@ -40,18 +44,101 @@ def user_errors(program: str) -> Iterator[None]:
 HELP_FLAGS = ("--help", "-?", "--helpshort", "--helpfull", "--helpxml")
 
 
-def flags_parser(program: str) -> Callable[[list[str]], list[str]]:
+def flags_parser(program: str,
+                 flag_values: flags.FlagValues = flags.FLAGS) -> Callable[[list[str]], list[str]]:
     """absl's flag parsing for `app.run(main, flags_parser=...)`: `--help` exits 0 (absl's exits
     1, which scripts read as a failure), a bad flag is one line naming it."""
 
     def parse(argv: list[str]) -> list[str]:
         try:
-            return flags.FLAGS(argv)
-        except SystemExit as e:
-            if e.code == 1 and any(a.split("=")[0] in HELP_FLAGS for a in argv[1:]):
-                raise SystemExit(0) from None
-            raise
+            return _parse_with_help(argv, flag_values)
         except flags.Error as e:
             raise SystemExit(f"{program}: {e} (--help lists the flags)") from None
 
     return parse
+
+
+def config_flags_parser(program: str, flag_values: flags.FlagValues = flags.FLAGS
+                        ) -> Callable[[list[str]], list[str]]:
+    """`flags_parser` for an entrypoint with an experiment config (`--config`, defined with
+    `ml_collections.config_flags.DEFINE_config_file(..., lock_config=True)`):
+
+    - `--config=configs/<name>.py[:arg]` (or `--config=<name>`) that names no file here is the
+      installed config of that name (`configs_dir()`), so the command works from any folder;
+    - a config file that does not exist, a `get_config` that raises (a bad scale argument) and an
+      override of a key the locked config lacks are each one line naming the flag, with the fix
+      (the known configs, absl's "did you mean" suggestion)."""
+
+    def parse(argv: list[str]) -> list[str]:
+        argv = [installed_config(a) for a in argv]
+        for arg in argv[1:]:  # before parsing: an override of a missing file would raise from it
+            if arg.startswith("--config="):
+                _check_config_file(program, arg.partition("=")[2].partition(":")[0])
+        try:
+            return _parse_with_help(argv, flag_values)
+        except flags.Error as e:
+            message = str(e)
+            if "Error whilst parsing config file" in message:  # get_config raised: its last line
+                lines = [line for line in message.splitlines() if line.strip()]
+                given = [a for a in argv[1:] if a.startswith("--config=")][-1:] or ["--config"]
+                message = f"{given[0]}: {lines[-1].partition(': ')[2] or lines[-1]}"
+            raise SystemExit(f"{program}: {message}") from None
+        except (AttributeError, KeyError) as e:
+            raise SystemExit(f"{program}: {_missing_key_message(e, argv)}") from None
+
+    return parse
+
+
+def _parse_with_help(argv: list[str], flag_values: flags.FlagValues) -> list[str]:
+    try:
+        return flag_values(argv)
+    except SystemExit as e:  # absl's --help exits 1: a help asked for is no failure
+        if e.code == 1 and any(a.split("=")[0] in HELP_FLAGS for a in argv[1:]):
+            raise SystemExit(0) from None
+        raise
+
+
+def _missing_key_message(error: AttributeError | KeyError, argv: list[str]) -> str:
+    """`--config.<key>: the config has no key '<name>'; Did you mean ...?`: ml_collections' error
+    for an override of a key the locked config lacks, on one line, naming the override."""
+    # ml_collections nests the KeyError's repr: unescape its quotes and line break.
+    message = str(error.args[0] if error.args else error).strip("\"")
+    if "\\'" in message:
+        message = message[1:-1].replace("\\'", "'").replace("\\n", "\n")
+    message = message.replace("\n", "; ")
+    missing = re.findall(r"'(\w+)'", message)[:1]
+    overrides = [a.split("=")[0] for a in argv[1:] if a.startswith("--config.")]
+    culprit = [a for a in overrides if set(missing) & set(a.split("."))] or overrides
+    return f"{', '.join(culprit)}: the config has no key {message}"
+
+
+def configs_dir() -> Path:
+    """The experiment configs installed with the package (`pi0_armfix.configs`: the repository's
+    `configs/` folder)."""
+    from pi0_armfix import configs
+
+    return Path(configs.__file__).parent
+
+
+def config_names() -> list[str]:
+    """The experiment configs a user can name (`base` is every config's base, not one of them)."""
+    return sorted(p.stem for p in configs_dir().glob("*.py") if p.stem not in ("__init__", "base"))
+
+
+def installed_config(arg: str) -> str:
+    """`--config=configs/<name>.py[:arg]` (or `--config=<name>`) that names no file here: the
+    installed config of that name; any other argument unchanged."""
+    if not arg.startswith("--config="):
+        return arg
+    path, colon, scale = arg.removeprefix("--config=").partition(":")
+    if os.path.isfile(path):
+        return arg
+    name = Path(path).name
+    installed = configs_dir() / (name if name.endswith(".py") else f"{name}.py")
+    return f"--config={installed}{colon}{scale}" if installed.is_file() else arg
+
+
+def _check_config_file(program: str, path: str) -> None:
+    if not os.path.isfile(path):
+        raise SystemExit(f"{program}: --config={path}: no such config file; give a path or the "
+                         f"name of an installed config: {', '.join(config_names())}")

@@ -364,10 +364,11 @@ def main(argv: Sequence[str]) -> None:
     configs = [c for c in FLAGS.configs if c]
     if not configs:
         raise SystemExit("pi0_armfix.study: --configs names no config")
-    missing = [c for c in configs if not (_configs_dir() / f"{parse_config(c)[0]}.py").is_file()]
+    missing = [c for c in configs
+               if not (console.configs_dir() / f"{parse_config(c)[0]}.py").is_file()]
     if missing:
         raise SystemExit(f"pi0_armfix.study: --configs names {missing}, which are not files of "
-                         f"{_configs_dir()}")
+                         f"{console.configs_dir()}: use {', '.join(console.config_names())}")
     if FLAGS.seeds < 1 or FLAGS.steps < 1 or FLAGS.parallel < 1:
         raise SystemExit("pi0_armfix.study: --seeds, --steps and --parallel must be >= 1")
     bad = [o for o in FLAGS.override if "=" not in o]
@@ -407,12 +408,6 @@ def main(argv: Sequence[str]) -> None:
                   primary=FLAGS.primary or None, ceiling=ceiling_metrics(results, workdir))
     print((workdir / "study.md").read_text())
     print(f"study.md, study.json and study.png in {workdir}")
-
-
-def _configs_dir() -> Path:
-    from pi0_armfix import configs
-
-    return Path(configs.__file__).parent
 
 
 def cli() -> None:

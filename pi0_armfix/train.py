@@ -49,7 +49,6 @@ import errno
 import functools
 import json
 import os
-import re
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -515,68 +514,6 @@ def default_workdir(config_filename: str) -> str:
 FLAGS = flags.FLAGS
 
 
-def parse_flags(argv: Sequence[str]) -> list[str]:
-    """absl's flag parsing, with a bad flag and an override of a key the (locked) config lacks
-    reported as one line naming the flag instead of a traceback."""
-    argv = [_installed_config(a) for a in argv]
-    for arg in argv[1:]:  # before parsing: an override of a missing file would raise from it
-        if arg.startswith("--config="):
-            _check_config_file(arg.partition("=")[2].partition(":")[0])
-    try:
-        rest = FLAGS(argv)
-    except SystemExit as e:  # absl's --help exits 1: a help asked for is no failure
-        if e.code == 1 and any(a.split("=")[0] in console.HELP_FLAGS for a in argv[1:]):
-            raise SystemExit(0) from None
-        raise
-    except flags.Error as e:
-        message = str(e)
-        if "Error whilst parsing config file" in message:  # get_config raised: its last line
-            lines = [line for line in message.splitlines() if line.strip()]
-            given = [a for a in argv[1:] if a.startswith("--config=")][-1:] or ["--config"]
-            message = f"{given[0]}: {lines[-1].partition(': ')[2] or lines[-1]}"
-        raise SystemExit(f"pi0_armfix.train: {message}") from None
-    except (AttributeError, KeyError) as e:
-        # ml_collections nests the KeyError's repr: unescape its quotes and line break.
-        message = str(e.args[0] if e.args else e).strip("\"")
-        if "\\'" in message:
-            message = message[1:-1].replace("\\'", "'").replace("\\n", "\n")
-        message = message.replace("\n", "; ")
-        missing = re.findall(r"'(\w+)'", message)[:1]
-        overrides = [a.split("=")[0] for a in argv[1:] if a.startswith("--config.")]
-        culprit = [a for a in overrides if set(missing) & set(a.split("."))] or overrides
-        raise SystemExit(f"pi0_armfix.train: {', '.join(culprit)}: the config has no key "
-                         f"{message}") from None
-    return rest
-
-
-def _check_config_file(path: str) -> None:
-    if not os.path.isfile(path):
-        known = ", ".join(sorted(p.stem for p in _configs_dir().glob("*.py")
-                                 if p.stem not in ("__init__", "base")))
-        raise SystemExit(f"pi0_armfix.train: --config={path}: no such config file; give a "
-                         f"path or the name of an installed config: {known}")
-
-
-def _configs_dir() -> epath.Path:
-    """The experiment configs installed beside this package."""
-    from pi0_armfix import configs
-
-    return epath.Path(configs.__file__).parent
-
-
-def _installed_config(arg: str) -> str:
-    """`--config=configs/<name>.py[:arg]` (or `--config=<name>`) that names no file here: the
-    installed package's config of that name, so the command works from any folder."""
-    if not arg.startswith("--config="):
-        return arg
-    path, colon, scale = arg.removeprefix("--config=").partition(":")
-    if os.path.isfile(path):
-        return arg
-    name = epath.Path(path).name
-    installed = _configs_dir() / (name if name.endswith(".py") else f"{name}.py")
-    return f"--config={installed}{colon}{scale}" if installed.is_file() else arg
-
-
 def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
@@ -641,7 +578,7 @@ def define_flags() -> None:
 def cli() -> None:
     """The `pi0-armfix-train` console script (also `python -m pi0_armfix.train`)."""
     define_flags()
-    app.run(main, flags_parser=parse_flags)
+    app.run(main, flags_parser=console.config_flags_parser("pi0_armfix.train"))
 
 
 if __name__ == "__main__":

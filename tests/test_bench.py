@@ -1,5 +1,5 @@
 """The data benchmarks run end to end at a small size and print their numbers (the real sizes
-are benchmark commands, see the README)."""
+are benchmark commands: RESULTS.md, "Benchmarks")."""
 
 import os
 import subprocess

@@ -10,7 +10,7 @@ from pi0_armfix.data import transforms
 from pi0_armfix.data.stats import NormStats
 
 B1K = ActionLayout.preset("b1k_r1pro")
-# The official B1K baseline's *state* order: grippers last (reference README).
+# The official B1K baseline's *state* order: grippers last (docs/design.md §2).
 B1K_STATE_GROUPS = {"base": (0, 3), "torso": (3, 7), "left_arm": (7, 14), "right_arm": (14, 21),
                     "left_gripper": (21, 22), "right_gripper": (22, 23)}
 

@@ -250,7 +250,7 @@ def cli() -> None:
     flags.DEFINE_string("output", None, "JSON report to write (the PNG goes beside it)",
                         required=True)
     flags.mark_flag_as_required("config")
-    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.analyze_action_magnitudes"))
+    app.run(main, flags_parser=console.config_flags_parser("pi0_armfix.tools.analyze_action_magnitudes"))
 
 
 if __name__ == "__main__":

@@ -91,7 +91,7 @@ def cli() -> None:
     flags.DEFINE_enum("episodes", "train", dataset_lib.EPISODE_CHOICES,
                       "train: all but the eval.episodes held out (as the curriculum); all: every one")
     flags.mark_flag_as_required("config")
-    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.filter_arm_heavy_episodes"))
+    app.run(main, flags_parser=console.config_flags_parser("pi0_armfix.tools.filter_arm_heavy_episodes"))
 
 
 if __name__ == "__main__":

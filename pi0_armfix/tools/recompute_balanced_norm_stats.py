@@ -83,7 +83,7 @@ def cli() -> None:
     flags.DEFINE_enum("episodes", "train", dataset_lib.EPISODE_CHOICES,
                       "train: all but the eval.episodes held out (as training); all: every one")
     flags.mark_flag_as_required("config")
-    app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.recompute_balanced_norm_stats"))
+    app.run(main, flags_parser=console.config_flags_parser("pi0_armfix.tools.recompute_balanced_norm_stats"))
 
 
 if __name__ == "__main__":

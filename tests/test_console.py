@@ -1,0 +1,92 @@
+"""The entrypoints' command line (pi0_armfix.console): every mistake in a flag or a config is one
+line naming it, and `--config=<name>` finds the installed configs from any folder."""
+
+import pytest
+from absl import flags
+from ml_collections import config_flags
+
+from pi0_armfix import console
+
+
+def _parse_config_flags(argv: list[str], program: str = "prog") -> flags.FlagValues:
+    """`argv` parsed as a config entrypoint parses it, over flags of its own (as `train` defines
+    them; the config's overrides are found in `argv` when the flag is defined)."""
+    flag_values = flags.FlagValues()
+    config_flags.DEFINE_config_file("config", None, "experiment config", lock_config=True,
+                                    flag_values=flag_values, sys_argv=argv)
+    flags.DEFINE_string("workdir", None, "run folder", flag_values=flag_values)
+    console.config_flags_parser(program, flag_values)(argv)
+    return flag_values
+
+
+def _one_line_exit(parse, argv: list[str]) -> str:
+    with pytest.raises(SystemExit) as e:
+        parse(argv)
+    return _one_line(e.value)
+
+
+def _one_line(stopped: SystemExit) -> str:
+    message = str(stopped.code)
+    assert "\n" not in message
+    return message
+
+
+def test_a_config_name_is_found_among_the_installed_configs_from_any_folder(tmp_path,
+                                                                          monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no configs/ here
+    flag_values = _parse_config_flags(["prog", "--config=arm_focused", "--config.seed=3"])
+    assert flag_values.config.seed == 3
+    assert flag_values.config.data.delta_action_mask  # arm_focused's delta actions
+    assert console.installed_config("--config=configs/uniform.py:b1k") == (
+        f"--config={console.configs_dir() / 'uniform.py'}:b1k")
+
+
+def test_an_existing_config_file_is_read_as_given(tmp_path, monkeypatch):
+    (tmp_path / "mine.py").write_text(
+        "from pi0_armfix.configs import base\n\n"
+        "def get_config(arg=None):\n    config = base.get_config()\n    config.seed = 11\n"
+        "    return config\n")
+    monkeypatch.chdir(tmp_path)
+    flag_values = _parse_config_flags(["prog", "--config=mine.py"])
+    assert flag_values.config.seed == 11
+
+
+def test_a_mistyped_key_is_one_line_naming_the_override_with_the_suggestion():
+    with pytest.raises(SystemExit) as e:
+        _parse_config_flags(["prog", "--config=configs/arm_focused.py",
+                             "--config.train.totl_steps=3"], "pi0_armfix.train")
+    message = _one_line(e.value)
+    assert message == ("pi0_armfix.train: --config.train.totl_steps: the config has no key "
+                       "'totl_steps'; Did you mean \"total_steps\" instead of \"totl_steps\"?")
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--config=configs/nope.py"], "--config=configs/nope.py: no such config file; give a path "
+                                   "or the name of an installed config: arm_curriculum, arm_delta, "
+                                   "arm_delta_correlated_noise,"),
+    (["--config=configs/nope.py", "--config.seed=3"], "--config=configs/nope.py: no such config "
+                                                      "file"),
+    (["--config=configs/arm_focused.py:foo"], "arm_focused.py:foo: config argument 'foo' is not "
+                                              "a scale"),
+])
+def test_a_missing_config_file_or_a_bad_scale_is_one_line_naming_it(argv, expected):
+    with pytest.raises(SystemExit) as e:
+        _parse_config_flags(["prog", *argv], "pi0_armfix.train")
+    message = _one_line(e.value)
+    assert message.startswith("pi0_armfix.train: --config=")
+    assert expected in message
+
+
+def test_an_unknown_flag_is_one_line_pointing_to_help():
+    flag_values = flags.FlagValues()
+    flags.DEFINE_integer("episodes", 1, "episodes", flag_values=flag_values)
+    parse = console.flags_parser("prog", flag_values)
+    message = _one_line_exit(parse, ["prog", "--episods=3"])
+    assert message.startswith("prog: ") and "'episods'" in message and "episodes" in message
+    assert message.endswith("(--help lists the flags)")
+
+
+def test_the_installed_config_names_leave_out_the_shared_base():
+    names = console.config_names()
+    assert "arm_focused" in names and "uniform" in names
+    assert "base" not in names and "__init__" not in names
