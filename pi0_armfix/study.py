@@ -20,6 +20,9 @@ first seeds). The results of all finished runs are gathered into:
   study.json  every run's metrics, the per-seed headline values and every aggregate.
   study.png   per-group skill and motion gain, mean with the seeds' spread as error bars, the
               do-nothing predictors as markers.
+  study_curves.png  the training loss and each group's held-out skill against the step (every
+              evaluation the runs logged: `--override=eval.every=500` draws a curve), mean over
+              seeds with their range.
 
 Closed loop (`--closed_loop_episodes=N`, default 50; 0 = off): every run's final checkpoint also
 drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N
@@ -72,7 +75,7 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.study_aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES, aggregate,
                                         closed_loop_outcomes, episode_replicates)
-from pi0_armfix.study_report import markdown, plot_study
+from pi0_armfix.study_report import markdown, plot_curves, plot_study
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -343,13 +346,20 @@ def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
 def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps: int,
                   command: str, primary: str | None = None,
                   ceiling: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """Writes `study.md`, `study.json` and `study.png` into `workdir`; returns the aggregate."""
+    """Writes `study.md`, `study.json`, `study.png` and (from the runs' metrics logs, where
+    kept) `study_curves.png` into `workdir`; returns the aggregate."""
     study = aggregate(results, primary=primary, ceiling=ceiling)
     (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
     json_files.write_json_atomic(workdir / "study.json",
                                 {"command": command, "steps": steps, "runs": list(results),
                                  **study})
     plot_study(study, workdir / "study.png")
+    curves: dict[str, list[list[dict]]] = {}
+    for result in results:
+        folder = run_folder(workdir, result["config"], result["seed"])
+        curves.setdefault(result["config"], []).append(
+            metrics_log.read_metrics(folder / metrics_log.METRICS_FILE))
+    plot_curves(curves, study["groups"], workdir / "study_curves.png")
     return study
 
 

@@ -1,5 +1,5 @@
 """A study's report: `study.md` (every table beside the do-nothing rows) and `study.png`, from
-`study_aggregate.aggregate`."""
+`study_aggregate.aggregate`; `study_curves.png` from the runs' metrics logs."""
 
 from __future__ import annotations
 
@@ -297,3 +297,62 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
+                groups: Sequence[str], path: Path) -> bool:
+    """`study_curves.png`: per config, the training loss and each group's held-out skill over
+    persistence against the step, the mean over seeds as a line and the seeds' range shaded;
+    doing nothing (persistence) is the line at 0. Draws nothing and returns False when no run
+    has a metrics log (a study gathered from kept `result.json` files only).
+
+    Args:
+      curves: {config: one `metrics.jsonl` record list per seed}.
+      groups: the action groups, in the study's order.
+    """
+    if not any(records for runs in curves.values() for records in runs):
+        return False
+    panels = [("loss", "training loss (weighted, normalized units)")] + [
+        (f"skill/{g}", f"held-out skill: {g}") for g in groups]
+    columns = min(4, len(panels))
+    rows = math.ceil(len(panels) / columns)
+    fig, axes = plt.subplots(rows, columns, squeeze=False, figsize=(4.2 * columns, 3.4 * rows))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for (key, title), ax in zip(panels, axes.flat):
+        for i, (name, runs) in enumerate(curves.items()):
+            steps, values = _curve_values(runs, key)
+            if not steps:
+                continue
+            color = colors[i % len(colors)]
+            ax.plot(steps, np.nanmean(values, axis=0), color=color, marker="." if
+                    key != "loss" else None, label=f"{name} ({len(values)} seeds)")
+            if len(values) > 1:
+                ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
+                                color=color, alpha=0.2, lw=0)
+        if key != "loss":
+            ax.axhline(0.0, color="black", lw=0.8, ls="--", label="persistence (do nothing)")
+            low = ax.get_ylim()[0]
+            ax.set_ylim(max(low, -3.0), 1.05)
+        ax.set(title=title, xlabel="step")
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("training and held-out evaluation over steps: mean over seeds, seeds' range "
+                 "shaded")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def _curve_values(runs: Sequence[Sequence[Mapping[str, Any]]], key: str
+                  ) -> tuple[list[int], np.ndarray]:
+    """The steps at which every seed logged `key`, and the seeds' values there `[seeds, steps]`
+    (seeds without `key` left out)."""
+    logged = [{int(r["step"]): as_number(r[key]) for r in records if key in r} for records in runs]
+    logged = [by_step for by_step in logged if by_step]
+    if not logged:
+        return [], np.zeros((0, 0))
+    steps = sorted(set.intersection(*(set(by_step) for by_step in logged)))
+    return steps, np.array([[by_step[s] for s in steps] for by_step in logged], dtype=float)

@@ -12,7 +12,7 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import study, study_aggregate
+from pi0_armfix import study, study_aggregate, study_report
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import metrics as eval_metrics
 
@@ -84,6 +84,33 @@ def test_reports_are_written_and_name_every_config(tmp_path):
     assert "*persistence (do nothing)*" in text and "anecdotes" in text
     assert json.loads((tmp_path / "study.json").read_text())["baseline"] == "uniform"
     assert (tmp_path / "study.png").stat().st_size > 10_000
+
+
+def _write_metrics_log(folder, seed, evaluations=(5, 10)):
+    folder.mkdir(parents=True)
+    records = [{"step": step, "loss": 2.0 / step + seed} for step in (2, 4, 6, 8, 10)]
+    records += [{"step": step, "skill/left_arm": -1.0 / step, "motion_gain/left_arm": 0.1}
+                for step in evaluations]
+    (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_curves_are_drawn_from_the_runs_metrics_logs_only_where_they_are_kept(tmp_path):
+    results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
+    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    assert not (tmp_path / "study_curves.png").exists()  # result.json files only
+    for r in results:
+        _write_metrics_log(study.run_folder(tmp_path, r["config"], r["seed"]), r["seed"])
+    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    assert (tmp_path / "study_curves.png").stat().st_size > 10_000
+
+
+def test_a_curve_is_taken_at_the_steps_every_seed_logged():
+    runs = [[{"step": 5, "skill/left_arm": -1.0}, {"step": 10, "skill/left_arm": 0.5}],
+            [{"step": 10, "skill/left_arm": 0.1}, {"step": 15, "skill/left_arm": 0.2}],
+            [{"step": 10, "loss": 1.0}]]  # never evaluated: left out
+    steps, values = study_report._curve_values(runs, "skill/left_arm")
+    assert steps == [10]
+    np.testing.assert_allclose(values, [[0.5], [0.1]])
 
 
 def _closed_loop_result(config, seed, manipulation, outcomes=None):
