@@ -21,7 +21,7 @@ from websockets.sync.client import connect
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import evaluate, inference, serve
+from pi0_armfix import inference, serve
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import outputs
 from pi0_armfix.data import batching, sources
