@@ -417,7 +417,8 @@ def main(argv: Sequence[str]) -> None:
     write_reports(results, workdir, steps=FLAGS.steps, command=command,
                   primary=FLAGS.primary or None, ceiling=ceiling_metrics(results, workdir))
     print((workdir / "study.md").read_text())
-    print(f"study.md, study.json and study.png in {workdir}")
+    print(f"study.md, study.json, study.png (and study_curves.png where the runs kept their "
+          f"metrics logs) in {workdir}")
 
 
 def cli() -> None:

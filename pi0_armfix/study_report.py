@@ -300,18 +300,18 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
 
 
 def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
-                groups: Sequence[str], path: Path) -> bool:
+                groups: Sequence[str], path: Path) -> None:
     """`study_curves.png`: per config, the training loss and each group's held-out skill over
     persistence against the step, the mean over seeds as a line and the seeds' range shaded;
-    doing nothing (persistence) is the line at 0. Draws nothing and returns False when no run
-    has a metrics log (a study gathered from kept `result.json` files only).
+    doing nothing (persistence) is the line at 0. Draws nothing when no run has a metrics log (a
+    study gathered from kept `result.json` files only).
 
     Args:
       curves: {config: one `metrics.jsonl` record list per seed}.
       groups: the action groups, in the study's order.
     """
     if not any(records for runs in curves.values() for records in runs):
-        return False
+        return
     panels = [("loss", "training loss (weighted, normalized units)")] + [
         (f"skill/{g}", f"held-out skill: {g}") for g in groups]
     columns = min(4, len(panels))
@@ -343,7 +343,6 @@ def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-    return True
 
 
 def _curve_values(runs: Sequence[Sequence[Mapping[str, Any]]], key: str

@@ -19,14 +19,11 @@ def _parse_config_flags(argv: list[str], program: str = "prog") -> flags.FlagVal
     return flag_values
 
 
-def _one_line_exit(parse, argv: list[str]) -> str:
+def _exit_line(call, *args) -> str:
+    """The one line `call(*args)` exits with."""
     with pytest.raises(SystemExit) as e:
-        parse(argv)
-    return _one_line(e.value)
-
-
-def _one_line(stopped: SystemExit) -> str:
-    message = str(stopped.code)
+        call(*args)
+    message = str(e.value.code)
     assert "\n" not in message
     return message
 
@@ -52,10 +49,8 @@ def test_an_existing_config_file_is_read_as_given(tmp_path, monkeypatch):
 
 
 def test_a_mistyped_key_is_one_line_naming_the_override_with_the_suggestion():
-    with pytest.raises(SystemExit) as e:
-        _parse_config_flags(["prog", "--config=configs/arm_focused.py",
-                             "--config.train.totl_steps=3"], "pi0_armfix.train")
-    message = _one_line(e.value)
+    message = _exit_line(_parse_config_flags, ["prog", "--config=configs/arm_focused.py",
+                                               "--config.train.totl_steps=3"], "pi0_armfix.train")
     assert message == ("pi0_armfix.train: --config.train.totl_steps: the config has no key "
                        "'totl_steps'; Did you mean \"total_steps\" instead of \"totl_steps\"?")
 
@@ -70,9 +65,7 @@ def test_a_mistyped_key_is_one_line_naming_the_override_with_the_suggestion():
                                               "a scale"),
 ])
 def test_a_missing_config_file_or_a_bad_scale_is_one_line_naming_it(argv, expected):
-    with pytest.raises(SystemExit) as e:
-        _parse_config_flags(["prog", *argv], "pi0_armfix.train")
-    message = _one_line(e.value)
+    message = _exit_line(_parse_config_flags, ["prog", *argv], "pi0_armfix.train")
     assert message.startswith("pi0_armfix.train: --config=")
     assert expected in message
 
@@ -81,7 +74,7 @@ def test_an_unknown_flag_is_one_line_pointing_to_help():
     flag_values = flags.FlagValues()
     flags.DEFINE_integer("episodes", 1, "episodes", flag_values=flag_values)
     parse = console.flags_parser("prog", flag_values)
-    message = _one_line_exit(parse, ["prog", "--episods=3"])
+    message = _exit_line(parse, ["prog", "--episods=3"])
     assert message.startswith("prog: ") and "'episods'" in message and "episodes" in message
     assert message.endswith("(--help lists the flags)")
 
