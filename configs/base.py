@@ -136,6 +136,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.video_access = "auto"
     config.data.stream_episodes = 16  # 'stream': episodes open (decoding) at once
     config.data.stream_shuffle = 256  # 'stream': samples mixed by the window shuffle
+    # 'stream': every k-th frame of an episode is a sample (from a first frame drawn per reading);
+    # the frames between are decoded, not converted. k > 1 reads k times as many episodes for the
+    # same samples, at up to k times the decoding per sample.
+    config.data.stream_stride = 1
     config.data.probe_episodes = 4  # episodes whose files and first/last frames are read first
     config.data.split = "train"  # RLDS: the split to read
     config.data.norm = ""  # zscore | quantile; '' = the model's (pi0: zscore, pi0.5: quantile)

@@ -170,7 +170,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                  if data.get("images") and hasattr(source, "video_keyframes") else None)
     video_access, video_why = video_stream.choose_access(
         data.get("video_access"), keyframes, open_episodes=int(data.get("stream_episodes")),
-        shuffle_window=int(data.get("stream_shuffle")))
+        shuffle_window=int(data.get("stream_shuffle")), stride=int(data.get("stream_stride")))
     tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
     for line in banner(spec, workdir, mesh, source, video_why if keyframes is not None else ""):
         _say(line)

@@ -142,9 +142,9 @@ def test_a_curriculum_streams_only_the_episodes_of_its_phase(b1k, tmp_path, caps
     opened = []
     original = video_stream.EpisodeStream.__init__
 
-    def recording(self, images, position):
+    def recording(self, images, position, *args):
         opened.append(position)
-        original(self, images, position)
+        original(self, images, position, *args)
 
     monkeypatch.setattr(video_stream.EpisodeStream, "__init__", recording)
     train.train_and_evaluate(config, str(tmp_path / "run"))

@@ -70,14 +70,34 @@ def test_each_episode_is_decoded_once_front_to_back(table):
     reader.close()
 
 
-def test_a_restored_iterator_goes_on_exactly_where_its_state_was_taken(table):
-    it = iter(_stream(table))
+def test_a_stride_streams_every_kth_frame_from_a_first_frame_drawn_per_reading(table):
+    it = iter(_stream(table, open_episodes=1, shuffle_window=1, stride=3))
+    rows = [next(it) for _ in range(table.num_frames)]  # about three epochs of readings
+    it.close()
+    samples = [_identified(table, row) for row in rows]
+    for row, (position, decoded) in zip(rows, samples):  # the image is the row's frame
+        assert decoded == int(row["frame"]) - int(table.episode_starts[position])
+    readings = [[samples[0]]]
+    for previous, sample in zip(samples, samples[1:]):
+        if sample[0] == previous[0] and sample[1] == previous[1] + 3:
+            readings[-1].append(sample)
+        else:
+            readings.append([sample])
+    for reading in readings[:-1]:
+        position, first = reading[0]
+        assert first < 3 and reading[-1][1] + 3 >= table.episode_lengths[position]
+    assert len({reading[0][1] for reading in readings}) > 1  # readings start at other frames
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_a_restored_iterator_goes_on_exactly_where_its_state_was_taken(table, stride):
+    it = iter(_stream(table, stride=stride))
     for _ in range(23):  # mid-way through open episodes and a shuffle window
         next(it)
     state = it.get_state()
     expected = [next(it) for _ in range(40)]
     it.close()
-    restored = iter(_stream(table))
+    restored = iter(_stream(table, stride=stride))
     restored.set_state(state)
     again = [next(restored) for _ in range(40)]
     restored.close()
@@ -138,6 +158,9 @@ def test_a_stream_the_data_or_config_cannot_have_is_an_error_naming_the_key_and_
         _access("stream", None)
     with pytest.raises(ValueError, match="data.video_access = 'fast' must be one of"):
         _access("fast", None)
+    with pytest.raises(ValueError, match="data.stream_stride = 0 must be >= 1"):
+        video_stream.choose_access("stream", ("hevc 720x720 (head)", None), open_episodes=16,
+                                   shuffle_window=256, stride=0)
 
 
 def test_a_seek_into_a_long_gop_skips_unreferenced_frames_and_returns_the_same_frames(tmp_path):

@@ -129,11 +129,17 @@ class LeRobotFrameImages:
                 out[camera] = self._image(feature, episode.data_file, episode.first_row + offset)
         return out
 
-    def _open_video(self, path: Path, threads: bool = True) -> VideoDecoder:
+    def _open_video(self, path: Path, forward_only: bool = False) -> VideoDecoder:
+        """A decoder of `path`; `forward_only` for one of many streams read front to back at
+        once: no decoder threads (they only add CPU per frame there), and only the frames the
+        timestamps' tolerance can reach back to kept converted, so that the frames a stride
+        steps over are decoded without being converted."""
         if not path.is_file():
             raise ValueError(f"missing video file {path}")
-        return VideoDecoder(path, self._fps, self._tolerance, size=self._image_size,
-                            threads=threads)
+        if forward_only:
+            return VideoDecoder(path, self._fps, self._tolerance, size=self._image_size,
+                                threads=False, max_frames=math.ceil(self._tolerance) + 2)
+        return VideoDecoder(path, self._fps, self._tolerance, size=self._image_size)
 
     def _image(self, feature: str, path: Path, row: int) -> np.ndarray:
         caches = self._caches
@@ -205,7 +211,8 @@ class EpisodeReader:
     def _video(self, path: Path) -> VideoDecoder:
         decoder = self._decoders.get(path)
         if decoder is None:
-            decoder = self._decoders[path] = self._frames._open_video(path, threads=False)  # noqa: SLF001
+            decoder = self._decoders[path] = self._frames._open_video(  # noqa: SLF001
+                path, forward_only=True)
         return decoder
 
     def images(self, offset: int) -> dict[str, np.ndarray]:

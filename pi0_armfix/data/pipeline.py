@@ -31,7 +31,8 @@ With `video_access='stream'` (long-GOP video, `video_stream.choose_access`) the 
 episodes decoded front to back instead (`stream_batches`):
 
     video_stream.stream_frames   this process's episodes, `data.stream_episodes` open at once,
-                                 through a window shuffle of `data.stream_shuffle` samples
+                                 every `data.stream_stride`-th frame of each, through a window
+                                 shuffle of `data.stream_shuffle` samples
       -> batch(b)                the frames and their decoded images
       -> map(BatchTransform)     the same transform, the images already decoded
       -> mp_prefetch(num_workers=data.num_workers)   (when > 0)
@@ -150,7 +151,8 @@ def stream_batches(table: EpisodeTable, spec: DataSpec, *,
             process_count=process_count)
     frames = video_stream.stream_frames(
         table.images, order, seed=seed, open_episodes=open_episodes,
-        shuffle_window=int(spec.get("stream_shuffle", 256)))
+        shuffle_window=int(spec.get("stream_shuffle", 256)),
+        stride=int(spec.get("stream_stride", 1)))
     return frames.batch(global_batch_size // process_count, drop_remainder=True).map(
         _StreamBatch(transform))
 

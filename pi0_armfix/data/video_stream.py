@@ -8,7 +8,8 @@ window shuffle of `shuffle_window` samples:
 
     episode order        a seeded permutation of the episodes, a new one every epoch; process p of
                          P takes every P-th episode of it (disjoint, whatever P)
-      -> EpisodeStream   per episode: its frames in order, all cameras in step, decoded by
+      -> EpisodeStream   per episode: its frames in order (every `stride`-th, from a first
+                         frame drawn per opening), all cameras in step, decoded by
                          single-threaded decoders of its own (`lerobot_frames.EpisodeReader`)
       -> InterleaveIterDataset(cycle_length=open_episodes)    one frame of each open episode in
                          turn; a finished episode is replaced by the next of the order
@@ -24,8 +25,10 @@ window shuffle of `shuffle_window` samples:
 
 A sample's neighbours come from at most `open_episodes` episodes (those open), and a window
 holds `shuffle_window / open_episodes` consecutive frames of each: the correlation between
-samples a stream trades for decoding each frame once. A restored iterator reopens its episodes
-and decodes each from its keyframe up to its offset (the restart cost of a resume).
+samples a stream trades for decoding each frame once. With `stride` k, an episode gives every
+k-th frame, so k times as many episodes are read for the same samples, and a window spans k times
+as many of an episode's frames, for up to k decodes per sample. A restored iterator reopens its
+episodes and decodes each from its keyframe up to its offset (the restart cost of a resume).
 
 A curriculum or an arm-heavy mix (`data.curriculum`) acts on which episodes are opened
 (`curriculum_episode_order`): each opening draws its source with the weights of the phase the
@@ -61,7 +64,7 @@ STREAM_ABOVE_GOP = 32
 
 
 def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
-                  open_episodes: int, shuffle_window: int) -> tuple[str, str]:
+                  open_episodes: int, shuffle_window: int, stride: int = 1) -> tuple[str, str]:
     """`(mode, why)`: how a run reads its camera frames, 'stream' or 'random', and the banner's
     sentence saying why.
 
@@ -75,6 +78,10 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
     """
     if requested not in ACCESS_MODES:
         raise ValueError(f"data.video_access = {requested!r} must be one of {ACCESS_MODES}")
+    for key, value in (("stream_episodes", open_episodes), ("stream_shuffle", shuffle_window),
+                       ("stream_stride", stride)):
+        if value < 1:
+            raise ValueError(f"data.{key} = {value} must be >= 1")
     if keyframes is None:
         if requested == "stream":
             raise ValueError("data.video_access = 'stream' streams videos, but no camera of the "
@@ -87,9 +94,10 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
     mode = requested if requested != "auto" else ("stream" if long_gop else "random")
     chosen = "data.video_access" + (" = 'auto'" if requested == "auto" else "")
     if mode == "stream":
+        every = f", every {stride}th frame a sample" if stride > 1 else ""
         return mode, (f"{description}, {gop}: streamed ({chosen}), {open_episodes} episodes "
-                      f"decoded front to back at once, mixed in a window of {shuffle_window} "
-                      "samples")
+                      f"decoded front to back at once{every}, mixed in a window of "
+                      f"{shuffle_window} samples")
     if not long_gop:
         return mode, (f"{description}, {gop}: frames read on request ({chosen}), each decoding "
                       "at most that many")
@@ -99,23 +107,26 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
 
 
 class EpisodeStream(grain.IterDataset):
-    """The frames of the table's episode at `position`, front to back."""
+    """The frames `first, first + stride, ...` of the table's episode at `position`, front to
+    back (every frame in between is decoded, none of them converted)."""
 
-    def __init__(self, images: LeRobotFrameImages, position: int):
+    def __init__(self, images: LeRobotFrameImages, position: int, first: int = 0,
+                 stride: int = 1):
         super().__init__()
         self._images, self._position = images, int(position)
+        self._first, self._stride = int(first), int(stride)
 
     def __iter__(self) -> "_EpisodeStreamIterator":
-        return _EpisodeStreamIterator(self._images, self._position)
+        return _EpisodeStreamIterator(self._images, self._position, self._first, self._stride)
 
 
 class _EpisodeStreamIterator(grain.DatasetIterator):
     """Yields `{"frame", "images"}` of one episode; its state is the offset of the next frame."""
 
-    def __init__(self, images: LeRobotFrameImages, position: int):
+    def __init__(self, images: LeRobotFrameImages, position: int, first: int, stride: int):
         super().__init__()
         self._reader = images.episode_reader(position)
-        self._offset = 0
+        self._offset, self._stride = first, stride
 
     def __next__(self) -> dict[str, Any]:
         if self._offset >= self._reader.length:
@@ -123,7 +134,7 @@ class _EpisodeStreamIterator(grain.DatasetIterator):
             raise StopIteration
         offset = self._offset
         images = self._reader.images(offset)
-        self._offset += 1
+        self._offset += self._stride
         return {"frame": np.int64(self._reader.start + offset), "images": images}
 
     def get_state(self) -> dict[str, int]:
@@ -214,14 +225,27 @@ def curriculum_episode_order(curriculum: Curriculum, source_positions: Sequence[
     return grain.MapDataset.source(episodes)[process_index::process_count]
 
 
+class _Opening:
+    """(opening i of this process's order, table position) -> the episode's EpisodeStream, from
+    a first frame drawn in [0, stride) by (seed, i): each reading of an episode takes other frames."""
+
+    def __init__(self, images: LeRobotFrameImages, seed: int, stride: int):
+        self._images, self._seed, self._stride = images, seed, stride
+
+    def __call__(self, opening: int, position: int) -> EpisodeStream:
+        first = int(counter_uniform(stream_seed(self._seed, 255), opening) * self._stride)
+        return EpisodeStream(self._images, position, first, self._stride)
+
+
 def stream_frames(images: LeRobotFrameImages, order: grain.MapDataset, *, seed: int,
-                  open_episodes: int, shuffle_window: int) -> grain.IterDataset:
+                  open_episodes: int, shuffle_window: int, stride: int = 1) -> grain.IterDataset:
     """This process's infinite stream of frames of the episodes in `order` (this process's
-    `episode_order` or `curriculum_episode_order`; see the module docstring)."""
-    if open_episodes < 1 or shuffle_window < 1:
-        raise ValueError(f"open_episodes ({open_episodes}) and shuffle_window ({shuffle_window}) "
-                         "must be >= 1")
-    episodes = order.map(lambda position: EpisodeStream(images, position))
+    `episode_order` or `curriculum_episode_order`; see the module docstring), every `stride`-th
+    frame of each."""
+    if open_episodes < 1 or shuffle_window < 1 or stride < 1:
+        raise ValueError(f"open_episodes ({open_episodes}), shuffle_window ({shuffle_window}) "
+                         f"and stride ({stride}) must be >= 1")
+    episodes = order.map_with_index(_Opening(images, seed, stride))
     interleaved = grain_experimental.InterleaveIterDataset(episodes, cycle_length=open_episodes)
     return grain_experimental.WindowShuffleIterDataset(interleaved, window_size=shuffle_window,
                                                        seed=seed)
