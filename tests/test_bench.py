@@ -44,11 +44,11 @@ def test_video_benchmark_measures_both_access_modes_on_a_short_gop_original(tmp_
     out = _bench(tmp_path, "video", "--episodes=2", "--episode_frames=20", "--head=128",
                  "--wrist=96", "--size=32", "--samples=3", "--batch_size=2", "--steps=2",
                  "--stream_workers=0", "--stream_episodes=2", "--original_gop=4",
-                 "--parts=random,stream")
+                 "--stream_stride=3", "--parts=random,stream")
     assert "a keyframe every 4 frames" in out
     assert "frames read on request (data.video_access = 'auto')" in out  # the probe's choice
     assert "random access on the original, 0 workers:" in out
-    assert "stream from the original, 0 workers:" in out
+    assert "stream from the original, 0 workers:" in out and "a sample every 3 frames" in out
     assert "diversity" not in out and "re-encode" not in out
 
 

@@ -3,6 +3,7 @@
     python -m pi0_armfix.bench video [--episodes=6] [--episode_frames=240] [--batch_size=16]
                                      [--steps=8] [--num_workers=2] [--gop=8] [--size=224]
                                      [--stream_workers=0,1,2] [--stream_episodes=16]
+                                     [--stream_shuffle=256] [--stream_stride=1]
                                      [--original_gop=0] [--parts=random,stream,diversity,reencode]
 
 dataset    a LeRobot v2.1 root like BEHAVIOR-1K 2025's cameras: head 720², wrists 480², HEVC
@@ -15,7 +16,8 @@ original   random frames read as training reads them (3 cameras, resized in the 
            position in the episode (decode from the episode's only keyframe); the line also
            extrapolates to B1K's mean episode (119 M frames / 10 000 episodes = 11 900 frames).
 stream     the training iterator on the ORIGINAL with `data.video_access='stream'` (episodes
-           decoded front to back, `--stream_episodes` open, window shuffle of 256), for each of
+           decoded front to back, `--stream_episodes` open, every `--stream_stride`-th frame a
+           sample, window shuffle of `--stream_shuffle`), for each of
            `--stream_workers` Grain workers: samples/s (3 cameras at `--size`², chunks, prompts,
            batches as the train step gets them) over whole shuffle windows, the RSS of the main
            process and the peak of each worker, and the resume latency (a new iterator restored
@@ -55,7 +57,6 @@ _LAYOUT = "b1k_r1pro"
 _CAMERAS = ("observation.images.rgb.head", "observation.images.rgb.left_wrist",
             "observation.images.rgb.right_wrist")
 B1K_MEAN_EPISODE_FRAMES = 11_900
-STREAM_WINDOW = 256  # samples of the stream's window shuffle (data.stream_shuffle)
 PARTS = ("random", "stream", "diversity", "reencode")
 
 
@@ -74,6 +75,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--stream_workers", default="0,1,2",
                         help="Grain worker counts of the streamed training iterator")
     parser.add_argument("--stream_episodes", type=int, default=16)
+    parser.add_argument("--stream_shuffle", type=int, default=256)
+    parser.add_argument("--stream_stride", type=int, default=1)
     parser.add_argument("--content", choices=("pan", "subpixel"), default="pan",
                         help="the scene pans by whole pixels, or by fractions of one per frame")
     parser.add_argument("--original_gop", type=int, default=0,
@@ -187,16 +190,17 @@ def _tokenize(prompt: str) -> tuple[np.ndarray, np.ndarray]:
 
 def training_throughput(root: Path, size: int, batch_size: int, steps: int,
                         num_workers: int, video_access: str = "random",
-                        stream_episodes: int = 16) -> dict[str, Any]:
+                        stream: tuple[int, int, int] = (16, 256, 1)) -> dict[str, Any]:
     """The training iterator's samples/s; for a stream also the memory of its processes and the
-    latency of a resume from the state after the timed steps."""
+    latency of a resume from the state after the timed steps. `stream`: (open episodes, shuffle
+    window, stride)."""
     from pi0_armfix.data import dataset as dataset_lib
     from pi0_armfix.data import pipeline, sources
     from pi0_armfix.data.data_spec import DataSpec
 
     config = common.data_config(str(root), num_workers)
-    config.data.stream_episodes = stream_episodes
-    config.data.stream_shuffle = STREAM_WINDOW
+    (config.data.stream_episodes, config.data.stream_shuffle,
+     config.data.stream_stride) = stream
     spec = DataSpec.from_config(config, ActionLayout.preset(_LAYOUT))
     source = sources.open_source(spec.options, spec.layout)
     stats = dataset_lib.dataset_norm_stats(spec, action_horizon=50, source=source,
@@ -210,7 +214,7 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
 
     # A stream yields a window of samples after filling it, then the next: time whole windows,
     # after the first (filled before the first batch).
-    window_steps = -(-STREAM_WINDOW // batch_size) if video_access == "stream" else 0
+    window_steps = -(-stream[1] // batch_size) if video_access == "stream" else 0
     steps = max(steps, 4 * window_steps)
     iterator = make()
     try:
@@ -261,8 +265,8 @@ class _EpisodeLengths:
 
 
 def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window: int,
-                     samples: int = 10_000, lags: tuple[int, ...] = (1, 16, 256, 1024)
-                     ) -> dict[str, dict[str, float]]:
+                     stride: int = 1, samples: int = 10_000,
+                     lags: tuple[int, ...] = (1, 16, 256, 1024)) -> dict[str, dict[str, float]]:
     """Distinct episodes among `samples` consecutive samples and the chance that two samples
     `lag` apart share their episode, streamed and drawn at random."""
     from pi0_armfix.data import video_stream
@@ -272,7 +276,7 @@ def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window
     table = _EpisodeLengths(lengths)
     stream = iter(video_stream.stream_frames(
         table, video_stream.episode_order(range(episodes), seed=0), seed=0,
-        open_episodes=open_episodes, shuffle_window=window))
+        open_episodes=open_episodes, shuffle_window=window, stride=stride))
     streamed = np.array([int(next(stream)["frame"]) for _ in range(samples)])
     stream.close()
     drawn = rng.integers(0, int(table.starts[-1]), samples)
@@ -297,7 +301,8 @@ def main(argv: list[str]) -> None:
                  else "one keyframe per episode")
     _, why = video_stream.choose_access(
         "auto", LeRobotSource(root, ActionLayout.preset(_LAYOUT)).video_keyframes(),
-        open_episodes=args.stream_episodes, shuffle_window=STREAM_WINDOW)
+        open_episodes=args.stream_episodes, shuffle_window=args.stream_shuffle,
+        stride=args.stream_stride)
     print(f"dataset: {root} ({args.episodes} episodes x {args.episode_frames} frames; HEVC "
           f"{args.head}² head, {args.wrist}² wrists, {keyframes}, {args.content} content; "
           f"{cores} cores); {why}")
@@ -312,16 +317,19 @@ def main(argv: list[str]) -> None:
               f"per sample = {1000 * cores / reads['b1k_ms_per_sample']:.2f} samples/s on "
               f"{cores} cores")
 
+    stream = (args.stream_episodes, args.stream_shuffle, args.stream_stride)
     stream_workers = sorted({int(w) for w in args.stream_workers.split(",") if w})
     for workers in stream_workers if "stream" in args.parts else []:
         result = training_throughput(root, args.size, args.batch_size, args.steps, workers,
-                                     "stream", args.stream_episodes)
+                                     "stream", stream)
         memory = result["memory"]
         total = memory["main"] + sum(memory["workers"])
         print(f"stream from the original, {workers} workers: {result['samples_per_s']:.1f} "
               f"samples/s over {result['samples']} samples (3 cameras "
               f"{sorted(set(result['shapes'].values()))}, 50-step chunks, prompt tokens; "
-              f"{args.stream_episodes} episodes open per stream, window {STREAM_WINDOW}); "
+              f"{args.stream_episodes} episodes open per stream, "
+              + (f"a sample every {args.stream_stride} frames, " if args.stream_stride > 1 else "")
+              + f"window {args.stream_shuffle}); "
               f"RSS {total:.0f} MiB (main process now {memory['main']:.0f}"
               + "".join(f", worker peak {m:.0f}" for m in memory["workers"]) + " MiB); resume to "
               f"the first batch {result['resume_s']:.1f} s (reopening the open episodes, "
@@ -334,8 +342,8 @@ def main(argv: list[str]) -> None:
               f"{result['samples_per_s']:.1f} samples/s (3 cameras "
               f"{sorted(set(result['shapes'].values()))}, 50-step chunks, prompt tokens)")
 
-    diversity = (sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, args.stream_episodes,
-                                  STREAM_WINDOW) if "diversity" in args.parts else {})
+    diversity = (sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, *stream)
+                 if "diversity" in args.parts else {})
     for name, d in diversity.items():
         print(f"diversity, {name} (B1K's 10 000 episodes of ~{B1K_MEAN_EPISODE_FRAMES} frames; "
               f"10 000 consecutive samples): {d['distinct']:.0f} distinct episodes; same episode "

@@ -94,7 +94,7 @@ def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
     mode = requested if requested != "auto" else ("stream" if long_gop else "random")
     chosen = "data.video_access" + (" = 'auto'" if requested == "auto" else "")
     if mode == "stream":
-        every = f", every {stride}th frame a sample" if stride > 1 else ""
+        every = f", a sample every {stride} frames" if stride > 1 else ""
         return mode, (f"{description}, {gop}: streamed ({chosen}), {open_episodes} episodes "
                       f"decoded front to back at once{every}, mixed in a window of "
                       f"{shuffle_window} samples")
