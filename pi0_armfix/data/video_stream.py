@@ -227,7 +227,8 @@ def curriculum_episode_order(curriculum: Curriculum, source_positions: Sequence[
 
 class _Opening:
     """(opening i of this process's order, table position) -> the episode's EpisodeStream, from
-    a first frame drawn in [0, stride) by (seed, i): each reading of an episode takes other frames."""
+    a first frame drawn in [0, stride) by (seed, i): each reading of an episode takes other
+    frames."""
 
     def __init__(self, images: LeRobotFrameImages, seed: int, stride: int):
         self._images, self._seed, self._stride = images, seed, stride
