@@ -47,6 +47,7 @@ def test_video_benchmark_measures_both_access_modes_on_a_short_gop_original(tmp_
                  "--stream_stride=3", "--parts=random,stream")
     assert "a keyframe every 4 frames" in out
     assert "frames read on request (data.video_access = 'auto')" in out  # the probe's choice
+    assert "at most 4 frames decoded each" in out and "B1K's mean episode" not in out
     assert "random access on the original, 0 workers:" in out
     assert "stream from the original, 0 workers:" in out and "a sample every 3 frames" in out
     assert "diversity" not in out and "re-encode" not in out
