@@ -31,10 +31,12 @@ def test_video_benchmark_reads_the_original_reencodes_and_trains(tmp_path):
     # (PyAV 18.1's libx265 corrupts its heap encoding 48-px frames: sizes it handles.)
     out = _bench(tmp_path, "video", "--episodes=2", "--episode_frames=20", "--head=128",
                  "--wrist=96", "--size=32", "--samples=3", "--batch_size=2", "--steps=2",
-                 "--num_workers=0", "--stream_workers=0", "--stream_episodes=2")
+                 "--num_workers=0", "--stream_workers=0", "--stream_episodes=2",
+                 "--diversity_samples=2000,4000")
     assert "original, random reads:" in out and "re-encode to 32²" in out
     assert "stream from the original, 0 workers:" in out and "resume to the first batch" in out
     assert "diversity, stream" in out and "diversity, random access" in out
+    assert "distinct in 4,000 samples" in out
     assert "training iterator on the re-encoded copy, 0 workers" in out
     assert "(32, 32, 3)" in out
     assert "one keyframe per episode" in out and "streamed (data.video_access = 'auto')" in out

@@ -182,12 +182,22 @@ def test_a_seek_into_a_long_gop_skips_unreferenced_frames_and_returns_the_same_f
 def test_a_stream_draws_from_its_open_episodes_where_random_access_draws_from_all():
     from pi0_armfix.bench.video import sample_diversity
 
-    diversity = sample_diversity(200, 300, open_episodes=4, window=16, samples=2000, lags=(1,))
+    diversity = sample_diversity(200, 300, open_episodes=4, window=16, stride=1, samples=2000,
+                                 lags=(1,))
     # 2000 samples of episodes of ~300 frames, 4 open: about 4 + 2000 / 300 episodes.
     assert 4 <= diversity["stream"]["distinct"] <= 20
     assert diversity["stream"]["same@1"] > 0.1
     assert diversity["random access"]["distinct"] > 150
     assert diversity["random access"]["same@1"] < 0.02
+
+
+def test_a_stride_reads_k_times_the_episodes_for_the_same_samples():
+    from pi0_armfix.bench.video import sample_diversity
+
+    read = {k: sample_diversity(400, 300, open_episodes=4, window=16, stride=k, samples=6000,
+                                lags=(1,))["stream"]["distinct"] for k in (1, 4)}
+    # 6000 samples of episodes of ~300 frames: ~4 + 20 episodes read, ~4 + 80 with a stride of 4.
+    assert 15 <= read[1] <= 35 and 3 * read[1] <= read[4] <= 5 * read[1]
 
 
 # Ten episodes: the first two long (1000 frames), the others 100; `arm_heavy` draws the first two.

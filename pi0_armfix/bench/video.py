@@ -4,6 +4,7 @@
                                      [--steps=8] [--num_workers=2] [--gop=8] [--size=224]
                                      [--stream_workers=0,1,2] [--stream_episodes=16]
                                      [--stream_shuffle=256] [--stream_stride=1]
+                                     [--diversity_samples=10000,100000]
                                      [--original_gop=0] [--parts=random,stream,diversity,reencode]
 
 dataset    a LeRobot v2.1 root like BEHAVIOR-1K 2025's cameras: head 720², wrists 480², HEVC
@@ -27,7 +28,8 @@ diversity  which episodes the samples come from, at B1K's scale (10 000 episodes
            episode order and shuffle only, no decoding): over 10 000 consecutive samples the
            number of distinct episodes, and the chance that two samples k apart share their
            episode, for the stream against random access (openpi's loader draws every sample
-           uniformly from all frames).
+           uniformly from all frames); and the episodes read in 100 000 samples (the stride's
+           lever: k times as many) (`--diversity_samples`).
 reencode   `python -m pi0_armfix.tools.reencode_videos --size --gop` on it: frames/s on this
            machine, and the hours B1K's 3 x 119 M camera frames would take per core.
            Random reads of the copy with fresh decoders: the cost per sample at B1K's scale, where
@@ -77,6 +79,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--stream_episodes", type=int, default=16)
     parser.add_argument("--stream_shuffle", type=int, default=256)
     parser.add_argument("--stream_stride", type=int, default=1)
+    parser.add_argument("--diversity_samples", default="10000,100000",
+                        help="consecutive samples of the diversity figures, short and long")
     parser.add_argument("--content", choices=("pan", "subpixel"), default="pan",
                         help="the scene pans by whole pixels, or by fractions of one per frame")
     parser.add_argument("--original_gop", type=int, default=0,
@@ -265,10 +269,11 @@ class _EpisodeLengths:
 
 
 def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window: int,
-                     stride: int = 1, samples: int = 10_000,
+                     stride: int, samples: int = 10_000, long_samples: int = 0,
                      lags: tuple[int, ...] = (1, 16, 256, 1024)) -> dict[str, dict[str, float]]:
-    """Distinct episodes among `samples` consecutive samples and the chance that two samples
-    `lag` apart share their episode, streamed and drawn at random."""
+    """Distinct episodes among `samples` consecutive samples (`distinct`; among `long_samples`
+    too where > 0: `distinct_long`) and the chance that two samples `lag` apart share their
+    episode, streamed and drawn at random."""
     from pi0_armfix.data import video_stream
 
     rng = np.random.default_rng(0)
@@ -277,14 +282,18 @@ def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window
     stream = iter(video_stream.stream_frames(
         table, video_stream.episode_order(range(episodes), seed=0), seed=0,
         open_episodes=open_episodes, shuffle_window=window, stride=stride))
-    streamed = np.array([int(next(stream)["frame"]) for _ in range(samples)])
+    total = max(samples, long_samples)
+    streamed = np.array([int(next(stream)["frame"]) for _ in range(total)])
     stream.close()
-    drawn = rng.integers(0, int(table.starts[-1]), samples)
+    drawn = rng.integers(0, int(table.starts[-1]), total)
     result = {}
     for name, frames in (("stream", streamed), ("random access", drawn)):
         episode = np.searchsorted(table.starts, frames, side="right") - 1
-        result[name] = {"distinct": float(len(np.unique(episode))),
-                        **{f"same@{k}": float(np.mean(episode[k:] == episode[:-k])) for k in lags}}
+        first = episode[:samples]
+        result[name] = {"distinct": float(len(np.unique(first))),
+                        **{f"same@{k}": float(np.mean(first[k:] == first[:-k])) for k in lags}}
+        if long_samples:
+            result[name]["distinct_long"] = float(len(np.unique(episode)))
     return result
 
 
@@ -349,13 +358,15 @@ def main(argv: list[str]) -> None:
               f"{result['samples_per_s']:.1f} samples/s (3 cameras "
               f"{sorted(set(result['shapes'].values()))}, 50-step chunks, prompt tokens)")
 
-    diversity = (sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, *stream)
-                 if "diversity" in args.parts else {})
+    short, long = (int(n) for n in args.diversity_samples.split(","))
+    diversity = (sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, *stream, samples=short,
+                                  long_samples=long) if "diversity" in args.parts else {})
     for name, d in diversity.items():
         print(f"diversity, {name} (B1K's 10 000 episodes of ~{B1K_MEAN_EPISODE_FRAMES} frames; "
-              f"10 000 consecutive samples): {d['distinct']:.0f} distinct episodes; same episode "
-              "at lag " + ", ".join(f"{k.split('@')[1]}: {v:.3f}" for k, v in d.items()
-                                    if k.startswith("same@")))
+              f"{short:,} consecutive samples): {d['distinct']:.0f} distinct episodes; same "
+              "episode at lag " + ", ".join(f"{k.split('@')[1]}: {v:.3f}" for k, v in d.items()
+                                            if k.startswith("same@"))
+              + f"; {d['distinct_long']:.0f} distinct in {long:,} samples")
 
     if "reencode" not in args.parts:
         return
