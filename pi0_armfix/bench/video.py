@@ -3,7 +3,7 @@
     python -m pi0_armfix.bench video [--episodes=6] [--episode_frames=240] [--batch_size=16]
                                      [--steps=8] [--num_workers=2] [--gop=8] [--size=224]
                                      [--stream_workers=0,1,2] [--stream_episodes=16]
-                                     [--stream_shuffle=256] [--stream_stride=1]
+                                     [--stream_shuffle=256] [--stream_stride=4]
                                      [--diversity_samples=10000,100000]
                                      [--original_gop=0] [--parts=random,stream,diversity,reencode]
 
@@ -78,7 +78,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
                         help="Grain worker counts of the streamed training iterator")
     parser.add_argument("--stream_episodes", type=int, default=16)
     parser.add_argument("--stream_shuffle", type=int, default=256)
-    parser.add_argument("--stream_stride", type=int, default=1)
+    parser.add_argument("--stream_stride", type=int, default=4)
     parser.add_argument("--diversity_samples", default="10000,100000",
                         help="consecutive samples of the diversity figures, short and long")
     parser.add_argument("--content", choices=("pan", "subpixel"), default="pan",
@@ -194,7 +194,7 @@ def _tokenize(prompt: str) -> tuple[np.ndarray, np.ndarray]:
 
 def training_throughput(root: Path, size: int, batch_size: int, steps: int,
                         num_workers: int, video_access: str = "random",
-                        stream: tuple[int, int, int] = (16, 256, 1)) -> dict[str, Any]:
+                        stream: tuple[int, int, int] = (16, 256, 4)) -> dict[str, Any]:
     """The training iterator's samples/s; for a stream also the memory of its processes and the
     latency of a resume from the state after the timed steps. `stream`: (open episodes, shuffle
     window, stride)."""
