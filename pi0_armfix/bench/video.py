@@ -93,6 +93,12 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     if unknown or args.original_gop < 0:
         parser.error(f"--parts {unknown} is not of {PARTS}" if unknown
                      else f"--original_gop = {args.original_gop} must be >= 0")
+    counts = args.diversity_samples.split(",")
+    if (len(counts) != 2 or not all(c.isdigit() for c in counts)
+            or not 0 < int(counts[0]) <= int(counts[1])):
+        parser.error(f"--diversity_samples = {args.diversity_samples!r} must be two counts "
+                     "SHORT,LONG with 0 < SHORT <= LONG (e.g. 10000,100000)")
+    args.diversity_samples = tuple(int(c) for c in counts)
     return args
 
 
@@ -316,15 +322,14 @@ def main(argv: list[str]) -> None:
           f"{args.head}² head, {args.wrist}² wrists, {keyframes}, {args.content} content; "
           f"{cores} cores); {why}")
 
-    if "random" in args.parts and args.original_gop:
+    reads = random_reads(root, args.size, args.samples) if "random" in args.parts else None
+    if reads and args.original_gop:
         # A short GOP bounds what a read decodes: its cost does not grow along the episode.
-        reads = random_reads(root, args.size, args.samples)
         print(f"original, random reads: {reads['ms_per_sample']:.0f} ms per sample (3 cameras "
               f"-> {args.size}², fresh decoders, at most {args.original_gop} frames decoded "
               f"each, wherever in the episode) = "
               f"{1000 * cores / reads['ms_per_sample']:.1f} samples/s on {cores} cores")
-    elif "random" in args.parts:
-        reads = random_reads(root, args.size, args.samples)
+    elif reads:
         print(f"original, random reads: {reads['ms_per_sample']:.0f} ms per sample (3 cameras "
               f"-> {args.size}², mean position {reads['mean_position']:.0f} frames into its "
               f"episode; {reads['ms_fixed']:.0f} ms + {reads['ms_per_position']:.2f} ms per "
@@ -358,7 +363,7 @@ def main(argv: list[str]) -> None:
               f"{result['samples_per_s']:.1f} samples/s (3 cameras "
               f"{sorted(set(result['shapes'].values()))}, 50-step chunks, prompt tokens)")
 
-    short, long = (int(n) for n in args.diversity_samples.split(","))
+    short, long = args.diversity_samples
     diversity = (sample_diversity(10_000, B1K_MEAN_EPISODE_FRAMES, *stream, samples=short,
                                   long_samples=long) if "diversity" in args.parts else {})
     for name, d in diversity.items():

@@ -152,7 +152,7 @@ def stream_batches(table: EpisodeTable, spec: DataSpec, *,
     frames = video_stream.stream_frames(
         table.images, order, seed=seed, open_episodes=open_episodes,
         shuffle_window=int(spec.get("stream_shuffle", 256)),
-        stride=int(spec.get("stream_stride", 1)))
+        stride=int(spec.get("stream_stride", 4)))
     return frames.batch(global_batch_size // process_count, drop_remainder=True).map(
         _StreamBatch(transform))
 

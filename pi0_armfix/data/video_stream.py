@@ -61,6 +61,8 @@ ACCESS_MODES = ("auto", "stream", "random")
 # Keyframes further apart than this make a random read decode more frames than streaming costs
 # per sample, whatever the episode length.
 STREAM_ABOVE_GOP = 32
+# The `stream_seed` slot of the first frames a stride draws: after every curriculum source's.
+_FIRST_FRAME_SEED_SLOT = 255
 
 
 def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
@@ -234,7 +236,8 @@ class _Opening:
         self._images, self._seed, self._stride = images, seed, stride
 
     def __call__(self, opening: int, position: int) -> EpisodeStream:
-        first = int(counter_uniform(stream_seed(self._seed, 255), opening) * self._stride)
+        first = int(counter_uniform(stream_seed(self._seed, _FIRST_FRAME_SEED_SLOT), opening)
+                    * self._stride)
         return EpisodeStream(self._images, position, first, self._stride)
 
 
