@@ -192,6 +192,15 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # its 5 tasks (episode i runs task i % 5).
     config.eval.episodes = 20
     config.eval.num_steps = 10  # Euler steps of sample_actions
+    # A flow policy is a sampler: each held-out chunk is sampled this many times and scored as the
+    # single draw (what a robot executes: the headline), the mean of the draws (its own spread
+    # averaged away) and the energy score of the draws (a proper scoring rule).
+    config.eval.num_draws = 8
+    # The policy's inference levers (held-out evaluation, closed loop, server, export caveats):
+    # each executed chunk the mean of this many draws (the grippers' hysteresis, when set, sees
+    # the mean) ...
+    config.eval.average_draws = 1
+    config.eval.temperature = 1.0  # ... each draw from the initial noise scaled by this (0, 1]
     config.eval.batch_size = 32
     config.eval.max_chunks = 512  # chunks tiling the held-out episodes (each step once), at most
     config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role

@@ -44,6 +44,7 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
+from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
@@ -83,11 +84,12 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
     if eval_cfg["batch_size"] <= 0 or eval_cfg["batch_size"] % num_devices:
         raise ValueError(f"eval.batch_size = {eval_cfg['batch_size']} must be a positive multiple "
                          f"of the number of devices ({num_devices})")
-    if eval_cfg["max_chunks"] < eval_cfg["batch_size"]:
-        raise ValueError(f"eval.max_chunks = {eval_cfg['max_chunks']} must be at least "
-                         f"eval.batch_size = {eval_cfg['batch_size']}")
-    if eval_cfg["num_steps"] <= 0:
-        raise ValueError(f"eval.num_steps = {eval_cfg['num_steps']} must be positive")
+    for key in ("max_chunks", "num_steps", "num_draws", "average_draws"):
+        if eval_cfg[key] <= 0:
+            raise ValueError(f"eval.{key} = {eval_cfg[key]} must be positive")
+    if not 0.0 < eval_cfg["temperature"] <= 1.0:
+        raise ValueError(f"eval.temperature = {eval_cfg['temperature']} must be in (0, 1] (the "
+                         "initial noise's scale; 1 = the flow as trained)")
     if hysteresis.check_thresholds(eval_cfg.get("gripper_hysteresis", ()),
                                    "eval.gripper_hysteresis") and not layout.groups_with_role(
                                        "gripper"):
@@ -102,8 +104,9 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
 # ---------------------------------------------------------------------- the evaluator
 
 class Evaluation(NamedTuple):
-    """One evaluation: `metrics` (`HeldOutChunks.score`: the policy's with its skill, and each
-    reference's under `<name>/...`), the `predicted` and `true` absolute chunks `[N, H, A]` in
+    """One evaluation: `metrics` (`HeldOutChunks.score`: the single draw's with its skill, the
+    mean of the draws' under `mean_of_draws/...`, the energy score, and each reference's under
+    `<name>/...`), the single draw's `predicted` and the `true` absolute chunks `[N, H, A]` in
     evaluation units, and the per-chunk sums the study resamples (`chunk_sums`, to be written
     as `heldout.CHUNK_SUMS_FILE`)."""
 
@@ -146,10 +149,18 @@ class Evaluator:
                                       switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
             tokenize=tokenize, image_size=model_config.image_resolution, source=source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
-        self.seed = spec.seed
+        self.draws, self.average = eval_cfg["num_draws"], eval_cfg["average_draws"]
+        # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on
+        # the evaluation batch size nor on which batch it lands in.
+        shape = (self.draws * self.average, len(self.chunks.frames), model_config.action_horizon,
+                 model_config.action_dim)
+        self.noise = eval_cfg["temperature"] * np.asarray(noise_lib.flow_noise(
+            jax.random.key(spec.seed), (shape[0] * shape[1], *shape[2:]), noise_factor)
+        ).reshape(shape)
+        sample = functools.partial(flow_model.sample_actions, config=model_config,
+                                   num_steps=eval_cfg["num_steps"], num_draws=shape[0])
         self._sample = jax.jit(
-            functools.partial(flow_model.sample_actions, config=model_config,
-                              num_steps=eval_cfg["num_steps"], noise_factor=noise_factor),
+            lambda params, noise, observation: sample(params, None, observation, noise=noise),
             in_shardings=(params_sharding, None, self.batch_sharding),
             out_shardings=sharding_lib.replicated(mesh))
 
@@ -161,23 +172,30 @@ class Evaluator:
                                                       x[start:start + per_process], x.shape)
 
     def sample(self, params: Any) -> np.ndarray:
-        """Sampled chunks `[N, H, D]` of all held-out chunks (the same noise every call)."""
-        predicted = []
-        for i, batch in enumerate(tqdm(self.chunks.batches, desc="eval", leave=False,
-                                       disable=jax.process_index() != 0)):
+        """The policy's chunks `[M, N, H, D]` (normalized) of all held-out chunks: M =
+        `eval.num_draws` draws, each the mean of `eval.average_draws` (the same noise every
+        call)."""
+        predicted, start = [], 0
+        for batch, rows in zip(tqdm(self.chunks.batches, desc="eval", leave=False,
+                                    disable=jax.process_index() != 0), self.chunks.batch_rows):
             observation = jax.tree.map(self._global, {k: v for k, v in batch.items()
                                                       if k not in ("actions", "action_is_pad")})
-            rng = jax.random.fold_in(jax.random.key(self.seed), i)
-            predicted.append(np.asarray(self._sample(params, rng, observation)))
-        return np.concatenate(predicted)
+            size = len(batch["actions"])
+            noise = np.zeros((len(self.noise), size, *self.noise.shape[2:]), np.float32)
+            noise[:, :rows] = self.noise[:, start:start + rows]
+            draws = self._sample(params, noise.reshape(-1, *noise.shape[2:]), observation)
+            predicted.append(np.asarray(draws)[:, :rows])
+            start += rows
+        draws = np.concatenate(predicted, axis=1)
+        return draws.reshape(self.draws, self.average, *draws.shape[1:]).mean(axis=1)
 
     def __call__(self, params: Any) -> Evaluation:
         """Samples the held-out chunks with `params` and scores them (`Evaluation`)."""
         chunks = self.chunks
-        predicted = chunks.transform.absolute_actions(self.sample(params), chunks.frames)
-        predicted = predicted / chunks.scale
-        metrics, sums = chunks.score(predicted)
-        return Evaluation(metrics, predicted, chunks.true, sums)
+        draws = np.stack([chunks.transform.absolute_actions(d, chunks.frames)
+                          for d in self.sample(params)]) / chunks.scale
+        metrics, sums = chunks.score(draws)
+        return Evaluation(metrics, draws[0], chunks.true, sums)
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
@@ -196,19 +214,27 @@ class Evaluator:
 
 
 def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
-    """A table: per group the policy's error, skill over persistence, motion gain and ratio,
-    then the error and gain of each reference predictor on the same chunks (the do-nothing
+    """A table: per group the single draw's error and skill over persistence, the skill of the
+    mean of the draws and the energy-score skill, the single draw's motion gain and ratio, then
+    the error and gain of each reference predictor on the same chunks (the do-nothing
     baselines; the ceiling on the demo); then gripper switches."""
     references = [name for name in ("persistence", "state_copy", heldout_lib.CEILING)
                   if f"{name}/err/{layout.group_names[0]}" in metrics]
-    lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action); "
-             "gain: 1 = moves like the data, 0 = still or unrelated",
-             f"{'group':<15}{'err':>9}{'skill':>9}{'gain':>8}{'ratio':>8}"
+    draws = int(metrics.get("draws", 1))
+    mean = heldout_lib.MEAN_OF_DRAWS
+    lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action) of "
+             f"the single draw (what a robot executes), of the mean of {draws} draws, and of "
+             f"the energy score of the {draws} draws (spread counted fairly); gain: 1 = moves "
+             "like the data, 0 = still or unrelated",
+             f"{'group':<15}{'err':>9}{'skill':>9}{f'mean {draws}':>9}{'energy':>9}{'gain':>8}"
+             f"{'ratio':>8}"
              + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'gain':>7}"
                        for name in references)]
     for g in layout.group_names:
         lines.append(
             f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>9.3f}"
+            f"{metrics.get(f'{mean}/skill/{g}', math.nan):>9.3f}"
+            f"{metrics.get(f'energy_skill/{g}', math.nan):>9.3f}"
             f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>8.3f}"
             + "".join(f" |{metrics[f'{name}/err/{g}']:>16.4f}"
                       f"{metrics[f'{name}/motion_gain/{g}']:>7.3f}" for name in references))

@@ -8,8 +8,9 @@ An observation is a dict with B1K's openpi keys by default (`B1K_KEYS`; any mapp
 stores it (e.g. the demo's 23-D baseline-order state, B1K's 256-D proprioception: the run's
 `data.state_preset` selects from it), and the prompt. The policy does what training did to a
 sample (state selection and normalization, the prompt tokenizer, pi0.5's state tokens), samples
-with the run's `eval.num_steps` Euler steps and the KV cache (`model.flow_model.sample_actions`,
-jit-compiled once per batch shape), and undoes the action normalization and delta actions: the
+with the run's `eval.num_steps` Euler steps, its inference levers (`eval.average_draws`,
+`eval.temperature`) and the KV cache (`model.flow_model.sample_actions`, jit-compiled once per
+batch shape), and undoes the action normalization and delta actions: the
 result is absolute actions in the dataset's units. Used by the closed-loop evaluation and by the
 policy server.
 """
@@ -28,6 +29,7 @@ import numpy as np
 from etils import epath
 
 from pi0_armfix import hysteresis
+from pi0_armfix.configs import base as base_config
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import batching, run_inputs, sources, transforms
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
@@ -104,6 +106,18 @@ def run_noise_factor(workdir: epath.Path, config: ml_collections.ConfigDict,
         action_dim=layout.action_dim)
 
 
+def with_current_keys(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+    """A run's saved config with every `eval` key it predates at its default (`configs/base.py`):
+    how a policy is sampled and scored, which training never read."""
+    defaults = base_config.get_config().eval
+    config = ml_collections.ConfigDict(config.to_dict())
+    with config.unlocked():
+        for key, value in defaults.items():
+            if key not in config.eval:
+                config.eval[key] = value
+    return config
+
+
 @dataclasses.dataclass(frozen=True)
 class RestoredRun:
     """A run's checkpoint with what it needs to run: its own config, layout and norm stats."""
@@ -149,6 +163,7 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
                          + f": no checkpoint to evaluate{readable}. Restore the files or "
                          "train on to write a new one")
     use_ema = params_name == "ema" and bool(state.get("ema_params"))
+    config = with_current_keys(config)
     return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
                        model_config_lib.from_model_config(config.model),
                        state["ema_params"] if use_ema else state["params"],
@@ -207,9 +222,12 @@ class RunPolicy:
         self.task_prompts = dict(getattr(source, "task_prompts", {}) or {})
         self.trained_prompts = frozenset(source.tasks)
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
+        # The run's inference levers (`eval.average_draws`, `eval.temperature`).
         self._sample = functools.partial(
             flow_model.sample_actions, config=run.model_config,
-            num_steps=int(num_steps or config.eval.num_steps), noise_factor=noise_factor)
+            num_steps=int(num_steps or config.eval.num_steps), noise_factor=noise_factor,
+            average_draws=int(config.eval.average_draws),
+            temperature=float(config.eval.temperature))
         self._key = jax.random.key(seed)
         self._draws = 0
         # Images of any size become the model's float images here, so the sampler compiles once

@@ -251,7 +251,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                               ema_decay=spec.optim["ema_decay"], noise_factor=noise_factor,
                               switch_threshold=batching.normalized_midpoints(
                                   norm_stats, layout, data.norm,
-                                  model_config.action_horizon)),
+                                  model_config.action_horizon),
+                              loss_mask=batching.loss_mask(norm_stats, layout, data.norm,
+                                                           model_config.action_horizon)),
             in_shardings=(state_shardings, batch_sharding),
             out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
             donate_argnums=0)

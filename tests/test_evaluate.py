@@ -159,6 +159,36 @@ def test_metrics_are_nan_where_the_data_gives_nothing_to_measure():
     assert np.isnan(metrics["motion_gain/arm"]) and all(np.isnan(_switches(metrics)))
 
 
+def test_the_energy_score_equals_the_hand_computed_value():
+    layout = ActionLayout(groups={"g": (0, 2)}, real_dim=2, action_dim=2)
+    draws = np.array([[0.0, 0.0], [3.0, 4.0]]).reshape(2, 1, 1, 2)  # [M, N, H, D]
+    true = np.array([0.0, 1.0]).reshape(1, 1, 2)
+    sums = eval_metrics.energy_sums(draws, true, np.ones((1, 1), bool), layout=layout)
+    # E|X - y| = (1 + sqrt(18)) / 2; E|X - X'| / 2 = (5 + 5) / (2 * 2 * 1)
+    assert sums["energy/g"][0] == pytest.approx((1 + np.sqrt(18)) / 2 - 2.5)
+
+
+def test_a_point_predictions_energy_score_is_its_error_norm_over_valid_steps():
+    true = _moving_chunks()
+    predicted = true + 0.5
+    valid = np.ones(true.shape[:2], bool)
+    valid[0, -2:] = False
+    sums = eval_metrics.energy_sums(predicted[None], true, valid, layout=LAYOUT)
+    expected = np.sqrt(valid.sum(axis=1) * 3 * 0.25)  # arm: 3 dims off by 0.5 per valid step
+    np.testing.assert_allclose(sums["energy/arm"], expected)
+
+
+def test_spread_around_the_truth_scores_better_than_the_same_spread_beside_it():
+    rng = np.random.default_rng(0)
+    true = _moving_chunks()
+    spread = rng.normal(size=(8, *true.shape))
+    centred = eval_metrics.energy_sums(true + spread, true, np.ones(true.shape[:2], bool),
+                                       layout=LAYOUT)
+    biased = eval_metrics.energy_sums(true + 1.0 + spread, true, np.ones(true.shape[:2], bool),
+                                      layout=LAYOUT)
+    assert centred["energy/arm"].sum() < biased["energy/arm"].sum()
+
+
 def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
     eval_cfg = dict(gripper_groups=("claw",), plot_groups=(), batch_size=8, max_chunks=16,
                     num_steps=10)
@@ -191,6 +221,10 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
     assert f"{saved['motion_gain/left_arm']:.3f}" in result.stdout
     assert saved["persistence/motion_gain/left_arm"] == 0.0  # holding never moves an arm
     assert saved["persistence/skill/left_arm"] == 0.0 and "skill/left_arm" in saved
+    assert saved["draws"] == 8  # eval.num_draws: single draw, mean of 8, energy score
+    for key in ("mean_of_draws/skill/left_arm", "energy/left_arm", "energy_skill/left_arm"):
+        assert key in saved
+    assert saved["persistence/energy_skill/left_arm"] == 0.0
     assert (workdir / "eval" / "stagnation.png").stat().st_size > 10_000  # over the evaluations
 
 
@@ -285,7 +319,7 @@ def test_skill_is_one_for_a_perfect_policy_and_negative_for_one_worse_than_doing
 
 def test_held_out_chunks_tile_each_episode_so_every_transition_is_in_one_chunk():
     starts = np.array([0, 100, 130, 400])
-    frames = heldout.tiled_chunk_starts(starts, horizon=10, max_chunks=1000, batch_size=1)
+    frames = heldout.tiled_chunk_starts(starts, horizon=10, max_chunks=1000)
     covered = np.zeros(400, int)  # transitions f -> f + 1 inside each chunk's 10 steps
     for f in frames:
         episode_end = starts[np.searchsorted(starts, f, side="right")]
@@ -295,10 +329,52 @@ def test_held_out_chunks_tile_each_episode_so_every_transition_is_in_one_chunk()
 
 
 def test_held_out_chunks_beyond_max_chunks_are_an_even_subset_without_overlap():
-    frames = heldout.tiled_chunk_starts(np.array([0, 1000]), horizon=10, max_chunks=40,
-                                         batch_size=8)
+    frames = heldout.tiled_chunk_starts(np.array([0, 1000]), horizon=10, max_chunks=40)
     assert len(frames) == 40 and (np.diff(frames) >= 9).all()
     assert frames[0] == 0 and frames[-1] > 900
+
+
+def _evaluate_in_process(workdir, **eval_changes):
+    import jax
+    from pi0_armfix import inference
+    from pi0_armfix.data import sources
+    from pi0_armfix.data.data_spec import DataSpec
+    from pi0_armfix.model import tokenizer as tokenizer_lib
+    from pi0_armfix.training import sharding as sharding_lib
+    run = inference.restore_run(workdir)
+    config = run.config
+    config.eval.update(eval_changes)
+    mesh = sharding_lib.make_mesh(1)
+    spec = DataSpec.from_config(config, run.layout)
+    source = sources.open_source(spec.options, run.layout)
+    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
+    with jax.set_mesh(mesh):
+        evaluator = evaluate.Evaluator(
+            spec, config.eval, run.model_config, run.norm_stats, tokenize, mesh=mesh,
+            params_sharding=sharding_lib.tree_shardings(run.params, mesh), source=source)
+        return evaluator(run.params)
+
+
+def test_a_held_out_set_smaller_than_a_batch_is_padded_and_scores_as_unpadded(trained):
+    padded = _evaluate_in_process(trained, max_chunks=5, batch_size=32, num_draws=2)
+    unpadded = _evaluate_in_process(trained, max_chunks=5, batch_size=5, num_draws=2)
+    assert padded.metrics["chunks"] == 5
+    np.testing.assert_allclose(padded.predicted, unpadded.predicted, rtol=1e-5, atol=1e-6)
+    for key, value in unpadded.metrics.items():
+        assert padded.metrics[key] == pytest.approx(value, rel=1e-4, abs=1e-6, nan_ok=True), key
+
+
+def test_a_trained_runs_output_on_a_constant_dim_is_the_constant(trained):
+    from pi0_armfix import inference
+    policy = inference.RunPolicy.from_workdir(trained)
+    rng = np.random.default_rng(0)
+    observations = [{**{key: rng.integers(0, 255, (32, 32, 3), np.uint8)
+                        for key in policy.keys.cameras},
+                     policy.keys.state: np.r_[rng.normal(size=6), 0.0, rng.normal(size=16)],
+                     policy.keys.prompt: ""} for _ in range(3)]
+    actions = policy.infer(observations)
+    assert np.all(actions[..., 6] == 0.0)  # the demo's torso dim 6 never moves
+    assert np.ptp(actions[..., 5]) > 0  # its neighbour does
 
 
 # ---------------------------------------------------------------------- the ceiling (demo)

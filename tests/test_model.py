@@ -12,6 +12,7 @@ import pytest
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import config as model_config
 from pi0_armfix.model import flow_model, pi0
+from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model.inputs import fake_observation, preprocess_observation
 from pi0_armfix.model.tree import count_params
 
@@ -231,6 +232,52 @@ def test_sampling_is_deterministic_given_the_rng(params):
     a = flow_model.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
     b = flow_model.sample_actions(params, jax.random.key(7), _observation(), config=TINY, num_steps=2)
     np.testing.assert_array_equal(a, b)
+
+
+def _noise_of(rng, draws):
+    return noise_lib.flow_noise(rng, (draws * BATCH, TINY.action_horizon, TINY.action_dim))
+
+
+def test_every_draw_of_several_is_the_single_draw_from_its_own_noise(params):
+    noise = _noise_of(jax.random.key(5), 3)
+    draws = flow_model.sample_actions(params, jax.random.key(5), _observation(), config=TINY,
+                                      num_steps=3, num_draws=3)
+    assert draws.shape == (3, BATCH, TINY.action_horizon, TINY.action_dim)
+    for j in range(3):
+        single = flow_model.sample_actions(params, None, _observation(), config=TINY, num_steps=3,
+                                           noise=noise[j * BATCH:(j + 1) * BATCH])
+        np.testing.assert_allclose(draws[j], single, atol=1e-5)
+
+
+def test_several_draws_share_the_prefix_and_equal_full_recomputation(params):
+    noise = _noise_of(jax.random.key(2), 2)
+    cached = flow_model.sample_actions(params, None, _observation(), config=TINY, num_steps=2,
+                                       noise=noise, num_draws=2)
+    full = flow_model.sample_actions(params, None, _observation(), config=TINY, num_steps=2,
+                                     noise=noise, num_draws=2, use_kv_cache=False)
+    np.testing.assert_allclose(cached, full, atol=1e-5)
+
+
+def test_the_mean_of_n_draws_is_reproducible_for_a_seed_and_the_mean_of_the_draws(params):
+    kwargs = dict(config=TINY, num_steps=2, average_draws=4)
+    a = flow_model.sample_actions(params, jax.random.key(9), _observation(), **kwargs)
+    b = flow_model.sample_actions(params, jax.random.key(9), _observation(), **kwargs)
+    np.testing.assert_array_equal(a, b)
+    draws = flow_model.sample_actions(params, jax.random.key(9), _observation(), config=TINY,
+                                      num_steps=2, num_draws=4)
+    np.testing.assert_allclose(a, np.mean(draws, axis=0), atol=1e-6)
+    other = flow_model.sample_actions(params, jax.random.key(10), _observation(), **kwargs)
+    assert not np.allclose(a, other)
+
+
+def test_the_temperature_scales_the_initial_noise_and_is_reproducible_for_a_seed(params):
+    kwargs = dict(config=TINY, num_steps=2, temperature=0.5)
+    a = flow_model.sample_actions(params, jax.random.key(4), _observation(), **kwargs)
+    b = flow_model.sample_actions(params, jax.random.key(4), _observation(), **kwargs)
+    np.testing.assert_array_equal(a, b)
+    scaled = flow_model.sample_actions(params, None, _observation(), config=TINY, num_steps=2,
+                                       noise=0.5 * _noise_of(jax.random.key(4), 1))
+    np.testing.assert_allclose(a, scaled, atol=1e-6)
 
 
 # ------------------------------------------------------------------------------ scan over depth

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import transforms
-from pi0_armfix.data.stats import NormStats
+from pi0_armfix.data.stats import CONSTANT_SPREAD, NORM_MODES, NormStats
 
 B1K = ActionLayout.preset("b1k_r1pro")
 # The official B1K baseline's *state* order: grippers last (docs/design.md §2).
@@ -37,7 +37,7 @@ def test_quantile_is_openpi_formula():
     np.testing.assert_allclose(y, expected, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("mode", transforms.NORM_MODES)
+@pytest.mark.parametrize("mode", NORM_MODES)
 def test_inverse_undoes_normalization(mode):
     normalizer = transforms.Normalizer.from_stats(make_stats(), mode)
     x = np.random.default_rng(2).normal(size=(3, 6, 5)).astype(np.float32)
@@ -51,17 +51,36 @@ def test_inverse_reads_the_real_dims_of_a_padded_array():
     np.testing.assert_allclose(normalizer.inverse(padded), x, rtol=1e-5)
 
 
-@pytest.mark.parametrize("mode", transforms.NORM_MODES)
-def test_constant_dim_is_centred_not_blown_up(mode):
+def constant_last_dim_stats(spread=1e-9):
     stats = make_stats()
-    stats = NormStats(mean=np.r_[stats.mean[:4], 0.5], std=np.r_[stats.std[:4], 1e-9],
-                      q01=np.r_[stats.q01[:4], 0.5], q99=np.r_[stats.q99[:4], 0.5 + 1e-9])
-    normalizer = transforms.Normalizer.from_stats(stats, mode)
+    return NormStats(mean=np.r_[stats.mean[:4], 0.5], std=np.r_[stats.std[:4], spread],
+                     q01=np.r_[stats.q01[:4], 0.5], q99=np.r_[stats.q99[:4], 0.5 + spread])
+
+
+@pytest.mark.parametrize("mode", NORM_MODES)
+def test_a_constant_dim_normalizes_to_zero_and_round_trips_exactly(mode):
+    normalizer = transforms.Normalizer.from_stats(constant_last_dim_stats(), mode)
     x = np.full((2, 5), 0.5, np.float32)
-    x[1, 4] = 0.75
     y = normalizer(x)
-    np.testing.assert_allclose(y[:, 4], [0.0, 0.25], atol=1e-7)
-    np.testing.assert_allclose(normalizer.inverse(y)[:, 4], x[:, 4], atol=1e-7)
+    assert np.all(y[:, 4] == 0.0)
+    assert np.all(normalizer.inverse(y)[:, 4] == np.float32(0.5))
+
+
+@pytest.mark.parametrize("mode", NORM_MODES)
+def test_a_constant_dim_unnormalizes_to_its_constant_whatever_the_model_puts_there(mode):
+    normalizer = transforms.Normalizer.from_stats(constant_last_dim_stats(), mode)
+    y = np.random.default_rng(3).normal(size=(7, 5)).astype(np.float32)
+    assert np.all(normalizer.inverse(y)[:, 4] == np.float32(0.5))
+    assert normalizer.constant.tolist() == [False] * 4 + [True]
+
+
+@pytest.mark.parametrize("mode", NORM_MODES)
+def test_one_threshold_decides_constant(mode):
+    below = constant_last_dim_stats(0.99 * CONSTANT_SPREAD)
+    above = constant_last_dim_stats(1.01 * CONSTANT_SPREAD)
+    assert transforms.Normalizer.from_stats(below, mode).constant[4]
+    assert not transforms.Normalizer.from_stats(above, mode).constant[4]
+    assert below.constant(mode)[4] and not above.constant(mode)[4]
 
 
 def test_unknown_norm_mode_is_an_error():

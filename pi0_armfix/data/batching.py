@@ -46,6 +46,17 @@ def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: 
                               layout.action_dim)
 
 
+def loss_mask(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
+              norm_mode: str, action_horizon: int) -> np.ndarray:
+    """float32 `[action_dim]` (`[H, action_dim]` when normalized per timestep): 0 on the constant
+    action dims (`NormStats.constant`), which carry no loss, 1 elsewhere (padding included: each
+    loss strategy decides about padding itself)."""
+    normalizer = action_normalizer(norm_stats, layout.real_dim, norm_mode, action_horizon)
+    live = transforms.pad_last(~normalizer.constant, layout.action_dim)
+    live[..., layout.real_dim:] = True
+    return live.astype(np.float32)
+
+
 def absolute_actions(actions: np.ndarray, state: np.ndarray, *,
                      action_norm: transforms.Normalizer, delta_mask: np.ndarray | None
                      ) -> np.ndarray:

@@ -91,7 +91,7 @@ def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
                          "correlation of loss.noise_beta")
     flat = whole.reshape(len(whole), -1)
     std = flat.std(0)
-    live = std > transforms.DEGENERATE
+    live = std > stats_lib.CONSTANT_SPREAD
     correlation = np.eye(flat.shape[1])
     centred = (flat[:, live] - flat[:, live].mean(0)) / std[live]
     correlation[np.ix_(live, live)] = centred.T @ centred / len(flat)

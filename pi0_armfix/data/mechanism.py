@@ -38,12 +38,10 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
-from pi0_armfix.data.transforms import DEGENERATE
 
 MAGNITUDE_RATIO = 0.5  # loss share below this fraction of the dim share: a magnitude imbalance
 COPY_EXPLAINED = 0.9  # state explains at least this much of a group's targets ...
 COPY_SHRINK = 0.5  # ... and its share of what is left falls below this fraction of its share
-CONSTANT_VARIANCE = 1e-9  # z-scored variance of a dim that never moves (its std was below 1e-6)
 
 
 @dataclasses.dataclass
@@ -63,8 +61,10 @@ class MechanismSums:
 
 
 def _zscore(x: np.ndarray, stats: stats_lib.NormStats) -> np.ndarray:
-    std = np.where(stats.std < DEGENERATE, 1.0, stats.std)
-    return (np.asarray(x, np.float64) - stats.mean) / std
+    """z-scored `x`; a constant dim (`NormStats.constant`) is 0, so its variance is exactly 0."""
+    constant = stats.constant("zscore")
+    std = np.where(constant, 1.0, stats.std)
+    return np.where(constant, 0.0, (np.asarray(x, np.float64) - stats.mean) / std)
 
 
 def accumulate(blocks: Iterable[stats_lib.Block], action_stats: stats_lib.NormStats,
@@ -112,7 +112,7 @@ def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dic
     a group that never moves), share_after_state, within_chunk_change, constant (see the module
     docstring)."""
     variance, residual = residual_variance(sums)
-    active = variance > CONSTANT_VARIANCE
+    active = variance > 0
     change = sums.change / sums.count
     report = {}
     for name in layout.group_names:

@@ -7,7 +7,7 @@ episode boundary, also not across the blocks of a stream):
 - Per-dim motion: `Δx_d = (a_d[t] - a_d[t-1]) * unit_d`, with `unit_d` the normalizer's per-dim
   scale (1 / std for z-scoring), i.e. motion in normalized units.
 - Group motion of a pair: `m_g = sqrt(mean_{d in g, active} Δx_d**2)`, the RMS over the group's
-  *active* dims (constant dims, spread < 1e-6, are left out: they cannot move and are never
+  *active* dims (constant dims, `NormStats.constant`, are left out: they cannot move and are never
   rescaled). An RMS rather than a norm, so groups of different widths compare.
 - Group motion RMS of a set of pairs: `sqrt(mean over pairs of m_g**2)`.
 - Group magnitude of a frame: `sqrt(mean_{d in g} a_d**2)`, in raw units.
@@ -52,7 +52,7 @@ import tqdm
 
 from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data.stats import NormStats
-from pi0_armfix.data.transforms import DEGENERATE, Normalizer
+from pi0_armfix.data.transforms import Normalizer
 
 
 class LogHistograms:
@@ -233,15 +233,14 @@ class MotionAccumulator:
 
 def active_dims(stats: NormStats) -> np.ndarray:
     """`[A]` bool: dims whose std is not degenerate (they can move and be rescaled)."""
-    return stats.std >= DEGENERATE
+    return ~stats.constant("zscore")
 
 
 def normalized_units(stats: NormStats, mode: str) -> tuple[np.ndarray, np.ndarray]:
     """(`[A]` normalized value per raw unit under `mode`, `[A]` bool active dims): the
     `MotionAccumulator` arguments for motion in the model's normalized units."""
     unit = Normalizer.from_stats(stats, mode).scale.astype(np.float64)
-    spread = stats.std if mode == "zscore" else stats.q99 - stats.q01
-    return unit, active_dims(stats) & (spread >= DEGENERATE)
+    return unit, active_dims(stats) & ~stats.constant(mode)
 
 
 def compute_motion(blocks: Iterable[Mapping[str, np.ndarray]], layout: ActionLayout,
@@ -295,7 +294,7 @@ def balanced_norm_stats(stats: NormStats, summary: MotionSummary, layout: Action
     reports = []
     for mode, spread, new_spread in (("zscore", stats.std, new_std),
                                      ("quantile", half_range, new_half)):
-        mode_active = active & (spread >= DEGENERATE)
+        mode_active = active & ~stats.constant(mode)
         scale = np.where(mode_active, 1.0 / np.where(mode_active, spread, 1.0), 0.0)
         before = summary.group_motion_rms(layout, scale, mode_active)
         moving = before > 0

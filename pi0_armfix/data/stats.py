@@ -41,6 +41,14 @@ from pi0_armfix.data import background, json_files
 from pi0_armfix.data.episodes import EpisodeTable
 
 FIELDS = ("mean", "std", "q01", "q99")
+NORM_MODES = ("zscore", "quantile")
+
+# A dim whose spread in the training data (std under z-scoring, q99 - q01 under quantiles) lies
+# below this, in data units (a millimetre, a milliradian), is constant: normalization maps it to
+# 0, un-normalization returns its stored mean, the loss ignores it and the evaluation measures it
+# in data units. One threshold for all of them: B1K 2025's torso dim 6 (action std 0, state std
+# 1.1e-4) is constant, its smallest moving dim (base velocity, std 0.08) is 80x above it.
+CONSTANT_SPREAD = 1e-3
 
 # Bins per dim of the quantile histogram: error < 2 / DEFAULT_BINS of the dim's range.
 DEFAULT_BINS = 4096
@@ -74,6 +82,18 @@ class NormStats:
 
     def replace(self, **changes: np.ndarray) -> "NormStats":
         return dataclasses.replace(self, **changes)
+
+    def spread(self, mode: str) -> np.ndarray:
+        """What a normalization `mode` divides by: std (zscore) or q99 - q01 (quantile)."""
+        if mode == "zscore":
+            return np.asarray(self.std, np.float64)
+        if mode == "quantile":
+            return np.asarray(self.q99, np.float64) - np.asarray(self.q01, np.float64)
+        raise ValueError(f"data.norm must be one of {NORM_MODES}, got {mode!r}")
+
+    def constant(self, mode: str) -> np.ndarray:
+        """bool, shaped like a field: the dims whose `spread(mode)` is below `CONSTANT_SPREAD`."""
+        return self.spread(mode) < CONSTANT_SPREAD
 
 
 def _column_reduce(ufunc: np.ufunc, x: np.ndarray) -> np.ndarray:

@@ -7,8 +7,10 @@ Normalization (docs/design.md §4), per dim, written as one affine map
 `y = (x - offset) * scale + shift`:
   zscore:   (x - mean) / (std + eps)
   quantile: (x - q01) / (q99 - q01 + eps) * 2 - 1
-A dim whose std (zscore) or q99 - q01 (quantile) is below `DEGENERATE` is passed through centred,
-`y = x - mean`: a constant dim (B1K torso dim 6) stays ~0 instead of being blown up by 1/eps.
+A constant dim (`NormStats.constant`: its spread below `stats.CONSTANT_SPREAD`, e.g. B1K's torso
+dim 6) has scale 0: it normalizes to 0, never blown up by 1/eps, and `inverse` returns its stored
+mean whatever the model put there, so a policy's leftover noise never lands on a joint the data
+never moves.
 """
 
 from __future__ import annotations
@@ -20,17 +22,16 @@ from typing import Any
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data.stats import NormStats
+from pi0_armfix.data.stats import NORM_MODES, NormStats
 
-NORM_MODES = ("zscore", "quantile")
 EPS = 1e-6  # openpi's epsilon in both normalizations
-DEGENERATE = 1e-6  # a spread below this is a constant dim: centred, not scaled
 
 
 @dataclasses.dataclass(frozen=True)
 class Normalizer:
     """`y = (x - offset) * scale + shift` per dim; each field `[D]` float32, or `[H, D]` per chunk
-    position (per-timestep normalization of `[..., H, D]` chunks)."""
+    position (per-timestep normalization of `[..., H, D]` chunks). A constant dim has scale 0,
+    offset its mean and shift 0."""
 
     offset: np.ndarray
     scale: np.ndarray
@@ -38,19 +39,20 @@ class Normalizer:
 
     @classmethod
     def from_stats(cls, stats: NormStats, mode: str) -> "Normalizer":
+        spread, constant = stats.spread(mode), stats.constant(mode)
         if mode == "zscore":
-            spread = stats.std
-            offset, scale, shift = stats.mean, 1.0 / (stats.std + EPS), 0.0
-        elif mode == "quantile":
-            spread = stats.q99 - stats.q01
-            offset, scale, shift = stats.q01, 2.0 / (spread + EPS), -1.0
+            offset, shift = stats.mean, 0.0
         else:
-            raise ValueError(f"data.norm must be one of {NORM_MODES}, got {mode!r}")
-        degenerate = spread < DEGENERATE
-        offset = np.where(degenerate, stats.mean, offset)
-        scale = np.where(degenerate, 1.0, scale)
-        shift = np.where(degenerate, 0.0, np.broadcast_to(shift, degenerate.shape))
+            offset, shift = stats.q01, -1.0
+        scale = np.where(constant, 0.0, (2.0 if mode == "quantile" else 1.0) / (spread + EPS))
+        offset = np.where(constant, stats.mean, offset)
+        shift = np.where(constant, 0.0, np.broadcast_to(shift, constant.shape))
         return cls(*(np.asarray(v, np.float32) for v in (offset, scale, shift)))
+
+    @property
+    def constant(self) -> np.ndarray:
+        """bool `[D]` (or `[H, D]`): the constant dims."""
+        return self.scale == 0
 
     @property
     def width(self) -> int:
@@ -63,7 +65,8 @@ class Normalizer:
     def inverse(self, y: np.ndarray) -> np.ndarray:
         """`[..., D]` normalized -> raw float32 (the first D dims of a padded array)."""
         y = np.asarray(y, np.float32)[..., :self.width]
-        return (y - self.shift) / self.scale + self.offset
+        unscale = np.divide(1.0, self.scale, out=np.zeros_like(self.scale), where=~self.constant)
+        return (y - self.shift) * unscale + self.offset
 
 
 def openpi_normalize(x: np.ndarray, stats: NormStats, mode: str) -> np.ndarray:

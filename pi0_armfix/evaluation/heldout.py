@@ -31,24 +31,24 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.sim.world import DemoSpec
 
 CEILING = "ceiling"  # the reference name of the expert's redraw (the demo only)
+MEAN_OF_DRAWS = "mean_of_draws"  # the metrics of the mean of a sampler's N draws
 CHUNK_SUMS_FILE = "chunk_sums.npz"  # of an evaluation, in eval/step_<N>/
 EPISODE = "episode"  # the chunk-sums entry holding each chunk's held-out episode (0 .. E-1)
 
 
-def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int,
-                       batch_size: int) -> np.ndarray:
+def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int) -> np.ndarray:
     """`[N]` chunk start frames that tile the held-out episodes' timeline without overlap.
 
     Chunks start every `H - 1` frames of each episode, so consecutive chunks share one step and
     every step-to-step transition (where a gripper switch happens) lies in exactly one chunk: each
     switch event of the data is counted once. When that gives more than `max_chunks`, an evenly
-    spaced subset of the tiles is kept (still without overlap). N is a multiple of `batch_size`.
+    spaced subset of the tiles is kept (still without overlap).
     """
     stride = max(horizon - 1, 1)
     tiles = np.concatenate([np.arange(start, stop, stride) for start, stop
                             in zip(episode_starts[:-1], episode_starts[1:])])
-    num = min(max_chunks, len(tiles)) // batch_size * batch_size
-    keep = np.linspace(0, len(tiles) - 1, num).round().astype(np.int64) if num else []
+    num = min(max_chunks, len(tiles))
+    keep = np.linspace(0, len(tiles) - 1, num).round().astype(np.int64)
     return tiles[keep].astype(np.int64)
 
 
@@ -83,7 +83,8 @@ class HeldOutChunks:
 
     Attributes:
       frames `[N]`, episodes `[N]` (each chunk's held-out episode, 0 .. E-1), batches (model
-      batches of `eval.batch_size`), valid `[N, H]`, true `[N, H, A]` (evaluation units), scale
+      batches of `eval.batch_size`, the last one filled up by repeating its last chunk: the
+      sampler compiles once; `batch_rows` says how many rows of each are real), valid `[N, H]`, true `[N, H, A]` (evaluation units), scale
       `[A]`, gripper_threshold `[A]`, transform, reference: `{name: metrics}` of `persistence`,
       `state_copy` and, on the embedded demo, `ceiling`, each with its `skill/<g>` over
       persistence, and reference_sums: `{name: per-chunk sums}` of the same.
@@ -100,51 +101,71 @@ class HeldOutChunks:
             delta_mask=spec.delta_mask, tokenize=tokenize, actions_only=tokenize is None,
             image_size=image_size)
         batch_size = eval_cfg["batch_size"]
-        self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg["max_chunks"],
-                                         batch_size)
+        self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg["max_chunks"])
         self.episodes = np.searchsorted(table.episode_starts, self.frames, side="right") - 1
-        if len(self.frames) == 0:
-            raise ValueError(f"the {table.num_episodes} held-out episodes (eval.episodes) hold "
-                             f"fewer than eval.batch_size = {batch_size} chunks of H = {horizon}")
-        self.batches = [self.transform(self.frames[i:i + batch_size])
-                        for i in range(0, len(self.frames), batch_size)]
-        self.valid = ~np.concatenate([b["action_is_pad"] for b in self.batches])
-        true = self.transform.absolute_actions(
-            np.concatenate([b["actions"] for b in self.batches]), self.frames)
+        starts = range(0, len(self.frames), batch_size)
+        self.batch_rows = [min(batch_size, len(self.frames) - i) for i in starts]
+        self.batches = [self.transform(np.pad(self.frames[i:i + batch_size],
+                                              (0, batch_size - rows), mode="edge"))
+                        for i, rows in zip(starts, self.batch_rows)]
+        actions = np.concatenate([b["actions"][:rows]
+                                  for b, rows in zip(self.batches, self.batch_rows)])
+        self.valid = ~np.concatenate([b["action_is_pad"][:rows]
+                                      for b, rows in zip(self.batches, self.batch_rows)])
+        true = self.transform.absolute_actions(actions, self.frames)
         self.scale, self.gripper_threshold = evaluation_scale(norm_stats, true, self.valid)
         self.true = true / self.scale
         self.layout = layout
-        self.sums = lambda chunks: sums(chunks, self.true, self.valid,
-                                        gripper_threshold=self.gripper_threshold)
+        self._sums = lambda chunks: sums(chunks, self.true, self.valid,
+                                         gripper_threshold=self.gripper_threshold)
         chunks = baselines_lib.baseline_chunks(table, self.frames, horizon, layout,
                                                spec.state_groups)
         if not spec.get("root") and spec.get("format", "lerobot") == "lerobot":
             chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
-        self.reference_sums = {name: self.sums(c[..., :layout.real_dim] / self.scale)
+        self.reference_sums = {name: self.sums(c[None, ..., :layout.real_dim] / self.scale)
                                for name, c in chunks.items()}
         self.reference = {name: self._measure(s) for name, s in self.reference_sums.items()}
         for measured in self.reference.values():
             measured.update(eval_metrics.skill_scores(measured, self.reference["persistence"],
                                                       layout))
 
+    def sums(self, draws: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-chunk sums of draws `[M, N, H, A]` (evaluation units): the first draw's
+        `metrics.chunk_sums` and the energy score of all M (`metrics.energy_sums`)."""
+        return {**self._sums(draws[0]),
+                **eval_metrics.energy_sums(draws, self.true, self.valid, layout=self.layout)}
+
     def _measure(self, sums: Mapping[str, np.ndarray]) -> dict[str, float]:
         return eval_metrics.metrics_from_sums({k: float(v.sum()) for k, v in sums.items()},
                                               self.layout)
 
-    def score(self, predicted: np.ndarray) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-        """A policy's chunks `[N, H, A]` (evaluation units) -> its metrics (with its skill over
-        persistence, every reference's under `<name>/...`, and the number of chunks), and the
-        per-chunk sums to keep (`CHUNK_SUMS_FILE`: the policy's under `policy/`, persistence's
-        under `persistence/`, and `episode`)."""
-        sums = self.sums(predicted)
+    def _skilled(self, sums: Mapping[str, np.ndarray]) -> dict[str, float]:
         metrics = self._measure(sums)
         metrics.update(eval_metrics.skill_scores(metrics, self.reference["persistence"],
                                                  self.layout))
+        return metrics
+
+    def score(self, draws: np.ndarray) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+        """A sampler's draws `[M, N, H, A]` (evaluation units) -> its metrics and the per-chunk
+        sums to keep.
+
+        Metrics: the single draw (the first: what a robot executes) under the plain keys, with
+        its skill over persistence and the energy score of the M draws (`energy/<g>`,
+        `energy_skill/<g>`); the mean of the M draws under `mean_of_draws/...`; every
+        reference's under `<name>/...`; `chunks` and `draws`. Kept sums (`CHUNK_SUMS_FILE`):
+        the single draw's under `policy/`, the mean's under `mean_of_draws/`, persistence's under
+        `persistence/`, and `episode`."""
+        sums = self.sums(draws)
+        mean_sums = self._sums(np.mean(draws, axis=0))
+        metrics = self._skilled(sums)
+        metrics.update({f"{MEAN_OF_DRAWS}/{k}": v for k, v in self._skilled(mean_sums).items()})
         for name, measured in self.reference.items():
             metrics.update({f"{name}/{k}": v for k, v in measured.items()})
         metrics["chunks"] = float(len(self.frames))
+        metrics["draws"] = float(len(draws))
         kept = {EPISODE: self.episodes.astype(np.int64),
                 **{f"policy/{k}": v for k, v in sums.items()},
+                **{f"{MEAN_OF_DRAWS}/{k}": v for k, v in mean_sums.items()},
                 **{f"persistence/{k}": v for k, v in self.reference_sums["persistence"].items()}}
         return metrics, kept
 

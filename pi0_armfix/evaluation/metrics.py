@@ -14,6 +14,16 @@ over a per-dim scale, not centred, so a zero velocity command stays 0). Per grou
   gripper_switch/{precision,recall,f1,tp,fp,fn}
                      open/close switch events: a predicted switch matches a true one of the same
                      direction and dim within `switch_tolerance` steps, each used once.
+  energy/<g>         energy score of N draws of a chunk (`energy_sums`): E|X - y| - E|X - X'|/2
+                     over the group's dims and valid steps, mean over chunks; a proper scoring
+                     rule (lower is better) that rewards neither a spread-free bias nor noise.
+  energy_skill/<g>   1 - energy / persistence's energy (a point prediction's energy score is its
+                     error norm): the sampler against doing nothing, spread counted fairly.
+
+A flow policy is a sampler: a single draw's error is its bias^2 plus its own spread, while
+persistence is a point prediction. The evaluation reports the single draw (what a robot executes)
+under the plain keys, the mean of N draws under `mean_of_draws/...` (the spread averaged away)
+and the energy score over the N draws.
 
 A displacement is the chunk's last valid action minus its first (the current one); for a velocity
 group (`ActionLayout.velocity_groups`, the B1K base) it is the chunk's mean command measured from
@@ -33,11 +43,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout, gripper_boundary
+from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
-
-# A dim whose training spread is below this (data units: a millimetre, a milliradian) is measured
-# in data units; dividing by a near-zero spread makes any error astronomically large.
-UNIT_FLOOR = 1e-3
 
 
 def _last_valid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -174,11 +181,47 @@ def chunk_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
     return sums
 
 
+def energy_sums(draws: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
+                layout: ActionLayout) -> dict[str, np.ndarray]:
+    """Per chunk `[N]`, each group's energy score over `draws` and the chunk count
+    (`energy_chunks`, 1 each).
+
+    ES = (1/M) sum_m |X_m - y| - 1/(2 M (M - 1)) sum_{m != m'} |X_m - X_m'|, the unbiased ("fair")
+    estimator, with X_m the group's dims over the chunk's valid steps, flattened, `|.|` the
+    Euclidean norm; for M = 1 (a point prediction) the second term is 0.
+
+    Args:
+      draws: `[M, N, H, D]` sampled chunks; true: `[N, H, D]`; valid: `[N, H]` bool.
+    """
+    draws, true = np.asarray(draws, np.float64), np.asarray(true, np.float64)
+    num_draws = len(draws)
+    w = valid[..., None].astype(np.float64)
+    sums = {"energy_chunks": np.ones(len(true))}
+    for g in layout.group_names:
+        dims = layout.group_dims(g)
+        x = (draws[..., dims] * w).reshape(num_draws, len(true), -1)  # [M, N, K]
+        y = (true[..., dims] * w).reshape(len(true), -1)
+        accuracy = np.linalg.norm(x - y, axis=-1).mean(axis=0)
+        spread = np.zeros(len(true))
+        if num_draws > 1:
+            pairwise = np.linalg.norm(x[:, None] - x[None], axis=-1).sum(axis=(0, 1))
+            spread = pairwise / (2 * num_draws * (num_draws - 1))
+        sums[f"energy/{g}"] = accuracy - spread
+    return sums
+
+
+def energy_scores(sums: dict[str, float], layout: ActionLayout) -> dict[str, float]:
+    """`energy/<g>`, the mean energy score over chunks, from summed `energy_sums`."""
+    chunks = sums["energy_chunks"]
+    return {f"energy/{g}": float(sums[f"energy/{g}"] / chunks) if chunks else float("nan")
+            for g in layout.group_names}
+
+
 def metrics_from_sums(sums: dict[str, float], layout: ActionLayout) -> dict[str, float]:
     """The metrics (module docstring) of chunks whose `chunk_sums` add up to `sums`: `err/<g>`,
     `motion_gain/<g>`, `motion_ratio/<g>` for every group and
-    `gripper_switch/{precision,recall,f1,tp,fp,fn}`; NaN where the data gives nothing to
-    measure."""
+    `gripper_switch/{precision,recall,f1,tp,fp,fn}`, and `energy/<g>` where `sums` hold
+    `energy_sums`; NaN where the data gives nothing to measure."""
     metrics = {}
     for g in layout.group_names:
         metrics[f"err/{g}"] = float(sums[f"sq_err/{g}"] / max(sums[f"steps/{g}"], 1.0))
@@ -189,6 +232,8 @@ def metrics_from_sums(sums: dict[str, float], layout: ActionLayout) -> dict[str,
         metrics[f"motion_ratio/{g}"] = (float(sums[f"norm_predicted/{g}"] / true_norm)
                                         if true_norm > 0 else float("nan"))
     metrics.update(switch_scores(sums))
+    if "energy_chunks" in sums:
+        metrics.update(energy_scores(sums, layout))
     return metrics
 
 
@@ -204,12 +249,16 @@ def chunk_metrics(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
 
 def skill_scores(metrics: dict[str, float], persistence: dict[str, float],
                  layout: ActionLayout) -> dict[str, float]:
-    """`skill/<g> = 1 - err/<g> / persistence's err/<g>` (NaN where persistence is exact)."""
+    """`skill/<g> = 1 - err/<g> / persistence's err/<g>` (NaN where persistence is exact), and
+    `energy_skill/<g>` likewise from `energy/<g>` where both have it."""
     skills = {}
     for g in layout.group_names:
-        reference = persistence[f"err/{g}"]
-        skills[f"skill/{g}"] = (1.0 - metrics[f"err/{g}"] / reference if reference > 0
-                                else float("nan"))
+        for score, skill in (("err", "skill"), ("energy", "energy_skill")):
+            if f"{score}/{g}" not in metrics or f"{score}/{g}" not in persistence:
+                continue
+            reference = persistence[f"{score}/{g}"]
+            skills[f"{skill}/{g}"] = (1.0 - metrics[f"{score}/{g}"] / reference if reference > 0
+                                      else float("nan"))
     return skills
 
 
@@ -220,8 +269,8 @@ def evaluation_units(std: np.ndarray, q01: np.ndarray, q99: np.ndarray
 
     Runs differ in normalization (z-score, quantile, balanced, per timestep) and in action
     representation (absolute or delta), so their normalized units cannot be compared. Metrics are
-    taken on absolute actions in data units divided by each dim's std, floored at `UNIT_FLOOR`
-    (a dim that barely moves in training is measured in data units, never blown up); not centred,
+    taken on absolute actions in data units divided by each dim's std; a constant dim
+    (`NormStats.constant`) is measured in data units, never blown up; not centred,
     so a zero velocity command stays 0. Float64.
 
     Args:
@@ -231,6 +280,6 @@ def evaluation_units(std: np.ndarray, q01: np.ndarray, q99: np.ndarray
       (`gripper_boundary`) is in the divided units.
     """
     std = np.asarray(std, np.float64)
-    scale = np.where(std < UNIT_FLOOR, 1.0, std)
+    scale = np.where(std < stats_lib.CONSTANT_SPREAD, 1.0, std)
     q01, q99 = np.asarray(q01, np.float64), np.asarray(q99, np.float64)
     return scale, gripper_boundary(q01, q99) / scale

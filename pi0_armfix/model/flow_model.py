@@ -6,7 +6,8 @@ openpi calls this the model, `inference.RunPolicy` is the policy that wraps it.
   velocity(params, observation, x_t, t, *, config) -> v [B, H, A]
   compute_loss(params, rng, batch, *, config, layout, train, **loss_kwargs) -> (loss, aux)
   sample_actions(params, rng, observation, *, config, num_steps=10, noise=None,
-                 use_kv_cache=True, inpaint=None, inpaint_weights=None) -> actions [B, H, A]
+                 use_kv_cache=True, inpaint=None, inpaint_weights=None, temperature=1.0,
+                 average_draws=1, num_draws=None) -> actions [B, H, A] (or [M, B, H, A])
 
 `observation` / `batch` are the dicts of docs/design.md §4 (raw uint8 cameras at any resolution; the
 model converts, resizes and, for training, augments them). Parameters are float32; activations
@@ -76,8 +77,8 @@ def velocity(params: Params, observation: Mapping[str, Any], x_t: jax.Array, t: 
 
 def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, config: Pi0Config,
                  layout: ActionLayout, train: bool, flow_samples: int = 1,
-                 noise_factor: jax.Array | None = None, **loss_kwargs
-                 ) -> tuple[jax.Array, dict[str, Any]]:
+                 noise_factor: jax.Array | None = None, loss_mask: jax.Array | None = None,
+                 **loss_kwargs) -> tuple[jax.Array, dict[str, Any]]:
     """Flow-matching loss on a batch.
 
     t ~ Beta(1.5, 1) * 0.999 + 0.001 per draw, x_t = t * noise + (1 - t) * a, u = noise - a,
@@ -92,6 +93,8 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
         (`pi0.forward_velocity`); K = 1 is the plain pi0 loss.
       noise_factor: `[H * A, H * A]` Cholesky factor of correlated noise (`noise.flow_noise`),
         or None.
+      loss_mask: `[A]` or `[H, A]`, 0 on the dims that carry no loss (the constant dims,
+        `data.batching.loss_mask`), or None.
       **loss_kwargs: `strategy`, `group_weights`, ... of `loss.training_loss`.
     Returns:
       (scalar loss over valid timesteps, aux) with aux = {"group_loss": {group: scalar}}.
@@ -110,21 +113,31 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
     x_t = t[:, None, None] * noise + (1.0 - t[:, None, None]) * actions
     v = pi0.forward_velocity(params, observation, x_t, t, config=config, samples=flow_samples)
     per_dim_loss = jnp.square(v - (noise - actions))
+    if loss_mask is not None:
+        per_dim_loss = per_dim_loss * jnp.asarray(loss_mask, per_dim_loss.dtype)
     return loss_lib.training_loss(per_dim_loss, actions, is_pad, layout=layout, **loss_kwargs)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache"))
+@functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache", "num_draws",
+                                             "average_draws"))
 def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any], *,
                    config: Pi0Config, num_steps: int = 10, noise: jax.Array | None = None,
                    use_kv_cache: bool = True, noise_factor: jax.Array | None = None,
-                   inpaint: jax.Array | None = None, inpaint_weights: jax.Array | None = None
+                   inpaint: jax.Array | None = None, inpaint_weights: jax.Array | None = None,
+                   temperature: float = 1.0, average_draws: int = 1, num_draws: int | None = None
                    ) -> jax.Array:
     """Integrates the flow from t = 1 (noise) to t = 0 with `num_steps` Euler steps.
+
+    The policy's inference levers: `temperature` τ scales the initial noise (τ < 1 samples
+    nearer the mode), and `average_draws` k > 1 returns each chunk as the mean of k draws from
+    independent noise (the spread of a single draw averaged away). The k draws share one prefix
+    pass (its KV cache is repeated), so k costs k suffix passes, not k prefix passes.
 
     Args:
       rng: draws the initial noise (unused when `noise` is given).
       observation: batch dict without actions.
-      noise: optional [B, H, A] starting point.
+      noise: optional [B, H, A] starting point (k = 1), or [k * B, H, A] (row j * B + b: draw j
+        of sample b); not scaled by the temperature.
       use_kv_cache: run the prefix once and reuse its keys / values at every step; False
         recomputes the full prefix + suffix forward each step (same result, for checking).
       noise_factor: the correlated noise's Cholesky factor the policy was trained with, or None.
@@ -132,28 +145,48 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
         Euler step to time t, x_t <- w * (t * noise + (1 - t) * inpaint) + (1 - w) * x_t, so the
         chunk follows the actions `inpaint` [B, H, A] (normalized) with weight w [B, H] in [0, 1]
         (1: exactly, 0: free), e.g. the unexecuted tail of the previous chunk.
+      temperature: τ in (0, 1], the initial noise's scale.
+      average_draws: k, draws averaged into each returned chunk.
+      num_draws: M: return every one of M draws, `[M, B, H, A]` (draw j from rows j * B + b of
+        the noise), instead of their mean; None returns the mean of `average_draws`.
     Returns:
-      actions [B, H, A] float32 (normalized, padded like the training targets).
+      actions [B, H, A] float32 (normalized, padded like the training targets), or [M, B, H, A].
     """
     observation = preprocess_observation(None, observation, config=config, train=False)
     batch_size = observation["state"].shape[0]
+    draws = num_draws or average_draws
     if noise is None:
-        noise = noise_lib.flow_noise(rng, (batch_size, config.action_horizon, config.action_dim),
-                           noise_factor)
+        noise = temperature * noise_lib.flow_noise(
+            rng, (draws * batch_size, config.action_horizon, config.action_dim), noise_factor)
+    elif noise.shape[0] != draws * batch_size:
+        raise ValueError(f"noise has {noise.shape[0]} rows; {draws} draw(s) of a batch of "
+                         f"{batch_size} need {draws * batch_size}")
+
+    def repeat(x):  # [B, ...] -> [draws * B, ...], row j * B + b
+        return jnp.tile(x, (draws,) + (1,) * (x.ndim - 1))
+
     dt = -1.0 / num_steps
     if use_kv_cache:
         kv_cache, prefix_mask = pi0.prefix_kv_cache(params, observation, config=config)
+        state = observation["state"]
+        if draws > 1:  # the cache is [depth, B, P, K, Dh]
+            kv_cache = tuple(jnp.tile(c, (1, draws, 1, 1, 1)) for c in kv_cache)
+            prefix_mask, state = repeat(prefix_mask), repeat(state)
 
         def flow(x_t, t):
-            return pi0.cached_velocity(params, observation["state"], kv_cache, prefix_mask, x_t, t,
-                                       config=config)
+            return pi0.cached_velocity(params, state, kv_cache, prefix_mask, x_t, t, config=config)
     else:
+        repeated = jax.tree.map(repeat, observation) if draws > 1 else observation
+
         def flow(x_t, t):
-            return pi0.forward_velocity(params, observation, x_t, t, config=config)
+            return pi0.forward_velocity(params, repeated, x_t, t, config=config)
+    if inpaint is not None and draws > 1:
+        inpaint, inpaint_weights = repeat(inpaint), repeat(inpaint_weights)
+    rows = noise.shape[0]
 
     def step(_, carry):
         x_t, t = carry
-        v = flow(x_t, jnp.broadcast_to(t, (batch_size,)))
+        v = flow(x_t, jnp.broadcast_to(t, (rows,)))
         x_next, t_next = x_t + dt * v, t + dt
         if inpaint is not None:
             t_next = jnp.maximum(t_next, 0.0)
@@ -163,4 +196,5 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
         return x_next, t_next
 
     actions, _ = jax.lax.fori_loop(0, num_steps, step, (noise.astype(jnp.float32), jnp.float32(1.0)))
-    return actions
+    actions = actions.reshape(draws, batch_size, *actions.shape[1:])
+    return actions if num_draws else actions.mean(axis=0)

@@ -53,7 +53,6 @@ from pi0_armfix.data import sources
 from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.data.transforms import DEGENERATE
 
 GRIPPER_END_FRACTION = 0.1  # "near an end": within this fraction of [q01, q99] from it
 GRIPPER_END_MASS = 0.8  # share of the frames near the two ends
@@ -66,7 +65,7 @@ def gripper_like_dims(actions: stats_lib.StreamingStats) -> np.ndarray:
     span = q99 - q01
     near_low = actions.fraction_below(q01 + GRIPPER_END_FRACTION * span)
     near_high = 1.0 - actions.fraction_below(q99 - GRIPPER_END_FRACTION * span)
-    return ((span >= DEGENERATE) & (near_low + near_high >= GRIPPER_END_MASS)
+    return ((span >= stats_lib.CONSTANT_SPREAD) & (near_low + near_high >= GRIPPER_END_MASS)
             & (np.minimum(near_low, near_high) >= GRIPPER_MIN_MODE))
 
 
@@ -86,8 +85,9 @@ def layout_warnings(layout: ActionLayout, gripper_like: np.ndarray,
                 "state order, which puts the grippers last, is wrong for actions)")
     for d in np.flatnonzero(constant):
         group = layout.group_of_dim(int(d))
-        warnings.append(f"dim {d} (group {group!r}) is constant (std < {DEGENERATE}): it is "
-                        "passed through centred and carries no signal")
+        warnings.append(f"dim {d} (group {group!r}) is constant (std < "
+                        f"{stats_lib.CONSTANT_SPREAD}): it is pinned to its mean and carries no "
+                        "loss")
     return warnings
 
 
@@ -185,7 +185,7 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
     blocks, total = dataset_lib.training_blocks(spec, ("actions",), source=source)
     actions = stats_lib.compute_stats(blocks, ("actions",), total_frames=total)["actions"]
     layout.check_real_dim(actions.width, source="the dataset's actions")
-    constant = actions.std < DEGENERATE
+    constant = actions.std < stats_lib.CONSTANT_SPREAD
     summary = dataset_lib.dataset_motion(spec, norm_stats["actions"], norm_mode,
                                          source=source)
     unit, active = motion_lib.normalized_units(norm_stats["actions"], norm_mode)

@@ -22,12 +22,14 @@ normalization, correlated sampling noise, a zeroed state, an offline tokenizer. 
 the export anyway, its caveats in `pi0_armfix_export.json`. Training-only levers (loss weights,
 curriculum, K flow samples, state noise or dropout, augmentation) need nothing at inference.
 
-Constant dims: the run passes a dim whose spread is below `transforms.DEGENERATE` through centred
-(`x - mean`), where openpi's formula divides by 1e-6. Their statistics are written so that
-openpi's own formula computes the run's map exactly (z-score: `std = 1 - 1e-6`; quantiles:
-`q01 = mean - 1`, `q99 = mean + 1 - 1e-6`), and the export json lists them. pi0.5's state enters
-only its prompt tokens, which the run computes with openpi's formula as it is: its state
-statistics are written unchanged.
+Constant dims (`NormStats.constant`): the run normalizes them to 0 and returns their mean as the
+action, whatever the model samples there; openpi's formula would divide by their tiny spread.
+Their statistics are written so that openpi's own formula computes the run's map: a state dim
+gets a spread of `CONSTANT_STATE_SPREAD` (it normalizes to within 1e-12 of 0; quantiles centred
+on the mean), an action dim a spread of 0 (`std = 0`; `q01 = q99 = mean`), so openpi's
+un-normalization `y * (0 + 1e-6) + mean` returns the mean to within 1e-6 of the sample. The
+export json lists the dims. pi0.5's state enters only its prompt tokens, which the run
+computes with openpi's formula as it is: its state statistics are written unchanged.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from pi0_armfix.model import config as model_config_lib
 EXPORT_FILE = "pi0_armfix_export.json"
 OPENPI_PRESETS = {"pi0": "pi0", "pi05": "pi05"}  # our preset -> openpi's model of that size
 DTYPES = ("float32", "bfloat16")
+CONSTANT_STATE_SPREAD = 1e12  # a constant state dim's exported spread (normalizes to ~0)
 
 
 def resolve_checkpoint(path: str | Path) -> tuple[Path, int | None]:
@@ -128,16 +131,18 @@ def openpi_norm_stats(norm_stats: Mapping[str, stats_lib.NormStats], mode: str, 
         stats = norm_stats[key]
         fields = {name: np.asarray(getattr(stats, name), np.float64).copy()
                   for name in stats_lib.FIELDS}
-        spread = fields["std"] if mode == "zscore" else fields["q99"] - fields["q01"]
-        constant = spread < transforms.DEGENERATE
+        constant = stats.constant(mode)
         if key == "state" and pi05:
             constant[:] = False  # pi0.5 reads its state through openpi's formula as it is
         if constant.any():
+            # openpi divides by and multiplies with `spread + 1e-6`: huge for a state that must
+            # normalize to 0, ~0 for an action that must un-normalize to its mean.
+            spread = CONSTANT_STATE_SPREAD if key == "state" else 0.0
             if mode == "zscore":
-                fields["std"][constant] = 1.0 - transforms.EPS
+                fields["std"][constant] = spread
             else:
-                fields["q01"][constant] = fields["mean"][constant] - 1.0
-                fields["q99"][constant] = fields["mean"][constant] + 1.0 - transforms.EPS
+                fields["q01"][constant] = fields["mean"][constant] - spread / 2
+                fields["q99"][constant] = fields["mean"][constant] + spread / 2
             adjusted[key] = np.flatnonzero(constant).tolist()
         out[key] = {name: value.tolist() for name, value in fields.items()}
     return {"norm_stats": out}, adjusted

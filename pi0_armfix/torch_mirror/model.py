@@ -214,8 +214,8 @@ class Pi0(nn.Module):
                                      as_tensor(t).to(torch.float32))
 
     def compute_loss(self, observation: Mapping[str, Any], actions: Any, action_is_pad: Any,
-                     noise: Any, time: Any, *, layout: ActionLayout, **loss_kwargs
-                     ) -> tuple[torch.Tensor, dict[str, Any]]:
+                     noise: Any, time: Any, *, layout: ActionLayout, loss_mask: Any = None,
+                     **loss_kwargs) -> tuple[torch.Tensor, dict[str, Any]]:
         """Flow-matching loss with given noise and time (the JAX side draws them from its rng).
 
         x_t = t * noise + (1 - t) * a, u = noise - a, e = (v - u)^2 [B, H, A], reduced by
@@ -225,6 +225,7 @@ class Pi0(nn.Module):
           observation: batch dict (its actions, if any, are ignored).
           actions: [B, H, A] normalized targets. action_is_pad: [B, H] bool.
           noise: [B, H, A]. time: [B] in (0, 1].
+          loss_mask: [A] or [H, A], 0 on the dims that carry no loss (the constant dims), or None.
           **loss_kwargs: `strategy`, `group_weights`, ... of `training_loss`.
         Returns:
           (scalar loss over valid timesteps, {"group_loss": {group: scalar}}).
@@ -239,6 +240,8 @@ class Pi0(nn.Module):
         x_t = t * noise + (1.0 - t) * actions
         v = self.velocity(observation, x_t, t[:, 0, 0])
         per_dim_loss = torch.square(v - (noise - actions))
+        if loss_mask is not None:
+            per_dim_loss = per_dim_loss * as_tensor(loss_mask).to(torch.float32)
         return loss_lib.training_loss(per_dim_loss, actions, as_tensor(action_is_pad).to(torch.bool),
                                       layout=layout, **loss_kwargs)
 

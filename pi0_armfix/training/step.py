@@ -113,12 +113,13 @@ def effective_group_weights(kwargs: Mapping[str, Any], layout: ActionLayout) -> 
 def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Array,
                model_config: Pi0Config, loss_cfg: Mapping[str, Any], layout: ActionLayout,
                tx: optax.GradientTransformation, schedule: optax.Schedule, ema_decay: float,
-               noise_factor: jax.Array | None = None, switch_threshold: Any = None
-               ) -> tuple[TrainState, dict[str, jax.Array]]:
+               noise_factor: jax.Array | None = None, switch_threshold: Any = None,
+               loss_mask: Any = None) -> tuple[TrainState, dict[str, jax.Array]]:
     """One optimizer step on the global `batch`.
 
     `noise_factor`: the correlated noise's Cholesky factor (`loss.noise_beta < 1`), else None;
-    `switch_threshold`: see `loss_kwargs`. `loss.flow_samples` draws per sample share one prefix
+    `switch_threshold`: see `loss_kwargs`; `loss_mask`: see `flow_model.compute_loss`.
+    `loss.flow_samples` draws per sample share one prefix
     pass.
 
     Returns:
@@ -133,7 +134,8 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
         loss, aux = flow_model.compute_loss(trainable["params"], rng, batch, config=model_config,
                                         layout=layout, train=True,
                                         flow_samples=loss_cfg["flow_samples"],
-                                        noise_factor=noise_factor, **kwargs)
+                                        noise_factor=noise_factor, loss_mask=loss_mask,
+                                        **kwargs)
         return loss, (aux, effective_group_weights(kwargs, layout))
 
     (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)
