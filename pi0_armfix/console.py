@@ -142,3 +142,18 @@ def _check_config_file(program: str, path: str) -> None:
     if not os.path.isfile(path):
         raise SystemExit(f"{program}: --config={path}: no such config file; give a path or the "
                          f"name of an installed config: {', '.join(config_names())}")
+
+
+def define_lever_flags() -> None:
+    """`--average_draws` and `--temperature`: the policy's inference levers for this command,
+    unset = the run's `eval.average_draws` / `eval.temperature` (`inference.restore_run`)."""
+    flags.DEFINE_integer("average_draws", None, "each executed chunk the mean of this many draws "
+                         "(unset: the run's eval.average_draws)")
+    flags.DEFINE_float("temperature", None, "the initial noise scaled by this, in (0, 1] (unset: "
+                       "the run's eval.temperature)")
+
+
+def lever_flags() -> dict[str, float]:
+    """The levers given on the command line (`define_lever_flags`), as `eval` keys."""
+    return {key: flags.FLAGS[key].value for key in ("average_draws", "temperature")
+            if flags.FLAGS[key].value is not None}

@@ -248,13 +248,16 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
 # ---------------------------------------------------------------------- offline entrypoint
 
 def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
-                        params_name: str = "ema"
-                        ) -> tuple[int, dict[str, float], ActionLayout]:
+                        params_name: str = "ema", levers: Mapping[str, float] | None = None
+                        ) -> tuple[int, dict[str, float], ActionLayout, epath.Path]:
     """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
     writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
-    the run kept them, else the params) or "params"; the metrics go to `metrics.json` there.
-    Returns `(step, metrics, layout)`."""
-    run = inference.restore_run(workdir, step, params_name)
+    the run kept them, else the params) or "params"; `levers`: inference levers in place of the
+    run's (`inference.restore_run`). The metrics go to `metrics.json` there (with levers other
+    than the plain sampler's, `metrics<inference.lever_tag>.json`, which the stagnation figure
+    leaves out). Returns `(step, metrics, layout, metrics path)`."""
+    run = inference.restore_run(workdir, step, params_name, levers)
+    tag = inference.lever_tag(run.config.eval)
     workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
     out = workdir / "eval" / f"step_{step}"
     writable_folder(out)  # before the sampling, not after
@@ -269,18 +272,22 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                               source=source, noise_factor=inference.run_noise_factor(
                                   workdir, config, layout, model_config))
         metrics, predicted, true, sums = evaluator(params)
-    heldout_lib.save_chunk_sums(out / heldout_lib.CHUNK_SUMS_FILE, sums)
+    chunk_sums_file = epath.Path(heldout_lib.CHUNK_SUMS_FILE)
+    heldout_lib.save_chunk_sums(out / f"{chunk_sums_file.stem}{tag}{chunk_sums_file.suffix}",
+                                sums)
+    metrics_path = out / f"{epath.Path(METRICS_FILE).stem}{tag}.json"
     # Strict JSON: a metric with nothing to measure (NaN) is null.
-    (out / METRICS_FILE).write_text(json.dumps(
+    metrics_path.write_text(json.dumps(
         {"step": step, "params": run.params_name,
+         **{key: config.eval[key] for key in inference.LEVERS},
          **strict_json({k: float(v) for k, v in metrics.items()})},
         indent=2, allow_nan=False) + "\n")
-    evaluator.plot(predicted, true, out / "trajectories.png", f"step {step}: predicted (dashed) "
-                   "vs true (solid)")
+    evaluator.plot(predicted, true, out / f"trajectories{tag}.png", f"step {step}: predicted "
+                   "(dashed) vs true (solid)")
     plots.plot_group_losses(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE), layout,
                             out / "group_losses.png")
     plots.plot_stagnation(offline_records(workdir), layout, workdir / "eval" / STAGNATION_FILE)
-    return step, metrics, layout
+    return step, metrics, layout, metrics_path
 
 
 def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:
@@ -309,25 +316,22 @@ def main(argv: Sequence[str]) -> None:
             step, summary = closed_loop_lib.closed_loop(
                 FLAGS.workdir, FLAGS.step, FLAGS.params, episodes=FLAGS.episodes,
                 n_exec=FLAGS.n_exec, follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
-                gripper_hysteresis=FLAGS.gripper_hysteresis, tolerances=tolerances)
+                gripper_hysteresis=FLAGS.gripper_hysteresis, tolerances=tolerances,
+                levers=console.lever_flags())
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
         print(rollout_lib.format_summary(summary))
-        results_path, figure_path = closed_loop_lib.closed_loop_paths(
-            FLAGS.workdir, step, episodes=FLAGS.episodes, n_exec=FLAGS.n_exec,
-            follow_tail=FLAGS.rtc, hysteresis_on=summary["gripper_hysteresis"] is not None,
-            sim_seed=FLAGS.sim_seed)
-        print(f"results in {results_path}; rollouts in {figure_path}")
+        print(f"results in {summary['results']}; rollouts in {summary['figure']}")
         return
     try:
-        step, metrics, layout = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params)
+        step, metrics, layout, path = evaluate_checkpoint(FLAGS.workdir, FLAGS.step, FLAGS.params,
+                                                          levers=console.lever_flags())
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
     print(f"step {step}, held-out chunks sampled by the policy:")
     print(format_metrics(metrics, layout))
-    out = epath.Path(FLAGS.workdir) / "eval" / f"step_{step}"
-    print(f"metrics in {out / METRICS_FILE}; figures in {out}")
+    print(f"metrics in {path}; figures in {path.parent}")
 
 
 def cli() -> None:
@@ -348,6 +352,7 @@ def cli() -> None:
     flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
                       "grippers' hysteresis (pi0_armfix.hysteresis), in action units; unset: the "
                       "run's eval.gripper_hysteresis; empty: none")
+    console.define_lever_flags()
     flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "
                       "(e.g. 1,2,4: the same episodes with the world's tolerances doubled and "
                       "quadrupled; empty: the world as it is only)")

@@ -118,6 +118,29 @@ def with_current_keys(config: ml_collections.ConfigDict) -> ml_collections.Confi
     return config
 
 
+LEVERS = ("average_draws", "temperature")  # the `eval` keys a command may set for a run
+
+
+def check_levers(levers: Mapping[str, float]) -> None:
+    """Raises ValueError naming a lever outside its range or an unknown one."""
+    unknown = sorted(set(levers) - set(LEVERS))
+    if unknown:
+        raise ValueError(f"unknown inference lever(s) {unknown}; the levers are {list(LEVERS)}")
+    if "average_draws" in levers and levers["average_draws"] < 1:
+        raise ValueError(f"--average_draws = {levers['average_draws']} must be >= 1")
+    if "temperature" in levers and not 0.0 < levers["temperature"] <= 1.0:
+        raise ValueError(f"--temperature = {levers['temperature']} must be in (0, 1] (the "
+                         "initial noise's scale; 1 = the flow as trained)")
+
+
+def lever_tag(eval_cfg: Mapping[str, Any]) -> str:
+    """`_avg<k>_temp<τ>` for levers other than the plain sampler (each part only when set), for
+    the names of result files that another setting must not replace; '' for the plain sampler."""
+    average, temperature = int(eval_cfg["average_draws"]), float(eval_cfg["temperature"])
+    return ((f"_avg{average}" if average != 1 else "")
+            + (f"_temp{temperature:g}" if temperature != 1.0 else ""))
+
+
 @dataclasses.dataclass(frozen=True)
 class RestoredRun:
     """A run's checkpoint with what it needs to run: its own config, layout and norm stats."""
@@ -132,13 +155,16 @@ class RestoredRun:
     norm_stats: dict[str, stats_lib.NormStats]
 
 
-def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema"
-                ) -> RestoredRun:
+def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",
+                levers: Mapping[str, float] | None = None) -> RestoredRun:
     """The checkpoint of `step` (latest if None) of a run folder, on one device. `params_name`:
-    "ema" (the EMA params when the run kept them, else the params) or "params". Only the params
-    are read. A damaged latest checkpoint falls back to the newest older one that reads (said on
+    "ema" (the EMA params when the run kept them, else the params) or "params"; `levers`: `eval`
+    keys of the inference levers (`average_draws`, `temperature`) that replace the run's, checked
+    before any checkpoint is read. Only the params are read. A damaged latest checkpoint falls back to the newest older one that reads (said on
     stderr); a damaged `step` asked for is a ValueError naming the steps that read."""
     workdir = epath.Path(workdir)
+    levers = dict(levers or {})
+    check_levers(levers)
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
     steps = ckpts.all_steps()
     if step is not None and step not in steps or not steps:
@@ -164,6 +190,7 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
                          "train on to write a new one")
     use_ema = params_name == "ema" and bool(state.get("ema_params"))
     config = with_current_keys(config)
+    config.eval.update(levers)
     return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
                        model_config_lib.from_model_config(config.model),
                        state["ema_params"] if use_ema else state["params"],
@@ -256,14 +283,16 @@ class RunPolicy:
 
     @classmethod
     def from_workdir(cls, workdir: epath.PathLike, step: int | None = None,
-                     params_name: str = "ema", **kwargs) -> "RunPolicy":
-        return cls(restore_run(workdir, step, params_name), **kwargs)
+                     params_name: str = "ema", levers: Mapping[str, float] | None = None,
+                     **kwargs) -> "RunPolicy":
+        return cls(restore_run(workdir, step, params_name, levers), **kwargs)
 
     def metadata(self) -> dict[str, Any]:
         """What a client needs to know about the policy (sent on connect by the server)."""
         run = self.run
         return {"workdir": str(run.workdir), "step": run.step, "params": run.params_name,
                 "model": run.config.model.preset, "action_horizon": self.horizon,
+                **{key: run.config.eval[key] for key in LEVERS},
                 "action_dim": self.layout.real_dim,
                 "action_groups": {g: list(map(int, v)) for g, v in self.layout.groups.items()},
                 "state_width": self.stored_state_width,

@@ -226,7 +226,7 @@ def main(argv: Sequence[str]) -> None:
             raise ValueError(f"cannot listen on {FLAGS.host}:{FLAGS.port} ({e.strerror or e}); "
                              "pass another --port (or stop what holds it)") from None
         policy = inference.RunPolicy.from_workdir(
-            FLAGS.workdir, FLAGS.step, FLAGS.params,
+            FLAGS.workdir, FLAGS.step, FLAGS.params, levers=console.lever_flags(),
             keys=inference.ObservationKeys.parse(FLAGS.keys))
         latch = hysteresis.run_latch(policy.run.config, policy.layout, FLAGS.gripper_hysteresis)
         if FLAGS.n_exec < 0:
@@ -260,6 +260,7 @@ def cli() -> None:
                       "the EMA params (when the run kept them) or the raw params")
     flags.DEFINE_string("host", "0.0.0.0", "interface to listen on")
     flags.DEFINE_integer("port", 8000, "port to listen on")
+    console.define_lever_flags()
     flags.DEFINE_string("keys", "", "observation key mapping key=role,... (role: a batch camera "
                         "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state' or 'prompt'); "
                         "'' = B1K's openpi keys")

@@ -70,10 +70,16 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
         return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
 
     replicates = {k: [] for k in COMPARED}
+    mean_prefix = heldout_lib.MEAN_OF_DRAWS + "/"
+    has_mean = any(k.startswith(mean_prefix) for k in totals)
     for b in range(len(counts)):
         metrics = eval_metrics.metrics_from_sums(part("policy/", b), layout)
         persistence = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
         metrics.update(eval_metrics.skill_scores(metrics, persistence, layout))
+        if has_mean:
+            mean = eval_metrics.metrics_from_sums(part(mean_prefix, b), layout)
+            metrics.update({mean_prefix + k: v for k, v in eval_metrics.skill_scores(
+                mean, persistence, layout).items()})
         for k, v in run_summary(metrics, layout).items():
             if k in replicates:
                 replicates[k].append(v if math.isfinite(v) else None)
@@ -113,8 +119,9 @@ def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
 def run_summary(metrics: Mapping[str, Any], layout: ActionLayout, prefix: str = ""
                 ) -> dict[str, float]:
     """The headline numbers of one run (or, with `prefix` "persistence/" or "state_copy/", of a
-    do-nothing predictor scored beside it): the arms' mean skill over persistence and motion
-    gain, the base's skill and error, gripper switch F1."""
+    do-nothing predictor scored beside it): the arms' mean skill over persistence (the single
+    draw's, the mean of the draws', the energy score's) and motion gain, the base's skill and
+    error, gripper switch F1. A point prediction's mean of draws is itself."""
     arms = arm_groups(layout)
     base = layout.groups_with_role("base")
 
@@ -124,7 +131,10 @@ def run_summary(metrics: Mapping[str, Any], layout: ActionLayout, prefix: str = 
     def arms_mean(name):
         return float(np.mean([get(f"{name}/{g}") for g in arms])) if arms else math.nan
 
-    return {"arm_skill": arms_mean("skill"), "arm_gain": arms_mean("motion_gain"),
+    mean_of_draws = arms_mean(f"{heldout_lib.MEAN_OF_DRAWS}/skill")
+    return {"arm_skill": arms_mean("skill"),
+            "arm_skill_mean_of_draws": arms_mean("skill") if prefix else mean_of_draws,
+            "arm_energy_skill": arms_mean("energy_skill"), "arm_gain": arms_mean("motion_gain"),
             "base_skill": get(f"skill/{base[0]}") if base else math.nan,
             "base_err": get(f"err/{base[0]}") if base else math.nan,
             "switch_f1": get("gripper_switch/f1")}
@@ -134,7 +144,11 @@ def as_number(value: Any) -> float:
     return math.nan if value is None else float(value)
 
 
-COMPARED = ("arm_skill", "arm_gain", "base_skill", "switch_f1")  # vs the baseline config
+# vs the baseline config, with study.md's headings
+COMPARED = ("arm_skill", "arm_skill_mean_of_draws", "arm_energy_skill", "arm_gain", "base_skill",
+            "switch_f1")
+COMPARED_HEADINGS = ("arms' skill (single draw)", "arms' skill (mean of draws)",
+                     "arms' energy skill", "arms' gain", "base skill (single draw)", "switch F1")
 
 
 def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets(),

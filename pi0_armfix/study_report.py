@@ -17,12 +17,18 @@ import numpy as np  # noqa: E402
 from pi0_armfix import study_stats  # noqa: E402
 from pi0_armfix.sim.world import FAILURE_REASONS  # noqa: E402
 from pi0_armfix.study_aggregate import (  # noqa: E402
-    CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, PHASE_KINDS, SWITCH_COUNTS,
-    SWITCH_METRICS, as_number)
+    CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, COMPARED_HEADINGS,
+    PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number)
+from pi0_armfix.evaluation.heldout import MEAN_OF_DRAWS  # noqa: E402
 
 GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
-    ("skill", "Skill over persistence (1 - err / persistence err; > 0: better than holding the "
-     "previous action, 1: perfect)", 3),
+    ("skill", "Skill over persistence of the single draw, what a robot executes (1 - err / "
+     "persistence err; > 0: better than holding the previous action, 1: perfect)", 3),
+    (f"{MEAN_OF_DRAWS}/skill", "Skill over persistence of the mean of the N draws (the "
+     "sampler's own spread averaged away; a do-nothing predictor is its own mean)", 3),
+    ("energy_skill", "Energy-score skill over persistence (1 - ES / persistence's; the N draws "
+     "scored as a distribution by a proper scoring rule: neither a spread-free bias nor noise "
+     "is rewarded)", 3),
     ("motion_gain", "Motion gain (1 = moves like the data, 0 = still, or moving in unrelated "
      "directions)", 3),
     ("motion_ratio", "Motion ratio (magnitude only: 1 = moves as much as the data, in any "
@@ -87,7 +93,8 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         lines += [f"## {title}", "", header, rule]
         lines += [f"| {name} | " + " | ".join(_cell(c, f"{metric}/{g}", digits) for g in groups)
                   + " |" for name, c in configs.items()]
-        lines += _reference_rows(study, lambda g, m=metric: f"{m}/{g}", digits) + [""]
+        reference = metric.removeprefix(f"{MEAN_OF_DRAWS}/")
+        lines += _reference_rows(study, lambda g, m=reference: f"{m}/{g}", digits) + [""]
     lines = lines[:-1]
     lines += ["", "## Gripper switches (each event of the held-out timeline once, matched within "
               "the tolerance)", "",
@@ -113,8 +120,8 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
               "secondary, their intervals Bonferroni-corrected so that together they hold at "
               f"95 %. The intervals hold {sampling}. An interval that excludes 0 is a "
               "difference these seeds and episodes can tell.", "",
-              "| config | comparison | arms' skill | arms' gain | base skill | switch F1 |",
-              "|---|---|---|---|---|---|"]
+              "| config | comparison | " + " | ".join(COMPARED_HEADINGS) + " |",
+              "|---" * (len(COMPARED) + 2) + "|"]
     for name, c in configs.items():
         if c["comparison"] == "baseline":
             lines.append(f"| {name} | the baseline | " + " | ".join("—" for _ in COMPARED) + " |")
@@ -302,8 +309,9 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
 def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
                 groups: Sequence[str], path: Path) -> None:
     """`study_curves.png`: per config, the training loss and each group's held-out skill over
-    persistence against the step, the mean over seeds as a line and the seeds' range shaded;
-    doing nothing (persistence) is the line at 0. Draws nothing when no run has a metrics log (a
+    persistence against the step (the single draw solid, the mean of the draws dashed, where
+    logged), the mean over seeds as a line and the seeds' range shaded; doing nothing
+    (persistence) is the line at 0. Draws nothing when no run has a metrics log (a
     study gathered from kept `result.json` files only).
 
     Args:
@@ -329,6 +337,11 @@ def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
             if len(values) > 1:
                 ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
                                 color=color, alpha=0.2, lw=0)
+            if key != "loss":
+                steps, values = _curve_values(runs, f"{MEAN_OF_DRAWS}/{key}")
+                if steps:
+                    ax.plot(steps, np.nanmean(values, axis=0), color=color, ls="--",
+                            label=f"{name}: mean of the draws")
         if key != "loss":
             ax.axhline(0.0, color="black", lw=0.8, ls="--", label="persistence (do nothing)")
             low = ax.get_ylim()[0]

@@ -92,7 +92,7 @@ def test_b1k2026_scale_trains_and_evaluates_on_the_fixture_and_says_what_it_read
     assert ("61-D 'observation.state' -> state preset 'b1k2026_r1pro' (23-D in the action "
             "order; written for BEHAVIOR-1K 2026") in out
     assert "hevc 24x24 (observation.rgb.zed_link_camera_0), a keyframe every 8 frames" in out
-    step, metrics, _ = evaluate.evaluate_checkpoint(workdir)
+    step, metrics, _, _ = evaluate.evaluate_checkpoint(workdir)
     assert step == 2 and np.isfinite(metrics["err/left_arm"])
 
 

@@ -90,7 +90,7 @@ def test_b1k_scale_trains_and_evaluates_on_the_fixture(b1k, tmp_path, capsys):
     assert np.isfinite(record["loss"]) and (workdir / "checkpoints" / "2").is_dir()
     # One keyframe per episode: the run streams its episodes, and says so.
     assert "one keyframe in its first packets (a long GOP): streamed" in capsys.readouterr().out
-    step, metrics, _ = evaluate.evaluate_checkpoint(workdir)
+    step, metrics, _, _ = evaluate.evaluate_checkpoint(workdir)
     assert step == 2 and np.isfinite(metrics["err/left_arm"])
     assert (workdir / "eval" / "step_2" / "trajectories.png").is_file()
 

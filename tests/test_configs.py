@@ -23,12 +23,14 @@ CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",
            "arm_delta_focused", "arm_delta_per_timestep", "arm_delta_correlated_noise",
            "arm_delta_flow_samples", "gripper_switch", "arm_recipe", "arm_weights_3x",
-           "state_dropout", "state_noise", "no_state", "arm_focused_openpi_augment")
+           "state_dropout", "state_noise", "no_state", "arm_focused_openpi_augment",
+           "arm_focused_delta_base")
 # Trained at tiny scale: every strategy, and every lever (arm_recipe holds delta actions,
 # per-timestep stats, correlated noise and switch emphasis; K flow samples on its own).
 TRAINED = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty",
-           "arm_delta_flow_samples", "arm_recipe", "state_dropout", "no_state")
+           "arm_delta_flow_samples", "arm_recipe", "state_dropout", "no_state",
+           "arm_focused_delta_base")
 B1K = ActionLayout.preset("b1k_r1pro")
 
 
@@ -129,7 +131,8 @@ def test_only_the_balanced_curriculum_and_delta_configs_change_the_data():
     phases = load("arm_curriculum").data.curriculum
     assert [p[1] for p in phases] == [{"arm_heavy": 1.0}, {"arm_heavy": 0.3, "full": 0.7}]
     assert phases[0][0] == base.get_config().train.total_steps // 5
-    for name in set(CONFIGS) - {"arm_focused_balanced", "arm_curriculum"} - DELTA_CONFIGS:
+    for name in (set(CONFIGS) - {"arm_focused_balanced", "arm_curriculum",
+                                 "arm_focused_delta_base"} - DELTA_CONFIGS):
         assert load(name).data == base.get_config().data
 
 
@@ -140,6 +143,14 @@ def test_delta_configs_make_torso_and_arms_relative_through_a_state_preset(scale
         data = load(name, scale).data
         assert tuple(data.delta_action_mask) == ("torso", "left_arm", "right_arm")
         assert selection.state_preset(data) == state_preset and not data.state_indices
+
+
+@pytest.mark.parametrize("scale", [None, "b1k", "b1k2026"])
+def test_the_delta_base_config_is_the_main_job_with_the_base_relative(scale):
+    config, main = load("arm_focused_delta_base", scale), load("arm_focused", scale)
+    assert tuple(config.data.delta_action_mask) == ("base", "torso", "left_arm", "right_arm")
+    config.data.delta_action_mask = main.data.delta_action_mask
+    assert config == main
 
 
 def test_b1k_scale_is_full_pi0_on_a_root_given_on_the_command_line():

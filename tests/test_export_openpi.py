@@ -105,6 +105,15 @@ def test_the_exported_folder_gives_the_runs_actions(run, exported):
                                rtol=1e-5, atol=1e-6)
 
 
+def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
+    restored = inference.restore_run(run, levers={"average_draws": 4, "temperature": 0.5})
+    caveats = export_openpi.openpi_caveats(restored)
+    assert any(c.startswith("eval.average_draws = 4") for c in caveats)
+    assert any(c.startswith("eval.temperature = 0.5") for c in caveats)
+    assert not any("eval.average_draws" in c or "eval.temperature" in c
+                   for c in export_openpi.openpi_caveats(inference.restore_run(run)))
+
+
 def test_bfloat16_halves_the_params(run, tmp_path):
     summary = export_openpi.export(run, tmp_path / "bf16", dtype="bfloat16", force=True)
     with ocp.PyTreeCheckpointer() as checkpointer:

@@ -288,6 +288,39 @@ def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_
                      "closed_loop_50ep_exec4.json", "closed_loop_50ep_rtc.json"}
 
 
+def test_closed_loop_outputs_name_the_inference_levers():
+    tag = inference.lever_tag({"average_draws": 4, "temperature": 0.5})
+    path, _ = closed_loop_lib.closed_loop_paths("run", 5, episodes=20, levers=tag)
+    assert path.name == "closed_loop_20ep_avg4_temp0.5.json"
+    assert inference.lever_tag({"average_draws": 1, "temperature": 1.0}) == ""
+
+
+def test_a_policy_with_levers_averages_its_draws_and_says_so(run):
+    rng = np.random.default_rng(0)
+    plain = inference.RunPolicy.from_workdir(run, seed=1)
+    averaged = inference.RunPolicy.from_workdir(run, seed=1, levers={"average_draws": 4})
+    observation = {**{key: rng.integers(0, 255, (32, 32, 3), np.uint8)
+                      for key in plain.keys.cameras},
+                   plain.keys.state: rng.normal(size=plain.stored_state_width),
+                   plain.keys.prompt: ""}
+    assert averaged.metadata()["average_draws"] == 4 and plain.metadata()["temperature"] == 1.0
+    a, b = averaged.infer([observation]), averaged.infer([observation])
+    assert not np.array_equal(a, b)  # each request its own draws
+    # The mean of 4 draws varies less between requests than one draw does.
+    singles = np.stack([plain.infer([observation]) for _ in range(6)])
+    means = np.stack([averaged.infer([observation]) for _ in range(6)])
+    assert means.std(axis=0).mean() < singles.std(axis=0).mean()
+
+
+@pytest.mark.parametrize("levers, message", [
+    ({"temperature": 0.0}, r"--temperature = 0.0 must be in \(0, 1\]"),
+    ({"average_draws": 0}, "--average_draws = 0 must be >= 1"),
+    ({"draws": 2}, r"unknown inference lever\(s\) \['draws'\]")])
+def test_bad_levers_are_refused_before_the_checkpoint_is_read(levers, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        inference.restore_run(tmp_path / "no run here", levers=levers)
+
+
 @pytest.mark.parametrize("kwargs, message", [({"episodes": 0}, "--episodes = 0 must be >= 1"),
                                              ({"sim_seed": -1}, "--sim_seed = -1 must be >= 0")])
 def test_closed_loop_settings_are_refused_before_the_policy_loads(kwargs, message, tmp_path):

@@ -311,22 +311,35 @@ def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluati
     rng = np.random.default_rng(1)
     true = rng.normal(size=(6, 5, 23))
     true[..., [14, 22]] = np.sign(rng.normal(size=(6, 5, 2)))
-    predicted = true + 0.3 * rng.normal(size=true.shape)
+    draws = true + 0.3 * rng.normal(size=(3, *true.shape))
     persistence = np.repeat(true[:, :1], 5, axis=1)
     valid = np.ones((6, 5), bool)
     kwargs = dict(layout=layout, gripper_groups=("left_gripper", "right_gripper"),
                   gripper_threshold=np.zeros(23), switch_tolerance=1)
+
+    def all_sums(chunks, samples):
+        return {**eval_metrics.chunk_sums(chunks, true, valid, **kwargs),
+                **eval_metrics.energy_sums(samples, true, valid, layout=layout)}
+
+    policy, held = all_sums(draws[0], draws), all_sums(persistence, persistence[None])
+    mean = eval_metrics.chunk_sums(draws.mean(0), true, valid, **kwargs)
     sums = {"episode": np.array([0, 0, 1, 1, 2, 2]),
-            **{f"policy/{k}": v for k, v in eval_metrics.chunk_sums(
-                predicted, true, valid, **kwargs).items()},
-            **{f"persistence/{k}": v for k, v in eval_metrics.chunk_sums(
-                persistence, true, valid, **kwargs).items()}}
+            **{f"policy/{k}": v for k, v in policy.items()},
+            **{f"mean_of_draws/{k}": v for k, v in mean.items()},
+            **{f"persistence/{k}": v for k, v in held.items()}}
     monkeypatch.setattr(study.study_stats, "episode_counts", lambda e: np.ones((2, e)))
     replicates = study_aggregate.episode_replicates(sums, layout)
-    metrics = eval_metrics.chunk_metrics(predicted, true, valid, **kwargs)
-    metrics |= eval_metrics.skill_scores(
-        metrics, eval_metrics.chunk_metrics(persistence, true, valid, **kwargs), layout)
+
+    def measured(s):
+        return eval_metrics.metrics_from_sums({k: v.sum() for k, v in s.items()}, layout)
+
+    metrics, reference = measured(policy), measured(held)
+    metrics |= eval_metrics.skill_scores(metrics, reference, layout)
+    metrics |= {f"mean_of_draws/{k}": v for k, v in eval_metrics.skill_scores(
+        measured(mean), reference, layout).items()}
     expected = study_aggregate.run_summary(metrics, layout)
+    assert np.isfinite(expected["arm_energy_skill"])
+    assert expected["arm_skill_mean_of_draws"] > expected["arm_skill"]
     assert replicates["episodes"] == 3
     for k in study_aggregate.COMPARED:
         assert replicates[k] == pytest.approx([expected[k]] * 2)

@@ -13,7 +13,7 @@ another evaluation's.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -34,7 +34,8 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                 episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
                 sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
                 gripper_hysteresis: Sequence[float] | None = None,
-                tolerances: Sequence[float] = ()) -> tuple[int, dict[str, Any]]:
+                tolerances: Sequence[float] = (), levers: Mapping[str, float] | None = None
+                ) -> tuple[int, dict[str, Any]]:
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
     world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
     each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
@@ -44,7 +45,8 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
     `tolerances` (factors other than 1), the same episodes again in the world with its success
     tolerances times each factor: `success_curve` in the summary, `success_curve.png`. Returns
-    `(step, summary)` (`sim.rollout.summarize`)."""
+    `(step, summary)` (`sim.rollout.summarize`). `levers`: the policy's inference levers in
+    place of the run's (`inference.restore_run`)."""
     if episodes < 1:
         raise ValueError(f"--episodes = {episodes} must be >= 1")
     if sim_seed < 0:
@@ -53,12 +55,13 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--n_exec = {n_exec} must be >= 0 (0: half the action horizon)")
     if any(f <= 0 for f in tolerances):
         raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
-    policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name))
+    policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name, levers))
     run = policy_.run
     latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
     results_path, figure_path = closed_loop_paths(
         run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
-        hysteresis_on=latch is not None, sim_seed=sim_seed)
+        hysteresis_on=latch is not None, sim_seed=sim_seed,
+        levers=inference.lever_tag(run.config.eval))
     writable_folder(results_path.parent)  # before the rollouts, not after
     if run.layout.real_dim != 23:
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
@@ -75,7 +78,10 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                "follow_tail": follow_tail,
                "gripper_hysteresis": None if latch is None else [latch.open_above,
                                                                  latch.close_below],
-               "sim_seed": sim_seed, **rollout_lib.summarize(records),
+               "sim_seed": sim_seed,
+               **{key: run.config.eval[key] for key in inference.LEVERS},
+               "results": str(results_path), "figure": str(figure_path),
+               **rollout_lib.summarize(records),
                "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
                                     "seconds": r.seconds,
                                     "phases": [dataclasses.asdict(p) for p in r.results]}
@@ -109,12 +115,14 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
 
 def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int, n_exec: int = 0,
                       follow_tail: bool = False, hysteresis_on: bool = False,
-                      sim_seed: int = env_lib.EVAL_SEED) -> tuple[epath.Path, epath.Path]:
-    """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis].json` and the
-    `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
-    asked: 0, half the horizon, is left out; the world seed when not the evaluation's)."""
+                      sim_seed: int = env_lib.EVAL_SEED, levers: str = ""
+                      ) -> tuple[epath.Path, epath.Path]:
+    """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis][levers].json` and
+    the `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
+    asked: 0, half the horizon, is left out; the world seed when not the evaluation's; `levers`:
+    `inference.lever_tag` of the sampler)."""
     out = epath.Path(workdir) / "eval" / f"step_{step}"
     tag = (f"_{episodes}ep" + (f"_exec{n_exec}" if n_exec else "")
            + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")
-           + ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else ""))
+           + ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else "") + levers)
     return out / f"{CLOSED_LOOP_STEM}{tag}.json", out / f"rollouts{tag}.png"

@@ -106,6 +106,15 @@ def openpi_caveats(run: inference.RestoredRun) -> list[str]:
         caveats.append(f"eval.num_steps = {config.eval.num_steps}: openpi samples with 10 Euler "
                        "steps unless create_trained_policy gets sample_kwargs={'num_steps': "
                        f"{config.eval.num_steps}}}")
+    if int(config.eval.average_draws) != 1:
+        caveats.append(f"eval.average_draws = {config.eval.average_draws}: this run executes the "
+                       "mean of that many draws per chunk; openpi executes one draw: call "
+                       f"infer {config.eval.average_draws} times and average the actions in the "
+                       "client (before any gripper hysteresis)")
+    if float(config.eval.temperature) != 1.0:
+        caveats.append(f"eval.temperature = {config.eval.temperature}: this run starts the flow "
+                       "from noise scaled by it; openpi starts from N(0, I): pass "
+                       "sample_kwargs={'noise': temperature * noise} to its sample_actions")
     return caveats
 
 

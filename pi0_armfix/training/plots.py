@@ -54,7 +54,8 @@ def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
     (1 = moves as far as the demonstrations, 0 = still or unrelated), with each group's
     persistence gain (hold the previous action) dotted in its colour: a base at ~0.95 there is the
     data's slow command, not learning. Right: skill over persistence, `1 - err / persistence err`
-    (> 0: better than doing nothing). Base-like groups (roles base, torso) are dashed. Returns
+    (> 0: better than doing nothing) of the single draw, and of the mean of the draws (thin,
+    x markers) where evaluated. Base-like groups (roles base, torso) are dashed. Returns
     False (and writes nothing) without evaluation records.
     """
     rows = [r for r in records if f"motion_gain/{layout.group_names[0]}" in r]
@@ -73,6 +74,9 @@ def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
             gain_ax.axhline(held, color=style["color"], ls=":", lw=1.0)
         if f"skill/{g}" in rows[-1]:
             skill_ax.plot(steps, [r.get(f"skill/{g}", np.nan) for r in rows], label=g, **style)
+        if f"mean_of_draws/skill/{g}" in rows[-1]:
+            skill_ax.plot(steps, [r.get(f"mean_of_draws/skill/{g}", np.nan) for r in rows],
+                          color=style["color"], ls=style["ls"], marker="x", lw=0.8, alpha=0.6)
     gain_ax.set_ylim(min(-0.1, gain_ax.get_ylim()[0]), max(1.15, gain_ax.get_ylim()[1]))
     gain_ax.axhline(1.0, color="gray", lw=0.8)
     gain_ax.axhline(0.0, color="black", lw=0.8)
@@ -85,7 +89,8 @@ def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
     low, high = skill_ax.get_ylim()
     skill_ax.set_ylim(max(low, -3.0), max(high, 0.2))
     skill_ax.set(xlabel="training step", ylabel="skill = 1 - err / persistence err",
-                 title="skill over holding the previous action (> 0: better)")
+                 title="skill over holding the previous action (> 0: better)\n"
+                       "o: the single draw (executed), x: the mean of the draws")
     for ax in (gain_ax, skill_ax):
         ax.grid(alpha=0.3)
     skill_ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
