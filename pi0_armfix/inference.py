@@ -179,14 +179,14 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
             damaged.append(e)
             continue
         if damaged:
-            print(f"warning: {damaged[0]}; evaluating step {candidate}, the newest that reads",
+            print(f"warning: {damaged[0]}; reading step {candidate}, the newest that reads",
                   file=sys.stderr)
         step = candidate
         break
     else:
-        readable = "" if step is None else " (--step: another of " + str(steps) + ")"
+        others = "" if step is None else f" (the run's steps: {steps}; ask for another)"
         raise ValueError("; ".join(str(e) for e in damaged)
-                         + f": no checkpoint to evaluate{readable}. Restore the files or "
+                         + f": no checkpoint to read{others}. Restore the files or "
                          "train on to write a new one")
     use_ema = params_name == "ema" and bool(state.get("ema_params"))
     config = with_current_keys(config)

@@ -181,6 +181,19 @@ def test_the_cli_reports_a_damaged_checkpoint_in_one_line_naming_it(tmp_path, pa
     assert "the checkpoint is damaged; convert an earlier step with --step" in line
 
 
+def test_a_damaged_latest_step_falls_back_to_the_last_good_one_as_evaluate_does(tmp_path,
+                                                                                params):
+    _write_run_checkpoint(str(tmp_path / "run"), params, step=4)
+    shutil.copytree(tmp_path / "run" / "checkpoints" / "4", tmp_path / "run" / "checkpoints" / "6")
+    (tmp_path / "run" / "checkpoints" / "6" / "state" / "manifest.ocdbt").write_bytes(b"")
+    said = []
+    arrays, _, _ = checkpoint.read_checkpoint(str(tmp_path / "run"), say=said.append)
+    assert arrays and any("checkpoints/6/state cannot be read" in s for s in said)
+    assert said[-1] == f"converting {tmp_path / 'run' / 'checkpoints' / '4'} (a run step)"
+    with pytest.raises(ValueError, match="cannot be read"):  # a step asked for is not replaced
+        checkpoint.read_checkpoint(str(tmp_path / "run"), step=6)
+
+
 def test_the_cli_reports_a_missing_folder_in_one_line(tmp_path):
     result = _run_cli(f"--checkpoint={tmp_path / 'nothing'}", f"--output={tmp_path / 'torch'}")
     assert result.returncode == 1 and "Traceback" not in result.stderr

@@ -114,6 +114,16 @@ def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
                    for c in export_openpi.openpi_caveats(inference.restore_run(run)))
 
 
+def test_an_unwritable_output_is_refused_in_one_line_before_the_run_is_read(run, tmp_path,
+                                                                          monkeypatch):
+    (tmp_path / "a_file").write_text("")
+    monkeypatch.setattr(export_openpi.inference, "restore_run",
+                        lambda *a, **k: pytest.fail("the run was read"))
+    with pytest.raises(ValueError, match=r"cannot write the results into .*a_file/export .*"
+                                         r"pass an --output on a writable file system"):
+        export_openpi.export(run, tmp_path / "a_file" / "export", force=True)
+
+
 def test_bfloat16_halves_the_params(run, tmp_path):
     summary = export_openpi.export(run, tmp_path / "bf16", dtype="bfloat16", force=True)
     with ocp.PyTreeCheckpointer() as checkpointer:

@@ -245,6 +245,16 @@ def test_state_noise_has_its_std_around_the_unchanged_state_in_training_only():
     assert (_state_after(config, train=False, batch=8) == 1.0).all()
 
 
+def test_state_noise_leaves_the_padding_and_constant_dims_at_zero_as_at_inference():
+    config = TINY.replace(state_noise=0.2)
+    obs = fake_observation(config, 64)
+    obs["state"] = np.ones((64, config.action_dim), np.float32)
+    obs["state"][:, 5:] = 0.0  # padding (and a constant dim) normalize to exactly 0
+    state = np.asarray(preprocess_observation(jax.random.key(0), obs, config=config,
+                                              train=True)["state"])
+    assert (state[:, 5:] == 0.0).all() and state[:, :5].std() > 0.1
+
+
 def test_state_levers_are_refused_for_pi05_whose_state_is_in_the_prompt():
     with pytest.raises(ValueError, match="pi0.5 writes the state into the prompt"):
         model_config.get_preset("pi05_tiny", state_dropout=0.5)

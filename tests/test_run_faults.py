@@ -392,7 +392,7 @@ def test_evaluation_of_a_damaged_latest_checkpoint_falls_back_to_the_previous_st
     run = inference.restore_run(workdir)
     assert run.step == 2
     assert "checkpoints/4 is damaged" in capsys.readouterr().err
-    with pytest.raises(ValueError, match=r"checkpoints/4 is damaged .*--step: another of \[2, 4\]"):
+    with pytest.raises(ValueError, match=r"checkpoints/4 is damaged .*the run's steps: \[2, 4\]"):
         inference.restore_run(workdir, step=4)
 
 

@@ -12,7 +12,8 @@ def test_every_frame_of_an_open_gop_hevc_file_with_b_frames_is_read_in_any_order
     path = tmp_path / "open_gop.mp4"
     frames = np.stack([np.full((16, 16, 3), frame_colour(2, i, 0), np.uint8) for i in range(96)])
     video.write_video(path, frames, 30, "libx265", gop=8,
-                      options={"x265-params": "log-level=none"})
+                      options={"x265-params": "log-level=none:open-gop=1"})
+    assert 21 in _keyframe_nal_types(path)  # CRA: an open GOP
     in_order = [image for _, image in video.VideoDecoder(path, 30).frames()]
     assert len(in_order) == 96
     shuffled = np.random.default_rng(0).permutation(96)
@@ -23,3 +24,29 @@ def test_every_frame_of_an_open_gop_hevc_file_with_b_frames_is_read_in_any_order
     shared = video.VideoDecoder(path, 30)  # one decoder: reads behind its position seek back
     for wanted in shuffled:
         np.testing.assert_array_equal(shared.frame_at(wanted / 30), in_order[wanted])
+
+
+def _keyframe_nal_types(path):
+    """The HEVC NAL unit types in the keyframe packets of an mp4 (19/20: IDR, 21: CRA)."""
+    import av
+    types = set()
+    with av.open(str(path)) as container:
+        for packet in container.demux(video=0):
+            data = bytes(packet)
+            if not packet.is_keyframe:
+                continue
+            offset = 0
+            while offset + 5 <= len(data):  # length-prefixed NAL units
+                size = int.from_bytes(data[offset:offset + 4], "big")
+                types.add((data[offset + 4] >> 1) & 0x3F)
+                offset += 4 + size
+    return types
+
+
+def test_hevc_written_by_the_project_has_closed_gops_that_any_reader_can_seek(tmp_path):
+    path = tmp_path / "closed_gop.mp4"
+    frames = np.stack([np.full((16, 16, 3), frame_colour(2, i, 0), np.uint8) for i in range(48)])
+    video.write_video(path, frames, 30, "libx265", gop=8,
+                      options={"x265-params": "log-level=none"})
+    types = _keyframe_nal_types(path)
+    assert types & {19, 20} and 21 not in types  # IDR keyframes only

@@ -244,7 +244,9 @@ class VideoWriter:
       codec: PyAV encoder ("libx264", "libx265", "libsvtav1", ...).
       gop: frames between keyframes (2 as LeRobot writes; B1K 2025's files have one per episode).
       crf: constant rate factor (quality; lower is better).
-      options: further encoder options.
+      options: further encoder options. x265 writes closed GOPs (`no-open-gop=1`) unless its
+        `x265-params` name `open-gop`: other readers (LeRobot's decoders among them) cannot seek
+        into x265's default open GOPs, whose keyframes decode before frames shown ahead of them.
     """
 
     def __init__(self, path: Path, *, fps: float, height: int, width: int,
@@ -259,7 +261,11 @@ class VideoWriter:
         self._stream = self._container.add_stream(codec, rate=self._fps)
         self._stream.height, self._stream.width = height, width
         self._stream.pix_fmt = "yuv420p"
-        self._stream.options = {"g": str(int(gop)), "crf": str(int(crf)), **(options or {})}
+        options = {"g": str(int(gop)), "crf": str(int(crf)), **(options or {})}
+        if codec == "libx265" and "open-gop" not in options.get("x265-params", ""):
+            options["x265-params"] = ":".join(
+                p for p in ("no-open-gop=1", options.get("x265-params")) if p)
+        self._stream.options = options
         self._count = 0
 
     def write(self, image: np.ndarray, seconds: float | None = None) -> None:

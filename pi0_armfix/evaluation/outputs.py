@@ -8,17 +8,18 @@ from typing import Any
 from etils import epath
 
 
-def writable_folder(folder: epath.Path) -> None:
+def writable_folder(folder: epath.Path,
+                    fix: str = "make the run folder writable (or evaluate a copy of it)") -> None:
     """Creates `folder` and checks that a file can be written there, or raises ValueError naming
-    it (before an evaluation's work, which would otherwise be lost at its end)."""
+    it and `fix` (before the work, which would otherwise be lost at its end)."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / ".write_check"
         probe.write_text("")
         probe.unlink()
     except OSError as e:
-        raise ValueError(f"cannot write the results into {folder} ({e.strerror or e}); make the "
-                         "run folder writable (or evaluate a copy of it)") from None
+        raise ValueError(f"cannot write the results into {folder} ({e.strerror or e}); "
+                         f"{fix}") from None
 
 
 def strict_json(value: Any) -> Any:

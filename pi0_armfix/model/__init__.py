@@ -1,7 +1,7 @@
 """pi0 in Flax: a PaliGemma prefix and an action expert that share every attention layer.
 
 Sizes live in `config.py` (presets `pi0`, `demo`, `tiny`); the functional API over a plain nested
-dict of float32 parameters with openpi's names is in `policy.py`. This docstring is the spec the
+dict of float32 parameters with openpi's names is in `flow_model.py`. This docstring is the spec the
 PyTorch mirror (`pi0_armfix/torch_mirror/model.py`) matches. It follows openpi's pi0
 (`src/openpi/models/{pi0,gemma,siglip}.py`); deviations are marked DEVIATION.
 

@@ -183,14 +183,16 @@ def perturb_state(rng: jax.Array | None, state: jax.Array, *, config: Pi0Config,
     """The state levers against copying the state (`Pi0Config.use_state`, `state_dropout`,
     `state_noise`) on a normalized state `[B, S]`: zeros without the state; in training, each
     sample's state dropped to zeros with probability `state_dropout`, else `state_noise` std of
-    Gaussian noise added (padding dims included: they carry nothing either way)."""
+    Gaussian noise added to its nonzero dims: the padding dims and the constant dims (normalized
+    to exactly 0) stay 0, as they are at inference."""
     if not config.use_state:
         return jnp.zeros_like(state)
     if not train:
         return state
     rng_drop, rng_noise = jax.random.split(rng)
     if config.state_noise > 0.0:
-        state = state + config.state_noise * jax.random.normal(rng_noise, state.shape, state.dtype)
+        noise = config.state_noise * jax.random.normal(rng_noise, state.shape, state.dtype)
+        state = state + jnp.where(state != 0, noise, 0.0)
     if config.state_dropout > 0.0:
         keep = jax.random.bernoulli(rng_drop, 1.0 - config.state_dropout, state.shape[:1])
         state = jnp.where(keep[:, None], state, 0.0)

@@ -46,6 +46,7 @@ from absl import app, flags
 from etils import epath
 
 from pi0_armfix import console, inference
+from pi0_armfix.evaluation.outputs import writable_folder
 from pi0_armfix.data import run_inputs, sources
 from pi0_armfix.data import json_files
 from pi0_armfix.data import stats as stats_lib
@@ -246,6 +247,7 @@ def export(checkpoint: str | Path, output: str | Path, *, asset_id: str = "",
     if output.exists() and any(output.iterdir()):
         raise ValueError(f"--output={output} is not empty; name a new folder (an export never "
                          "overwrites one)")
+    writable_folder(output, "pass an --output on a writable file system")
     run = inference.restore_run(epath.Path(workdir), step, "ema" if ema else "params")
     problems = openpi_problems(run)
     if problems and not force:

@@ -133,11 +133,15 @@ def _restore_arrays(item_dir: epath.Path, subtree: Sequence[str]) -> dict[str, n
     return arrays
 
 
+class DamagedCheckpointError(CheckpointError):
+    """A step whose files are missing or unreadable."""
+
+
 def _damaged(item_dir: epath.Path, error: BaseException) -> CheckpointError:
     from pi0_armfix.training.checkpoint import first_line  # see _restore_arrays
 
-    return CheckpointError(f"{item_dir} cannot be read ({first_line(error)}): the checkpoint is "
-                           "damaged; convert an earlier step with --step")
+    return DamagedCheckpointError(f"{item_dir} cannot be read ({first_line(error)}): the "
+                                  "checkpoint is damaged; convert an earlier step with --step")
 
 
 def _read_json_item(item_dir: epath.Path) -> Any:
@@ -164,6 +168,23 @@ def _as_openpi_norm_stats(stats: Mapping[str, Any], source: str) -> dict[str, An
     return stats
 
 
+def _read_run_step(folder: epath.Path, ema: bool, preset: str, action_horizon: int
+                   ) -> tuple[dict[str, np.ndarray], Pi0Config, Any]:
+    """The params, model config and norm stats of a run's step folder."""
+    run_config = _read_json_item(folder / "config") if (folder / "config").exists() else None
+    if not run_config or "model" not in run_config:
+        raise CheckpointError(f"{folder / 'config'} is missing or has no 'model' section")
+    config = from_model_config(run_config["model"])
+    for flag, value, expected in (("preset", preset, run_config["model"].get("preset")),
+                                  ("action_horizon", action_horizon, config.action_horizon)):
+        if value and value != expected:
+            raise CheckpointError(f"--{flag}={value} contradicts the run's config "
+                                  f"({flag}={expected}) in {folder / 'config'}")
+    arrays = _restore_arrays(folder / "state", ["ema_params" if ema else "params"])
+    stats = _read_json_item(folder / "norm_stats") if (folder / "norm_stats").exists() else None
+    return arrays, config, stats
+
+
 def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = False,
                     preset: str = "", action_horizon: int = 0, norm_stats: str = "",
                     say=lambda message: None
@@ -181,20 +202,24 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
       ({openpi name: float32 array}, model config, norm stats in openpi format or None).
     """
     kind, folder = locate(checkpoint, step, say)
-    say(f"converting {folder} ({'a run step' if kind == 'run' else 'openpi params'})")
     if kind == "run":
-        run_config = _read_json_item(folder / "config") if (folder / "config").exists() else None
-        if not run_config or "model" not in run_config:
-            raise CheckpointError(f"{folder / 'config'} is missing or has no 'model' section")
-        config = from_model_config(run_config["model"])
-        for flag, value, expected in (("preset", preset, run_config["model"].get("preset")),
-                                      ("action_horizon", action_horizon, config.action_horizon)):
-            if value and value != expected:
-                raise CheckpointError(f"--{flag}={value} contradicts the run's config "
-                                      f"({flag}={expected}) in {folder / 'config'}")
-        arrays = _restore_arrays(folder / "state", ["ema_params" if ema else "params"])
-        stats = _read_json_item(folder / "norm_stats") if (folder / "norm_stats").exists() else None
+        # The latest step of a run that reads, as evaluate, serve and export take it; a step
+        # asked for (--step, or its own folder) is read or refused.
+        asked = step is not None or (epath.Path(checkpoint) / "state").is_dir()
+        older = [] if asked else [f for s, f in sorted(_step_dirs(folder.parent).items(),
+                                                        reverse=True) if f != folder]
+        candidates = [folder, *older]
+        for i, candidate in enumerate(candidates):
+            say(f"converting {candidate} (a run step)")
+            try:
+                arrays, config, stats = _read_run_step(candidate, ema, preset, action_horizon)
+                break
+            except DamagedCheckpointError as e:
+                if i == len(candidates) - 1:
+                    raise
+                say(f"warning: {e}; trying the step before it")
     else:
+        say(f"converting {folder} (openpi params)")
         if ema:
             raise CheckpointError(f"--ema: the openpi checkpoint {folder} has no EMA parameters")
         config = get_preset(preset or "pi0")
