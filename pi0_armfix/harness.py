@@ -117,6 +117,7 @@ class HarnessSession:
         proprio = self._array(message, PROPRIO, np.float64)
         batched = proprio.ndim == 2
         envs = len(proprio) if batched else 1
+        self._check_shapes(message, proprio, batched)
         chunk = int(np.asarray(message.get(CHUNK_SIZE, 0)).reshape(-1)[0]) \
             if CHUNK_SIZE in message else 0
         if chunk < 0:
@@ -134,6 +135,23 @@ class HarnessSession:
         if chunk:
             reply["action_chunk"] = steps if batched else steps[0]
         return reply
+
+    def _check_shapes(self, message: Mapping[str, Any], proprio: np.ndarray, batched: bool
+                      ) -> None:
+        """Raises ValueError naming the keys whose leading sizes differ in a batched request, or
+        a proprio of another B1K release than the run's."""
+        if batched:
+            sizes = {key: np.shape(message[key])[0] if np.ndim(message[key]) else None
+                     for key in (PROPRIO, *CAMERAS) if key in message}
+            if len(set(sizes.values())) > 1:
+                raise ValueError("a batched request holds one leading env dim N in every key; "
+                                 f"got leading sizes {sizes}")
+        width, expected = proprio.shape[-1], self.policy.stored_state_width
+        if width != expected:
+            releases = {256: "a B1K 2025 (256-D proprio) run", 61: "a B1K 2026 (61-D proprio) run"}
+            run = releases.get(expected, f"a run on a {expected}-D state")
+            raise ValueError(f"{PROPRIO!r} has {width} dims; this is {run}: serve a run trained "
+                             "on the release the harness runs")
 
     def _array(self, message: Mapping[str, Any], key: str, dtype) -> np.ndarray:
         if key not in message:

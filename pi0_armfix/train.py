@@ -163,8 +163,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
     # passes over the data before they all hold.
     source = sources.open_source(data.options, layout)
-    for warning in dataset_lib.check_data(data, source,
-                                          action_horizon=model_config.action_horizon):
+    for warning in dataset_lib.check_data(data, source):
         _say(f"warning: {warning}")
     keyframes = (source.video_keyframes()
                  if data.get("images") and hasattr(source, "video_keyframes") else None)

@@ -236,6 +236,22 @@ def test_compute_norm_stats_writes_openpi_stats_of_the_training_frames(config, t
     assert written["state"].width == 23
 
 
+def test_every_episode_is_read_whatever_eval_episodes_holds_out(config, tmp_path):
+    wide = config.copy_and_resolve_references()
+    wide.eval.episodes = 20  # the default, more than this 12-episode set has
+    written = compute_norm_stats.run(wide, tmp_path / "norm_stats.json", episodes="all")
+    every = np.concatenate(b1k_like_episodes()).astype(np.float32).astype(np.float64)
+    np.testing.assert_allclose(written["actions"].mean, every.mean(0), rtol=1e-9, atol=1e-12)
+
+
+def test_a_hold_out_larger_than_the_dataset_names_a_setting_that_fits(config, tmp_path):
+    wide = config.copy_and_resolve_references()
+    wide.eval.episodes = 20
+    with pytest.raises(ValueError, match=r"eval.episodes = 20: .*12 episodes for training; set "
+                                         r"--config.eval.episodes=1 "):
+        compute_norm_stats.run(wide, tmp_path / "norm_stats.json")
+
+
 def test_analysis_reports_groups_and_writes_a_png(config, tmp_path):
     report = analyze_action_magnitudes.run(config, tmp_path / "report.json")
     assert (tmp_path / "report.png").stat().st_size > 0

@@ -211,9 +211,13 @@ def test_cli_writes_a_demo_anywhere(tmp_path):
     assert LeRobotSource(tmp_path / "demo", LAYOUT).num_episodes == 2
 
 
-def test_cli_refuses_an_existing_output(tmp_path):
-    result = _cli(f"--output={tmp_path}", "--episodes=1")
-    assert result.returncode != 0 and "already exists" in result.stderr
+@pytest.mark.parametrize("version", ["v2.1", "v3.0"])
+def test_cli_refuses_an_existing_output_in_one_line(tmp_path, version):
+    result = _cli(f"--output={tmp_path}", "--episodes=1", f"--version={version}")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"pi0_armfix.tools.make_demo_dataset: {tmp_path} already exists; choose a new output "
+        "folder"]
 
 
 def test_the_demo_in_lerobot_v30_holds_the_same_frames(tmp_path):

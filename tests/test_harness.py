@@ -185,6 +185,7 @@ class Recorder:
     data, so two draws from the same stream position are equal."""
 
     horizon = 4
+    stored_state_width = 256  # a B1K 2025 run
     keys = inference.B1K_KEYS
     task_prompts = {0: "trained task", 1: "listed, never trained"}
     trained_prompts = frozenset({"trained task"})
@@ -201,6 +202,20 @@ class Recorder:
 
 def _step(session, task_id=0):
     return session.answer(_observation(np.zeros(256), task_id=task_id, side=8))["action"]
+
+
+def test_a_batched_request_with_unequal_leading_sizes_is_one_line_naming_them():
+    session = harness.HarnessSession(Recorder(), n_exec=2)
+    message = _observation(np.zeros((3, 256)), task_id=0, side=8, envs=2)
+    with pytest.raises(ValueError, match=r"leading sizes \{'robot_r1::proprio': 3, .*: 2"):
+        session.answer(message)
+
+
+def test_the_other_releases_proprio_is_named_with_the_runs_release():
+    session = harness.HarnessSession(Recorder(), n_exec=2)
+    with pytest.raises(ValueError, match=r"'robot_r1::proprio' has 61 dims; this is a B1K 2025 "
+                                         r"\(256-D proprio\) run"):
+        session.answer(_observation(np.zeros(61), task_id=0, side=8))
 
 
 def test_rtc_follows_the_unexecuted_tail_from_the_second_chunk_of_an_episode():

@@ -18,6 +18,7 @@ with checkpoints, whose weights were trained with the old stats), never reused s
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -53,8 +54,11 @@ def split_episodes(episode_index: np.ndarray, num_heldout: int
     episode_index = np.asarray(episode_index, np.int64)
     num_heldout = int(num_heldout)
     if not 0 <= num_heldout < len(episode_index):
+        fits = max(1, round(0.1 * len(episode_index))) if len(episode_index) > 1 else 0
         raise ValueError(f"eval.episodes = {num_heldout}: must be >= 0 and leave at least one of "
-                         f"the dataset's {len(episode_index)} episodes for training")
+                         f"the dataset's {len(episode_index)} episodes for training; set "
+                         f"--config.eval.episodes={fits} (about 10 % held out"
+                         + (")" if fits else "; with 0 nothing is evaluated)"))
     cut = len(episode_index) - num_heldout
     return episode_index[:cut], episode_index[cut:]
 
@@ -68,11 +72,18 @@ def training_episodes(spec: DataSpec, source) -> np.ndarray:
     return split_episodes(source.episode_index, spec.heldout_episodes)[0]
 
 
-def select_episodes(spec: DataSpec, source, which: str = "train") -> np.ndarray:
-    """Dataset ids of the training episodes (`which="train"`) or of every episode (`"all"`)."""
+def reading_spec(spec: DataSpec, which: str = "train") -> DataSpec:
+    """The spec a tool reads `which` episodes with: the run's for "train"; for "all", one
+    without a held-out split (a tool that reads every episode needs no `eval.episodes`)."""
     if which not in EPISODE_CHOICES:
         raise ValueError(f"--episodes={which!r}: choose one of {list(EPISODE_CHOICES)}")
-    return source.episode_index if which == "all" else training_episodes(spec, source)
+    return spec if which == "train" else dataclasses.replace(spec, heldout_episodes=0,
+                                                             eval_every=0)
+
+
+def select_episodes(spec: DataSpec, source, which: str = "train") -> np.ndarray:
+    """Dataset ids of the training episodes (`which="train"`) or of every episode (`"all"`)."""
+    return training_episodes(reading_spec(spec, which), source)
 
 
 def describe_episodes(spec: DataSpec, source, episodes: np.ndarray) -> str:
@@ -121,22 +132,14 @@ def training_blocks(spec: DataSpec, keys: Sequence[str] = ("actions", "state"), 
 
 # ---------------------------------------------------------------------- checks before any pass
 
-def heldout_chunk_count(lengths: np.ndarray, horizon: int) -> int:
-    """Chunks that tile held-out episodes of these lengths, one every H - 1 frames (the
-    evaluation's chunks, `evaluation.heldout.tiled_chunk_starts`)."""
-    stride = max(int(horizon) - 1, 1)
-    return int(np.sum(-(-np.asarray(lengths, np.int64) // stride)))
-
-
-def check_data(spec: DataSpec, source, *, images: bool = True, action_horizon: int = 1
-               ) -> list[str]:
+def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
     """Every check of the data that can fail, before any pass over it (cheap: metadata, plus the
     probe of `data.probe_episodes` episodes' files and first/last video frames).
 
     Checks the action width (when the source opened), the state width against
     `layout.action_dim` (naming the fix), the delta-action state layout, the curriculum's
-    arm-heavy layout and episode list, the split (the held-out episodes must hold a batch of
-    the evaluation's chunks of H = `action_horizon`), and the probe.
+    arm-heavy layout and episode list, the split (an evaluating run needs a held-out episode;
+    the evaluation pads a last batch, so any number of held-out chunks will do), and the probe.
 
     Returns:
       warnings to print once (e.g. batch cameras that no stored camera feeds).
@@ -144,16 +147,10 @@ def check_data(spec: DataSpec, source, *, images: bool = True, action_horizon: i
     layout = spec.layout
     where = str(getattr(source, "root", "the dataset"))
     heldout = split_episodes(source.episode_index, spec.heldout_episodes)[1]
-    if spec.eval_every > 0:
-        lengths = source.episode_lengths[np.isin(source.episode_index, heldout)]
-        chunks = heldout_chunk_count(lengths, action_horizon)
-        if chunks < spec.eval_batch_size:
-            raise ValueError(
-                f"eval.every = {spec.eval_every} evaluates on the held-out episodes, but the "
-                f"{len(heldout)} held out (eval.episodes) hold {chunks} chunks of H = "
-                f"{action_horizon} ({int(lengths.sum())} frames, a chunk every H - 1), fewer "
-                f"than eval.batch_size = {spec.eval_batch_size}: raise eval.episodes, lower "
-                "eval.batch_size, or set eval.every=0")
+    if spec.eval_every > 0 and not len(heldout):
+        raise ValueError(f"eval.every = {spec.eval_every} evaluates on the held-out episodes, but "
+                         "eval.episodes = 0 holds none out: set eval.episodes (about 10 % of "
+                         "the episodes) or eval.every=0")
     if source.state_width > layout.action_dim:
         stored = getattr(source, "stored_state_width", source.state_width)
         presets = selection_lib.presets_for(stored)

@@ -38,6 +38,7 @@ def run(config: ml_collections.ConfigDict, output: str | Path, episodes: str = "
     horizon = model_config_lib.from_model_config(config.model).action_horizon
     spec = DataSpec.from_config(config, layout)
     source = sources.open_source(spec.options, layout)
+    spec = dataset_lib.reading_spec(spec, episodes)
     chosen = dataset_lib.select_episodes(spec, source, episodes)
     dataset_lib.check_data(spec, source, images=False)
     print(dataset_lib.describe_episodes(spec, source, chosen))

@@ -37,14 +37,16 @@ _VIDEO_GOP = flags.DEFINE_integer("video_gop", demo.VideoSpec.gop,
 def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    if _EPISODES.value < 1:
-        raise ValueError(f"--episodes must be >= 1, got {_EPISODES.value}")
-    if _VIDEO_GOP.value < 1:
-        raise ValueError(f"--video_gop must be >= 1, got {_VIDEO_GOP.value}")
-    spec = dataclasses.replace(demo.DemoSpec(), num_episodes=_EPISODES.value, seed=_SEED.value)
-    video = (demo.VideoSpec(codec=_VIDEO_CODEC.value, gop=_VIDEO_GOP.value)
-             if _VIDEO_CODEC.value else None)
-    root = demo.write_demo_dataset(_OUTPUT.value, spec, _VERSION.value, video)
+    with console.user_errors("pi0_armfix.tools.make_demo_dataset"):
+        if _EPISODES.value < 1:
+            raise ValueError(f"--episodes must be >= 1, got {_EPISODES.value}")
+        if _VIDEO_GOP.value < 1:
+            raise ValueError(f"--video_gop must be >= 1, got {_VIDEO_GOP.value}")
+        spec = dataclasses.replace(demo.DemoSpec(), num_episodes=_EPISODES.value,
+                                   seed=_SEED.value)
+        video = (demo.VideoSpec(codec=_VIDEO_CODEC.value, gop=_VIDEO_GOP.value)
+                 if _VIDEO_CODEC.value else None)
+        root = demo.write_demo_dataset(_OUTPUT.value, spec, _VERSION.value, video)
     size = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
     print(f"wrote {spec.num_episodes} episodes to {root} (LeRobot {_VERSION.value}, "
           f"{'PNG images' if video is None else f'{video.codec} video, GOP {video.gop}'}, "
