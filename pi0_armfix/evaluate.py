@@ -223,17 +223,21 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
     draws = int(metrics.get("draws", 1))
     mean = heldout_lib.MEAN_OF_DRAWS
     lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action) of "
-             f"the single draw (what a robot executes), of the mean of {draws} draws, and of "
-             f"the energy score of the {draws} draws (spread counted fairly); gain: 1 = moves "
-             "like the data, 0 = still or unrelated",
-             f"{'group':<15}{'err':>9}{'skill':>9}{f'mean {draws}':>9}{'energy':>9}{'gain':>8}"
-             f"{'ratio':>8}"
+             "the single draw (what a robot executes; its interval a bootstrap over the held-out "
+             f"episodes), of the mean of {draws} draws, and of the energy score of the {draws} "
+             "draws (spread counted fairly); gain: 1 = moves like the data, 0 = still or "
+             "unrelated",
+             f"{'group':<15}{'err':>9}{'skill':>9}{'[95 % over episodes]':>22}"
+             f"{f'mean {draws}':>9}{'energy':>9}{'gain':>8}{'ratio':>8}"
              + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'gain':>7}"
                        for name in references)]
     for g in layout.group_names:
         lines.append(
             f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>9.3f}"
-            f"{metrics.get(f'{mean}/skill/{g}', math.nan):>9.3f}"
+            + "{:>22}".format("[{:+.3f}, {:+.3f}]".format(
+                metrics.get(f'interval_low/skill/{g}', math.nan),
+                metrics.get(f'interval_high/skill/{g}', math.nan)))
+            + f"{metrics.get(f'{mean}/skill/{g}', math.nan):>9.3f}"
             f"{metrics.get(f'energy_skill/{g}', math.nan):>9.3f}"
             f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>8.3f}"
             + "".join(f" |{metrics[f'{name}/err/{g}']:>16.4f}"

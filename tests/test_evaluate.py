@@ -189,6 +189,34 @@ def test_spread_around_the_truth_scores_better_than_the_same_spread_beside_it():
     assert centred["energy/arm"].sum() < biased["energy/arm"].sum()
 
 
+def _kept(predicted, true, episodes):
+    valid = np.ones(true.shape[:2], bool)
+    kwargs = dict(layout=LAYOUT, gripper_groups=("gripper",),
+                  gripper_threshold=np.zeros(LAYOUT.action_dim))
+    persistence = np.repeat(true[:, :1], true.shape[1], axis=1)
+    return {"episode": episodes,
+            **{f"policy/{k}": v for k, v in eval_metrics.chunk_sums(predicted, true, valid,
+                                                                   **kwargs).items()},
+            **{f"mean_of_draws/{k}": v for k, v in eval_metrics.chunk_sums(
+                predicted, true, valid, **kwargs).items()},
+            **{f"persistence/{k}": v for k, v in eval_metrics.chunk_sums(
+                persistence, true, valid, **kwargs).items()}}
+
+
+def test_skill_intervals_over_held_out_episodes_bracket_the_skill_and_pin_a_perfect_policy():
+    rng = np.random.default_rng(0)
+    true = np.cumsum(rng.normal(size=(40, H, LAYOUT.action_dim)), axis=1)
+    episodes = np.repeat(np.arange(8), 5)
+    perfect = heldout.episode_intervals(_kept(true, true, episodes), LAYOUT)
+    assert perfect["interval_low/skill/arm"] == perfect["interval_high/skill/arm"] == 1.0
+    noisy = true + rng.normal(size=true.shape)
+    intervals = heldout.episode_intervals(_kept(noisy, true, episodes), LAYOUT)
+    skill = _metrics(noisy, true)["err/arm"] / _metrics(
+        np.repeat(true[:, :1], H, axis=1), true)["err/arm"]
+    assert intervals["interval_low/skill/arm"] < 1 - skill < intervals["interval_high/skill/arm"]
+    assert intervals["interval_low/mean_of_draws/skill/arm"] == intervals["interval_low/skill/arm"]
+
+
 def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
     eval_cfg = dict(gripper_groups=("claw",), plot_groups=(), batch_size=8, max_chunks=16,
                     num_steps=10)

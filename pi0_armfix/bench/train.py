@@ -7,16 +7,22 @@
    SAME batch in one process, interleaved round by round (`--rounds` x `--steps` steps each) so
    that machine noise hits both alike; the ratio of the median round times is printed
    (target <= 1.03: the weighting is a few elementwise ops next to the transformer).
-2. Data-wait fraction of the demo training: `configs/arm_focused.py` trained for `--data_steps`
-   steps in a temporary folder (evaluation off); the logged `data_wait` (wall time the loop waited
-   for the next batch while the device had no step left to run, see `pi0_armfix.train`) over all
-   logged windows but the first (which holds the compilation). Target < 5%.
+2. Throughput of the main job against its compute bound: `configs/arm_focused.py` (the `demo`
+   preset, K = 4 flow draws) and the same with K = 1, each trained for `--data_steps` steps in a
+   temporary folder (evaluation off): samples/s over the logged windows but the first (which
+   holds the compilation), and the logged `data_wait` (wall time the loop waited for the next
+   batch while the device had no step left to run, see `pi0_armfix.train`; target < 5%). Beside
+   them the train step's FLOPs per sample (`Lowered.cost_analysis()`) and this machine's float32
+   matmul rate (a 1024^3 product), whose ratio is the samples/s a step of large matrix products
+   would reach: the compute bound, against which the achieved rate shows what limits the demo
+   (its matrices are 32-128 wide: per-op overheads, not FLOPs).
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import math
 import statistics
 import sys
 import tempfile
@@ -25,7 +31,8 @@ from collections.abc import Sequence
 
 import jax
 
-from pi0_armfix.configs import base
+from pi0_armfix.bench import model as bench_model
+from pi0_armfix.configs import arm_focused, base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
@@ -96,11 +103,13 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     return (statistics.median(runs["uniform"][2]), statistics.median(runs["per_group+delta"][2]))
 
 
-def data_wait_fraction(steps: int) -> float:
-    """Wall-time fraction spent waiting for batches in the demo training (first window excluded)."""
-    config = base.get_config()
+def main_job_throughput(steps: int, flow_samples: int) -> tuple[float, float]:
+    """(samples/s, data-wait fraction) of `configs/arm_focused.py` with K = `flow_samples`
+    trained `steps` steps, the first logged window (the compilation) excluded."""
+    config = arm_focused.get_config()
     config.update_from_flattened_dict({"train.total_steps": steps, "eval.every": 0,
-                                       "train.checkpoint_every": steps})
+                                       "train.checkpoint_every": steps,
+                                       "loss.flow_samples": flow_samples})
     with tempfile.TemporaryDirectory() as workdir:
         train.train_and_evaluate(config, workdir)
         records = [r for r in metrics_log.read_metrics(f"{workdir}/{metrics_log.METRICS_FILE}")
@@ -108,7 +117,30 @@ def data_wait_fraction(steps: int) -> float:
     # Window i spans the steps since record i - 1; window 0 holds the compilation.
     durations = [(b["step"] - a["step"]) / b["steps_per_sec"] for a, b in zip(records, records[1:])]
     waits = [d * r["data_wait"] for d, r in zip(durations, records[1:])]
-    return sum(waits) / sum(durations)
+    steps_run = records[-1]["step"] - records[0]["step"]
+    return steps_run * config.train.batch_size / sum(durations), sum(waits) / sum(durations)
+
+
+def flops_per_sample(flow_samples: int) -> float:
+    """FLOPs of the main job's train step per training sample (its K draws included)."""
+    config = arm_focused.get_config()
+    model_config = model_config_lib.from_model_config(config.model)
+    batch = config.train.batch_size
+    lowered = bench_model.lower_train_step(model_config, batch, flow_samples)
+    return lowered.cost_analysis()["flops"] / batch
+
+
+def matmul_flops_per_second(size: int = 1024, repeats: int = 10) -> float:
+    """This machine's float32 matmul rate (the best of `repeats` products of size^3)."""
+    a = jax.random.normal(jax.random.key(0), (size, size), jax.numpy.float32)
+    product = jax.jit(lambda x: x @ x)
+    product(a).block_until_ready()
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        product(a).block_until_ready()
+        best = min(best, time.perf_counter() - start)
+    return 2 * size ** 3 / best
 
 
 def main(argv: Sequence[str]) -> None:
@@ -125,9 +157,16 @@ def main(argv: Sequence[str]) -> None:
     print(f"  uniform                 {uniform * 1e3:8.1f} ms")
     print(f"  per_group + delta       {weighted * 1e3:8.1f} ms")
     print(f"  ratio                   {weighted / uniform:8.3f}   (target <= 1.03)")
-    fraction = data_wait_fraction(args.data_steps)
-    print(f"demo training (configs/arm_focused.py) data-wait fraction over {args.data_steps} "
-          f"steps: {fraction:.1%}   (target < 5%)")
+    peak = matmul_flops_per_second()
+    print(f"main job (configs/arm_focused.py, demo preset, batch "
+          f"{base.get_config().train.batch_size}), {args.data_steps} steps each; this machine's "
+          f"float32 matmul rate {peak / 1e9:.1f} GFLOP/s:")
+    for k in (4, 1):
+        rate, waiting = main_job_throughput(args.data_steps, k)
+        flops = flops_per_sample(k)
+        print(f"  K = {k}: {rate:7.1f} samples/s, {flops / 1e6:6.1f} MFLOP/sample -> "
+              f"{rate * flops / 1e9:5.2f} GFLOP/s, {rate * flops / peak:5.1%} of the compute "
+              f"bound ({peak / flops:7.0f} samples/s); data wait {waiting:.1%} (target < 5%)")
 
 
 if __name__ == "__main__":

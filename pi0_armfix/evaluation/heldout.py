@@ -14,6 +14,7 @@ resamples the held-out episodes from them for its intervals.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -21,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pi0_armfix import study_stats
 from pi0_armfix.data import batching
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import stats as stats_lib
@@ -167,7 +169,42 @@ class HeldOutChunks:
                 **{f"policy/{k}": v for k, v in sums.items()},
                 **{f"{MEAN_OF_DRAWS}/{k}": v for k, v in mean_sums.items()},
                 **{f"persistence/{k}": v for k, v in self.reference_sums["persistence"].items()}}
+        metrics.update(episode_intervals(kept, self.layout))
         return metrics, kept
+
+
+def episode_intervals(kept: Mapping[str, np.ndarray], layout,
+                      confidence: float = study_stats.CONFIDENCE) -> dict[str, float]:
+    """Percentile bootstrap intervals over the held-out episodes (`study_stats.episode_counts`:
+    the study's resamples) of each group's skill, the single draw's and the mean of the draws',
+    from an evaluation's kept per-chunk sums: `interval_low/<key>` and `interval_high/<key>` for
+    `<key>` = `skill/<g>` and `mean_of_draws/skill/<g>`. How far one run's skill is from 0 given
+    which episodes happened to be held out (not the seeds' spread: `pi0_armfix.study`)."""
+    _, episode = np.unique(kept[EPISODE], return_inverse=True)
+    onehot = np.eye(int(episode.max()) + 1)[episode]  # [N, E]
+    counts = study_stats.episode_counts(onehot.shape[1])  # [B, E]
+    totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
+              if k != EPISODE}  # [B] each
+
+    def part(prefix, b):
+        return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
+
+    values: dict[str, list[float]] = {}
+    for b in range(len(counts)):
+        held = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
+        for prefix, name in (("policy/", ""), (f"{MEAN_OF_DRAWS}/", f"{MEAN_OF_DRAWS}/")):
+            measured = eval_metrics.metrics_from_sums(part(prefix, b), layout)
+            skills = eval_metrics.skill_scores(measured, held, layout)
+            for g in layout.group_names:
+                values.setdefault(f"{name}skill/{g}", []).append(skills[f"skill/{g}"])
+    tail = 100 * (1 - confidence) / 2
+    out = {}
+    for key, v in values.items():
+        v = np.asarray(v, np.float64)
+        low, high = (np.percentile(v[np.isfinite(v)], [tail, 100 - tail])
+                     if np.isfinite(v).any() else (math.nan, math.nan))
+        out[f"interval_low/{key}"], out[f"interval_high/{key}"] = float(low), float(high)
+    return out
 
 
 def save_chunk_sums(path: Any, sums: Mapping[str, np.ndarray]) -> None:
