@@ -67,6 +67,7 @@ from tqdm import tqdm
 
 from pi0_armfix import console, evaluate, inference, study_stats
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.configs import base as base_config
 from pi0_armfix.data import json_files
 from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
@@ -75,10 +76,14 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.study_aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES, aggregate,
                                         closed_loop_outcomes, episode_replicates)
-from pi0_armfix.study_report import markdown, plot_curves, plot_study
+from pi0_armfix.study_report import curve_table, markdown, plot_curves, plot_study
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
+# A demo-world episode of the closed loop on 2 cores, measured (README, "Closed loop"): the
+# estimate the study announces.
+CLOSED_LOOP_SECONDS = 4.0
+CLOSED_LOOP_STEPS_PER_EPISODE = 120  # the default closed loop: one episode per this many steps
 
 
 # ---------------------------------------------------------------------- running
@@ -98,15 +103,33 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
 
 
 def train_command(config: str, seed: int, steps: int, folder: Path,
-                  overrides: Sequence[str]) -> list[str]:
+                  overrides: Sequence[str], evaluations: int = 1) -> list[str]:
     """The `pi0_armfix.train` command line of one run (`overrides`: the study's, then the
-    config's own)."""
+    config's own), evaluated every `steps // evaluations` steps and at `steps` (the learning
+    curve)."""
     name, arg, own = parse_config(config)
     return [sys.executable, "-m", "pi0_armfix.train",
             f"--config=configs/{name}.py" + (f":{arg}" if arg else ""),
             f"--workdir={folder}", f"--config.seed={seed}",
-            f"--config.train.total_steps={steps}", f"--config.eval.every={steps}",
+            f"--config.train.total_steps={steps}",
+            f"--config.eval.every={max(1, steps // evaluations)}",
             *[f"--config.{o}" for o in [*overrides, *own]]]
+
+
+def closed_loop_plan(runs: int, episodes: int) -> str:
+    """One line: what the study's closed loop will cost (episodes x tolerances x runs, and the
+    time at `CLOSED_LOOP_SECONDS` per episode)."""
+    rollouts = runs * episodes * len(CLOSED_LOOP_TOLERANCES)
+    minutes = rollouts * CLOSED_LOOP_SECONDS / 60
+    return (f"study: closed loop: {episodes} episodes x {len(CLOSED_LOOP_TOLERANCES)} tolerances "
+            f"x {runs} runs = {rollouts} episodes of the demo world, ~{minutes:.0f} min on 2 "
+            f"cores (~{CLOSED_LOOP_SECONDS:g} s each); --closed_loop_episodes=0 skips them")
+
+
+def default_closed_loop_episodes(steps: int) -> int:
+    """The closed loop in proportion to the training budget: one episode per
+    `CLOSED_LOOP_STEPS_PER_EPISODE` training steps, within [10, 50]."""
+    return int(min(50, max(10, round(steps / CLOSED_LOOP_STEPS_PER_EPISODE))))
 
 
 def final_evaluation(folder: Path) -> dict[str, float]:
@@ -214,12 +237,12 @@ def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missin
 
 
 def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequence[str],
-            closed_loop_episodes: int = 0) -> dict[str, Any]:
+            closed_loop_episodes: int = 0, evaluations: int = 1) -> dict[str, Any]:
     """Trains (or resumes) one run, evaluates it in closed loop when asked, and writes its
     `result.json`; returns the result."""
     folder = run_folder(workdir, config, seed)
     folder.mkdir(parents=True, exist_ok=True)
-    _logged(train_command(config, seed, steps, folder, overrides), folder,
+    _logged(train_command(config, seed, steps, folder, overrides, evaluations), folder,
             f"{config} seed {seed}")
     evaluation = final_evaluation(folder)
     if evaluation["step"] != steps:
@@ -265,7 +288,7 @@ def load_result(folder: Path) -> dict[str, Any] | None:
 
 def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir: Path,
               overrides: Sequence[str] = (), parallel: int = 1, closed_loop_episodes: int = 0,
-              train: bool = True) -> list[dict[str, Any]]:
+              train: bool = True, evaluations: int = 1) -> list[dict[str, Any]]:
     """Every (config, seed) run, the finished ones read back (and evaluated in closed loop when
     they were not), the others trained; with `train=False`, only the finished ones (a partial
     study's tables, labelled by their seed counts)."""
@@ -298,8 +321,8 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
     with concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool:
         futures = {pool.submit(add_closed_loop, results[c, s], run_folder(workdir, c, s),
                                closed_loop_episodes): (c, s) for c, s in unmeasured}
-        futures |= {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes):
-                    (c, s) for c, s in todo}
+        futures |= {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes,
+                                evaluations): (c, s) for c, s in todo}
         try:
             for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures),
                                desc="study runs", unit="run"):
@@ -359,6 +382,8 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
         folder = run_folder(workdir, result["config"], result["seed"])
         curves.setdefault(result["config"], []).append(
             metrics_log.read_metrics(folder / metrics_log.METRICS_FILE))
+    with open(workdir / "study.md", "a") as report:
+        report.write("\n".join(curve_table(curves, study)) + "\n")
     plot_curves(curves, study["groups"], workdir / "study_curves.png")
     return study
 
@@ -379,8 +404,11 @@ def main(argv: Sequence[str]) -> None:
     if missing:
         raise SystemExit(f"pi0_armfix.study: --configs names {missing}, which are not files of "
                          f"{console.configs_dir()}: use {', '.join(console.config_names())}")
-    if FLAGS.seeds < 1 or FLAGS.steps < 1 or FLAGS.parallel < 1:
-        raise SystemExit("pi0_armfix.study: --seeds, --steps and --parallel must be >= 1")
+    if FLAGS.seeds < 1 or FLAGS.steps < 1 or FLAGS.parallel < 1 or FLAGS.evaluations < 1:
+        raise SystemExit("pi0_armfix.study: --seeds, --steps, --parallel and --evaluations must "
+                         "be >= 1")
+    episodes = (default_closed_loop_episodes(FLAGS.steps) if FLAGS.closed_loop_episodes < 0
+                else FLAGS.closed_loop_episodes)
     bad = [o for o in FLAGS.override if "=" not in o]
     if bad:
         raise SystemExit(f"pi0_armfix.study: --override {bad} must be key=value "
@@ -395,10 +423,8 @@ def main(argv: Sequence[str]) -> None:
     if FLAGS.seeds < study_stats.MIN_SEEDS:
         print(f"study: {FLAGS.seeds} seed(s) per config: the intervals will be anecdotes "
               f"(use --seeds={study_stats.MIN_SEEDS} or more for results)", flush=True)
-    if FLAGS.closed_loop_episodes and not FLAGS.report_only:
-        print(f"study: every run also drives {FLAGS.closed_loop_episodes} closed-loop episodes "
-              "of the demo world once trained (more than half of a demo run's time; "
-              "--closed_loop_episodes=0 skips them)", flush=True)
+    if episodes and not FLAGS.report_only:
+        print(closed_loop_plan(len(configs) * FLAGS.seeds, episodes), flush=True)
     workdir = Path(FLAGS.workdir).absolute()
     command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])
     # Ctrl-C or kill: stop the children (each in its own process group), start no other.
@@ -406,8 +432,8 @@ def main(argv: Sequence[str]) -> None:
     signal.signal(signal.SIGTERM, CHILDREN.stop)
     try:
         results = run_study(configs, list(range(FLAGS.seeds)), FLAGS.steps, workdir,
-                            FLAGS.override, FLAGS.parallel, FLAGS.closed_loop_episodes,
-                            train=not FLAGS.report_only)
+                            FLAGS.override, FLAGS.parallel, episodes,
+                            train=not FLAGS.report_only, evaluations=FLAGS.evaluations)
     except StudyInterrupted as stopped:
         raise SystemExit(f"pi0_armfix.study: stopped; {stopped}. Rerun the same command to go "
                          "on: finished runs are kept, an interrupted one resumes from its last "
@@ -430,14 +456,19 @@ def cli() -> None:
     flags.DEFINE_string("primary", "", "the config whose comparison with the baseline is the "
                         "study's question (95 % interval; the others are Bonferroni-corrected); "
                         "default: the second config")
-    flags.DEFINE_integer("steps", 1500, "training steps of every run")
+    flags.DEFINE_integer("steps", base_config.get_config().train.total_steps,
+                         "training steps of every run (default: the main job's)")
     flags.DEFINE_string("workdir", "runs/study", "study folder (one run folder per config/seed)")
     flags.DEFINE_integer("parallel", 1, "runs trained at the same time")
     flags.DEFINE_bool("report_only", False, "write the tables of the finished runs and train "
                       "nothing (a partial study, labelled with its seed counts)")
     flags.DEFINE_multi_string("override", [], "key=value passed to every run as --config.key")
-    flags.DEFINE_integer("closed_loop_episodes", 50, "episodes of the demo world each run's "
-                         "final checkpoint drives (0: no closed-loop evaluation)")
+    flags.DEFINE_integer("closed_loop_episodes", -1, "episodes of the demo world each run's "
+                         "final checkpoint drives at each tolerance (0: no closed-loop "
+                         "evaluation; -1: one per "
+                         f"{CLOSED_LOOP_STEPS_PER_EPISODE} training steps, within [10, 50])")
+    flags.DEFINE_integer("evaluations", 4, "held-out evaluations per run, evenly spaced, the last "
+                         "at --steps (the learning curves)")
     app.run(main, flags_parser=console.flags_parser("pi0_armfix.study"))
 
 

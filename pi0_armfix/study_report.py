@@ -358,6 +358,40 @@ def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
     plt.close(fig)
 
 
+def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
+                study: Mapping[str, Any]) -> list[str]:
+    """study.md's learning-curve table: per config and evaluated step, each group's held-out
+    skill over persistence (single draw; the arms also as the mean of the draws) and switch F1,
+    mean ± std over the seeds that logged that step (how many, per row). Nothing when no run
+    logged more than its final evaluation."""
+    groups, arms = study["groups"], study["arm_groups"]
+    keys = ([(f"skill/{g}", g) for g in groups]
+            + [(f"{MEAN_OF_DRAWS}/skill/{g}", f"{g} (mean of draws)") for g in arms]
+            + [("gripper_switch/f1", "switch F1")])
+    rows = []
+    for name, runs in curves.items():
+        steps = sorted({int(r["step"]) for records in runs for r in records
+                        if f"skill/{groups[0]}" in r})
+        for step in steps:
+            at = [next((r for r in records if int(r["step"]) == step
+                        and f"skill/{groups[0]}" in r), None) for records in runs]
+            at = [r for r in at if r is not None]
+            cells = []
+            for key, _ in keys:
+                values = np.asarray([as_number(r.get(key)) for r in at], np.float64)
+                values = values[np.isfinite(values)]
+                cells.append("n/a" if not len(values) else f"{values.mean():+.2f}" + (
+                    f" ± {values.std():.2f}" if len(values) > 1 else ""))
+            rows.append(f"| {name} | {step} | {len(at)} | " + " | ".join(cells) + " |")
+    if len({row.split(" | ")[1] for row in rows}) < 2:
+        return []
+    return ["", "## Learning curves (held-out skill over persistence at every evaluated step)",
+            "", "Single draw unless said; mean ± std over the seeds that reached the step. "
+            "Persistence (doing nothing) is 0 everywhere.", "",
+            "| config | step | seeds | " + " | ".join(label for _, label in keys) + " |",
+            "|---" * (len(keys) + 3) + "|", *rows]
+
+
 def _curve_values(runs: Sequence[Sequence[Mapping[str, Any]]], key: str
                   ) -> tuple[list[int], np.ndarray]:
     """The steps at which every seed logged `key`, and the seeds' values there `[seeds, steps]`

@@ -350,7 +350,7 @@ import os, sys
 from pathlib import Path
 from pi0_armfix import study
 
-def sleeper(config, seed, steps, folder, overrides):  # a training run that takes its time
+def sleeper(config, seed, steps, folder, overrides, evaluations):  # a slow training run
     return [sys.executable, "-c", "import os, time; open(%r, 'w').write(str(os.getpid())); "
             "time.sleep(120)" % str(Path(folder) / "pid")]
 
@@ -413,3 +413,30 @@ def test_a_config_with_overrides_of_its_own_passes_them_to_its_runs_only(tmp_pat
     assert plain[-1] == "--config.data.root=/d"
     assert (study.run_folder(tmp_path, "arm_focused@data.root=/a/b", 0)
             == tmp_path / "arm_focused@data.root=_a_b" / "seed_0")
+
+
+def test_the_closed_loop_is_proportionate_to_the_training_budget_and_announced():
+    assert study.default_closed_loop_episodes(1500) == 12
+    assert study.default_closed_loop_episodes(6000) == 50
+    assert study.default_closed_loop_episodes(100) == 10
+    line = study.closed_loop_plan(runs=20, episodes=50)
+    assert "50 episodes x 3 tolerances x 20 runs = 3000 episodes of the demo world" in line
+
+
+def test_the_learning_curve_table_has_a_row_per_config_and_evaluated_step():
+    layout = ActionLayout.preset("b1k_r1pro")
+    groups = list(layout.group_names)
+
+    def record(step, value):
+        return {"step": step, **{f"skill/{g}": value for g in groups},
+                **{f"mean_of_draws/skill/{g}": value + 0.5 for g in groups},
+                "gripper_switch/f1": 0.25}
+
+    curves = {"arm_focused": [[{"step": 10, "loss": 1.0}, record(500, -0.2), record(1000, 0.1)],
+                              [record(500, -0.4), record(1000, 0.3)]]}
+    table = study_report.curve_table(curves, {"groups": groups,
+                                              "arm_groups": ["left_arm", "right_arm"]})
+    rows = [line for line in table if line.startswith("| arm_focused")]
+    assert len(rows) == 2
+    assert rows[0].startswith("| arm_focused | 500 | 2 | -0.30 ± 0.10")
+    assert "+0.70 ± 0.10" in rows[1] and rows[1].endswith("+0.25 ± 0.00 |")
