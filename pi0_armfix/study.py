@@ -2,12 +2,14 @@
 nothing: which lever fixes the arms, and by how much? (docs/evaluation.md)
 
     python -m pi0_armfix.study --configs=uniform,arm_focused,arm_delta [--seeds=5] \
-        [--primary=arm_focused] [--steps=1500] [--workdir=runs/study] [--parallel=1] \
-        [--override=data.root=/data/b1k] [--closed_loop_episodes=50]
+        [--primary=arm_focused] [--steps=<the main job's>] [--evaluations=4] \
+        [--workdir=runs/study] [--parallel=1] [--override=data.root=/data/b1k] \
+        [--closed_loop_episodes=-1]
 
 Each (config, seed) trains in its own run folder `<workdir>/<config>/seed_<s>` through
-`python -m pi0_armfix.train` (`--config.seed=s`, `--config.train.total_steps=steps`, one
-held-out evaluation at the end), its console output in `train.log` there. A run whose
+`python -m pi0_armfix.train` (`--config.seed=s`, `--config.train.total_steps=steps`, a held-out
+evaluation every steps / `--evaluations` steps and at the end: the learning curve), its console
+output in `train.log` there. A run whose
 `result.json` exists is finished and skipped; an interrupted one resumes from its checkpoints, so
 rerunning the same command finishes a study (seed-major: an interrupted study has every config's
 first seeds). The results of all finished runs are gathered into:
@@ -21,10 +23,14 @@ first seeds). The results of all finished runs are gathered into:
   study.png   per-group skill and motion gain, mean with the seeds' spread as error bars, the
               do-nothing predictors as markers.
   study_curves.png  the training loss and each group's held-out skill against the step (every
-              evaluation the runs logged: `--override=eval.every=500` draws a curve), mean over
-              seeds with their range.
+              evaluation the runs logged), mean over seeds with their range; study.md's last
+              table holds the same per config and step.
 
-Closed loop (`--closed_loop_episodes=N`, default 50; 0 = off): every run's final checkpoint also
+Every held-out number is the single draw's (what a robot executes), with the mean of the
+`eval.num_draws` draws and the energy skill beside it (docs/evaluation.md).
+
+Closed loop (`--closed_loop_episodes=N`; the default, -1, is one episode per 120 training steps
+within [10, 50], announced at start with its estimated time; 0 = off): every run's final checkpoint also
 drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N
 --tolerances=1,2,4`, the same N episodes for every run), and study.md / study.png add, mean ± std
 over seeds: the share of navigation and manipulation phases that succeeded, the episodes whose

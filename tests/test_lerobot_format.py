@@ -110,7 +110,7 @@ def test_lerobots_frame_sample_grows_as_the_three_quarter_power():
     assert lerobot_stats.sample_indices(1000)[[0, -1]].tolist() == [0, 999]
 
 
-def test_pooled_statistics_are_those_of_all_the_frames():
+def test_pooled_moments_are_those_of_all_the_frames():
     rng = np.random.default_rng(0)
     parts = [rng.normal(size=(n, 3)) + n for n in (5, 9, 14)]
     pooled = lerobot_stats.merge_stats([lerobot_stats.feature_stats(p) for p in parts])
@@ -118,7 +118,15 @@ def test_pooled_statistics_are_those_of_all_the_frames():
     np.testing.assert_allclose(pooled["mean"], whole.mean(0))
     np.testing.assert_allclose(pooled["std"], whole.std(0))
     assert pooled["count"] == [28]
-    assert np.all(np.asarray(pooled["q01"]) <= np.quantile(whole, 0.01, 0) + 1e-12)
+
+
+def test_pooled_quantiles_are_the_count_weighted_mean_as_lerobot_aggregates_them():
+    rng = np.random.default_rng(0)
+    parts = [rng.normal(size=(n, 3)) + n for n in (5, 9, 14)]
+    pooled = lerobot_stats.merge_stats([lerobot_stats.feature_stats(p) for p in parts])
+    for name, q in lerobot_stats.QUANTILES.items():
+        expected = sum(len(p) * np.quantile(p, q, axis=0) for p in parts) / 28
+        np.testing.assert_allclose(pooled[name], expected)
 
 
 def test_v30_tasks_are_a_frame_indexed_by_the_task_string(v30):

@@ -10,8 +10,12 @@ Each feature gets `min`, `max`, `mean`, `std`, `count` and the quantiles `q01`, 
   - a camera: per colour channel over a sample of the episode's frames (evenly spaced, n^0.75 of
     them between 100 and 10 000, as LeRobot samples; frames larger than 300 px strided down to
     ~150 px), values scaled to [0, 1], each stat `[3, 1, 1]`; `count` is the frames sampled.
-Episodes pool (`merge_stats`) with count-weighted means and variances; quantiles pool as LeRobot's
-aggregation does, as an envelope: the smallest of the lower quantiles, the largest of the upper.
+Episodes pool (`merge_stats`) with count-weighted means and variances, and quantiles as LeRobot
+0.4's aggregation pools them: the count-weighted mean of the episodes' quantiles. That is not the
+pooled data's quantile (demo action dim 0: q01 / q99 -0.116 / 0.309 against the exact -0.345 /
+0.35), but it is what LeRobot's own tools write after an edit, so a dataset reads the same
+whichever wrote it last. The project's training never uses these: it computes its own exact
+statistics (`data.stats`, openpi's `norm_stats.json`).
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ def merge_stats(parts: Sequence[Mapping[str, list]]) -> dict[str, list]:
     variance = (weights * (field("std") ** 2 + (means - mean) ** 2)).sum(0)
     out = {"min": field("min").min(0), "max": field("max").max(0), "mean": mean,
            "std": np.sqrt(np.maximum(variance, 0.0))}
-    for name, q in QUANTILES.items():
+    for name in QUANTILES:
         if all(name in p for p in parts):
-            out[name] = field(name).min(0) if q <= 0.5 else field(name).max(0)
+            out[name] = (weights * field(name)).sum(0)
     return {**{k: v.tolist() for k, v in out.items()}, "count": [int(counts.sum())]}
