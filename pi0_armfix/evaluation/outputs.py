@@ -9,12 +9,22 @@ from etils import epath
 
 
 def writable_folder(folder: epath.Path,
-                    fix: str = "make the run folder writable (or evaluate a copy of it)") -> None:
-    """Creates `folder` and checks that a file can be written there, or raises ValueError naming
-    it and `fix` (before the work, which would otherwise be lost at its end)."""
+                    fix: str = "make the run folder writable (or evaluate a copy of it)", *,
+                    create: bool = True) -> None:
+    """Checks that a file can be written in `folder` (created when `create`; else probed in the
+    nearest folder that exists, so a refused command leaves nothing behind), or raises ValueError
+    naming it and `fix` (before the work, which would otherwise be lost at its end)."""
+    folder = epath.Path(folder)
+    probed = folder
+    if not create:
+        while not probed.exists() and probed.parent != probed:
+            probed = probed.parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / ".write_check"
+        if create:
+            folder.mkdir(parents=True, exist_ok=True)
+        elif not probed.is_dir():
+            raise NotADirectoryError(f"{probed} is not a folder")
+        probe = probed / ".write_check"
         probe.write_text("")
         probe.unlink()
     except OSError as e:

@@ -247,7 +247,7 @@ def export(checkpoint: str | Path, output: str | Path, *, asset_id: str = "",
     if output.exists() and any(output.iterdir()):
         raise ValueError(f"--output={output} is not empty; name a new folder (an export never "
                          "overwrites one)")
-    writable_folder(output, "pass an --output on a writable file system")
+    writable_folder(output, "pass an --output on a writable file system", create=False)
     run = inference.restore_run(epath.Path(workdir), step, "ema" if ema else "params")
     problems = openpi_problems(run)
     if problems and not force:
