@@ -218,9 +218,9 @@ def chunk_targets(table, norm_stats):
 
 
 def passthrough_stats(width):
-    """Stats the normalizer leaves values unchanged with: std 0 is a constant dim, passed
-    through centred on its mean 0."""
-    return stats_lib.NormStats(*(np.zeros(width) for _ in stats_lib.FIELDS))
+    """Stats the normalizer leaves values unchanged with: mean 0 and std + eps = 1."""
+    return stats_lib.NormStats(mean=np.zeros(width), std=np.full(width, 1.0 - transforms.EPS),
+                               q01=-np.ones(width), q99=np.ones(width))
 
 
 def test_delta_action_stats_are_over_every_chunk_step_the_batches_hold():

@@ -222,7 +222,8 @@ def test_actions_wider_than_32_train_without_cameras_with_eval_groups_from_roles
 def test_eval_defaults_follow_the_layout_roles():
     layout = ActionLayout(groups={"arm": (0, 6), "claw": (6, 7)}, real_dim=7,
                           roles={"arm": "arm", "claw": "gripper"})
-    eval_cfg = dict(gripper_groups=(), plot_groups=(), batch_size=8, max_chunks=16, num_steps=2)
+    eval_cfg = dict(gripper_groups=(), plot_groups=(), batch_size=8, max_chunks=16, num_steps=2,
+                    num_draws=2, average_draws=1, temperature=1.0)
     evaluate.check_eval_config(eval_cfg, layout, 1)
     assert evaluate.eval_groups(eval_cfg, layout) == {"gripper_groups": ("claw",),
                                                       "plot_groups": ("arm", "claw")}
@@ -308,7 +309,9 @@ def test_a_curriculum_phase_longer_than_the_run_is_said_before_training(tmp_path
         train__total_steps=10))
     source = sources.open_source(config.data, LAYOUT)
     warnings = dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=False)
-    assert any("phase 0 lasts until step 300, but train.total_steps = 10" in w for w in warnings)
+    until = config.data.curriculum[0][0]  # a fifth of the demo's budget
+    assert any(f"phase 0 lasts until step {until}, but train.total_steps = 10" in w
+               for w in warnings)
 
 
 def test_a_tools_user_error_is_one_line_without_a_traceback(tmp_path, cache_dir):  # noqa: F811
