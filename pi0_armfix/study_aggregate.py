@@ -58,13 +58,8 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
     """A run's headline numbers (`COMPARED`) on each of the study's resamples of its held-out
     episodes (`study_stats.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
     `{"episodes": E, <name>: [B] values}`."""
-    _, episode = np.unique(sums[heldout_lib.EPISODE], return_inverse=True)
-    num_episodes = int(episode.max()) + 1
-    onehot = np.zeros((len(episode), num_episodes))
-    onehot[np.arange(len(episode)), episode] = 1.0
-    counts = study_stats.episode_counts(num_episodes)
-    totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in sums.items()
-              if k != heldout_lib.EPISODE}  # [B] each
+    num_episodes = len(np.unique(sums[heldout_lib.EPISODE]))
+    totals = heldout_lib.resampled_totals(sums)
 
     def part(prefix, b):
         return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
@@ -72,7 +67,7 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
     replicates = {k: [] for k in COMPARED}
     mean_prefix = heldout_lib.MEAN_OF_DRAWS + "/"
     has_mean = any(k.startswith(mean_prefix) for k in totals)
-    for b in range(len(counts)):
+    for b in range(len(next(iter(totals.values())))):
         metrics = eval_metrics.metrics_from_sums(part("policy/", b), layout)
         persistence = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
         metrics.update(eval_metrics.skill_scores(metrics, persistence, layout))

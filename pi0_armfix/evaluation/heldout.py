@@ -173,6 +173,16 @@ class HeldOutChunks:
         return metrics, kept
 
 
+def resampled_totals(kept: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Every kept per-chunk sum (`HeldOutChunks.score`) totalled on each of the study's
+    resamples of the held-out episodes (`study_stats.episode_counts`): `{key: [B]}`."""
+    _, episode = np.unique(kept[EPISODE], return_inverse=True)
+    onehot = np.eye(int(episode.max()) + 1)[episode]  # [N, E]
+    counts = study_stats.episode_counts(onehot.shape[1])  # [B, E]
+    return {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
+            if k != EPISODE}
+
+
 def episode_intervals(kept: Mapping[str, np.ndarray], layout,
                       confidence: float = study_stats.CONFIDENCE) -> dict[str, float]:
     """Percentile bootstrap intervals over the held-out episodes (`study_stats.episode_counts`:
@@ -180,17 +190,13 @@ def episode_intervals(kept: Mapping[str, np.ndarray], layout,
     from an evaluation's kept per-chunk sums: `interval_low/<key>` and `interval_high/<key>` for
     `<key>` = `skill/<g>` and `mean_of_draws/skill/<g>`. How far one run's skill is from 0 given
     which episodes happened to be held out (not the seeds' spread: `pi0_armfix.study`)."""
-    _, episode = np.unique(kept[EPISODE], return_inverse=True)
-    onehot = np.eye(int(episode.max()) + 1)[episode]  # [N, E]
-    counts = study_stats.episode_counts(onehot.shape[1])  # [B, E]
-    totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
-              if k != EPISODE}  # [B] each
+    totals = resampled_totals(kept)
 
     def part(prefix, b):
         return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
 
     values: dict[str, list[float]] = {}
-    for b in range(len(counts)):
+    for b in range(study_stats.EPISODE_REPLICATES):
         held = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
         for prefix, name in (("policy/", ""), (f"{MEAN_OF_DRAWS}/", f"{MEAN_OF_DRAWS}/")):
             measured = eval_metrics.metrics_from_sums(part(prefix, b), layout)
