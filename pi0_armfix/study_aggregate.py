@@ -19,7 +19,6 @@ from pi0_armfix import study_stats
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import baselines as baselines_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.evaluation import metrics as eval_metrics
 
 SWITCH_METRICS = ("precision", "recall", "f1")
 SWITCH_COUNTS = ("tp", "fp", "fn")
@@ -59,22 +58,8 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
     episodes (`study_stats.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
     `{"episodes": E, <name>: [B] values}`."""
     num_episodes = len(np.unique(sums[heldout_lib.EPISODE]))
-    totals = heldout_lib.resampled_totals(sums)
-
-    def part(prefix, b):
-        return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
-
     replicates = {k: [] for k in COMPARED}
-    mean_prefix = heldout_lib.MEAN_OF_DRAWS + "/"
-    has_mean = any(k.startswith(mean_prefix) for k in totals)
-    for b in range(len(next(iter(totals.values())))):
-        metrics = eval_metrics.metrics_from_sums(part("policy/", b), layout)
-        persistence = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
-        metrics.update(eval_metrics.skill_scores(metrics, persistence, layout))
-        if has_mean:
-            mean = eval_metrics.metrics_from_sums(part(mean_prefix, b), layout)
-            metrics.update({mean_prefix + k: v for k, v in eval_metrics.skill_scores(
-                mean, persistence, layout).items()})
+    for metrics in heldout_lib.resampled_metrics(sums, layout):
         for k, v in run_summary(metrics, layout).items():
             if k in replicates:
                 replicates[k].append(v if math.isfinite(v) else None)

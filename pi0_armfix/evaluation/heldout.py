@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -86,7 +86,8 @@ class HeldOutChunks:
     Attributes:
       frames `[N]`, episodes `[N]` (each chunk's held-out episode, 0 .. E-1), batches (model
       batches of `eval.batch_size`, the last one filled up by repeating its last chunk: the
-      sampler compiles once; `batch_rows` says how many rows of each are real), valid `[N, H]`, true `[N, H, A]` (evaluation units), scale
+      sampler compiles once; `batch_rows` says how many rows of each are real), valid `[N, H]`,
+      true `[N, H, A]` (evaluation units), scale
       `[A]`, gripper_threshold `[A]`, transform, reference: `{name: metrics}` of `persistence`,
       `state_copy` and, on the embedded demo, `ceiling`, each with its `skill/<g>` over
       persistence, and reference_sums: `{name: per-chunk sums}` of the same.
@@ -173,36 +174,44 @@ class HeldOutChunks:
         return metrics, kept
 
 
-def resampled_totals(kept: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Every kept per-chunk sum (`HeldOutChunks.score`) totalled on each of the study's
-    resamples of the held-out episodes (`study_stats.episode_counts`): `{key: [B]}`."""
+def resampled_metrics(kept: Mapping[str, np.ndarray], layout) -> Iterator[dict[str, float]]:
+    """The metrics of an evaluation's kept per-chunk sums (`HeldOutChunks.score`) on each of the
+    study's resamples of the held-out episodes (`study_stats.episode_counts`): per resample, the
+    single draw's metrics with their skill over persistence, and the mean of the draws' skill
+    under `mean_of_draws/skill/<g>` where the sums hold it."""
     _, episode = np.unique(kept[EPISODE], return_inverse=True)
     onehot = np.eye(int(episode.max()) + 1)[episode]  # [N, E]
     counts = study_stats.episode_counts(onehot.shape[1])  # [B, E]
-    return {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
-            if k != EPISODE}
-
-
-def episode_intervals(kept: Mapping[str, np.ndarray], layout,
-                      confidence: float = study_stats.CONFIDENCE) -> dict[str, float]:
-    """Percentile bootstrap intervals over the held-out episodes (`study_stats.episode_counts`:
-    the study's resamples) of each group's skill, the single draw's and the mean of the draws',
-    from an evaluation's kept per-chunk sums: `interval_low/<key>` and `interval_high/<key>` for
-    `<key>` = `skill/<g>` and `mean_of_draws/skill/<g>`. How far one run's skill is from 0 given
-    which episodes happened to be held out (not the seeds' spread: `pi0_armfix.study`)."""
-    totals = resampled_totals(kept)
+    totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
+              if k != EPISODE}  # [B] each
+    mean_prefix = f"{MEAN_OF_DRAWS}/"
 
     def part(prefix, b):
         return {k[len(prefix):]: v[b] for k, v in totals.items() if k.startswith(prefix)}
 
-    values: dict[str, list[float]] = {}
-    for b in range(study_stats.EPISODE_REPLICATES):
+    for b in range(len(counts)):
+        metrics = eval_metrics.metrics_from_sums(part("policy/", b), layout)
         held = eval_metrics.metrics_from_sums(part("persistence/", b), layout)
-        for prefix, name in (("policy/", ""), (f"{MEAN_OF_DRAWS}/", f"{MEAN_OF_DRAWS}/")):
-            measured = eval_metrics.metrics_from_sums(part(prefix, b), layout)
-            skills = eval_metrics.skill_scores(measured, held, layout)
-            for g in layout.group_names:
-                values.setdefault(f"{name}skill/{g}", []).append(skills[f"skill/{g}"])
+        metrics.update(eval_metrics.skill_scores(metrics, held, layout))
+        mean = part(mean_prefix, b)
+        if mean:
+            metrics.update({mean_prefix + k: v for k, v in eval_metrics.skill_scores(
+                eval_metrics.metrics_from_sums(mean, layout), held, layout).items()})
+        yield metrics
+
+
+def episode_intervals(kept: Mapping[str, np.ndarray], layout,
+                      confidence: float = study_stats.CONFIDENCE) -> dict[str, float]:
+    """Percentile bootstrap intervals over the held-out episodes (`resampled_metrics`: the
+    study's resamples) of each group's skill, the single draw's and the mean of the draws',
+    from an evaluation's kept per-chunk sums: `interval_low/<key>` and `interval_high/<key>` for
+    `<key>` = `skill/<g>` and `mean_of_draws/skill/<g>`. How far one run's skill is from 0 given
+    which episodes happened to be held out (not the seeds' spread: `pi0_armfix.study`)."""
+    keys = [f"{name}skill/{g}" for name in ("", f"{MEAN_OF_DRAWS}/") for g in layout.group_names]
+    values = {key: [] for key in keys}
+    for metrics in resampled_metrics(kept, layout):
+        for key in keys:
+            values[key].append(metrics.get(key, math.nan))
     tail = 100 * (1 - confidence) / 2
     out = {}
     for key, v in values.items():
