@@ -12,9 +12,12 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import study, study_aggregate, study_report
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
+from pi0_armfix.study import aggregate, report
+from pi0_armfix.study import main as study_main
+from pi0_armfix.study import run as study_run
 
 LAYOUT = {"preset": "b1k_r1pro", "action_dim": 32}
 
@@ -36,7 +39,7 @@ def test_aggregate_reports_mean_and_spread_over_seeds_and_the_difference_to_the_
     results = [_result("uniform", s, g) for s, g in enumerate((0.0, 0.1, 0.2))]
     results += [_result("arm_delta", s, g, base_skill=0.19, f1=0.7, arm_skill=0.3 + 0.02 * s)
                 for s, g in enumerate((0.5, 0.6, 0.7))]
-    agg = study_aggregate.aggregate(results)
+    agg = aggregate.aggregate(results)
     delta = agg["configs"]["arm_delta"]
     assert delta["mean"]["arm_gain"] == pytest.approx(0.6)
     assert delta["std"]["arm_gain"] == pytest.approx(0.1)
@@ -53,7 +56,7 @@ def test_aggregate_reports_mean_and_spread_over_seeds_and_the_difference_to_the_
 
 
 def test_do_nothing_rows_come_from_the_runs_baseline_metrics():
-    agg = study_aggregate.aggregate([_result("uniform", s, 0.1) for s in range(2)])
+    agg = aggregate.aggregate([_result("uniform", s, 0.1) for s in range(2)])
     persistence = agg["do_nothing"]["persistence"]
     assert persistence["motion_gain/base"] == 0.95 and persistence["arm_gain"] == 0.0
 
@@ -61,15 +64,15 @@ def test_do_nothing_rows_come_from_the_runs_baseline_metrics():
 def test_arm_gain_target_follows_the_ceiling_where_the_ceiling_is_low():
     results = [_result("uniform", s, 0.0) for s in range(3)]
     results += [_result("fix", s, 0.4 + 0.01 * s) for s in range(3)]
-    assert not study_aggregate.aggregate(results)["configs"]["fix"]["targets"]["arm_gain"]
+    assert not aggregate.aggregate(results)["configs"]["fix"]["targets"]["arm_gain"]
     ceiling = {"motion_gain/left_arm": 0.55, "motion_gain/right_arm": 0.55}
-    assert study_aggregate.aggregate(results, ceiling=ceiling)["configs"]["fix"]["targets"]["arm_gain"]
+    assert aggregate.aggregate(results, ceiling=ceiling)["configs"]["fix"]["targets"]["arm_gain"]
 
 
 def test_secondary_comparisons_get_bonferroni_corrected_intervals():
     results = [_result(c, s, g + 0.05 * s) for c, g in (("uniform", 0.0), ("a", 0.3), ("b", 0.3),
                                                          ("c", 0.3)) for s in range(5)]
-    agg = study_aggregate.aggregate(results, primary="a")
+    agg = aggregate.aggregate(results, primary="a")
     primary, secondary = agg["configs"]["a"], agg["configs"]["b"]
     assert primary["confidence"] == 0.95 and secondary["confidence"] == pytest.approx(0.975)
     width = lambda c: c["vs_baseline"]["arm_gain"][2] - c["vs_baseline"]["arm_gain"][1]  # noqa
@@ -78,7 +81,7 @@ def test_secondary_comparisons_get_bonferroni_corrected_intervals():
 
 def test_reports_are_written_and_name_every_config(tmp_path):
     results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
-    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     text = (tmp_path / "study.md").read_text()
     assert "| uniform |" in text and "| arm_focused |" in text and "Welch t" in text
     assert "*persistence (do nothing)*" in text and "anecdotes" in text
@@ -96,11 +99,11 @@ def _write_metrics_log(folder, seed, evaluations=(5, 10)):
 
 def test_curves_are_drawn_from_the_runs_metrics_logs_only_where_they_are_kept(tmp_path):
     results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
-    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     assert not (tmp_path / "study_curves.png").exists()  # result.json files only
     for r in results:
-        _write_metrics_log(study.run_folder(tmp_path, r["config"], r["seed"]), r["seed"])
-    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+        _write_metrics_log(study_run.run_folder(tmp_path, r["config"], r["seed"]), r["seed"])
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     assert (tmp_path / "study_curves.png").stat().st_size > 10_000
 
 
@@ -108,7 +111,7 @@ def test_a_curve_is_taken_at_the_steps_every_seed_logged():
     runs = [[{"step": 5, "skill/left_arm": -1.0}, {"step": 10, "skill/left_arm": 0.5}],
             [{"step": 10, "skill/left_arm": 0.1}, {"step": 15, "skill/left_arm": 0.2}],
             [{"step": 10, "loss": 1.0}]]  # never evaluated: left out
-    steps, values = study_report._curve_values(runs, "skill/left_arm")
+    steps, values = report._curve_values(runs, "skill/left_arm")
     assert steps == [10]
     np.testing.assert_allclose(values, [[0.5], [0.1]])
 
@@ -131,7 +134,7 @@ def test_closed_loop_success_gets_its_own_table_with_the_difference_to_the_basel
     results = [_closed_loop_result(config, seed, rate)
                for config, rates in (("uniform", (0.1, 0.2)), ("arm_focused", (0.5, 0.6)))
                for seed, rate in enumerate(rates)]
-    agg = study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    agg = study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     diff = agg["configs"]["arm_focused"]["vs_baseline"]["closed_loop/phase_success/manipulation"]
     assert diff[0] == pytest.approx(0.4) and diff[1] > 0  # 2 seeds apart, no overlap
     text = (tmp_path / "study.md").read_text()
@@ -142,7 +145,7 @@ def test_closed_loop_success_gets_its_own_table_with_the_difference_to_the_basel
 
 def test_the_success_curve_is_tabled_per_tolerance_factor(tmp_path):
     results = [_closed_loop_result(c, s, 0.2) for c in ("uniform", "fix") for s in range(2)]
-    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     text = (tmp_path / "study.md").read_text()
     assert "| config | navigation phases at 2x | manipulation phases at 2x |" in text
     assert "| fix | 1.000 ± 0.000 | 0.300 ± 0.000 |" in text
@@ -154,7 +157,7 @@ def test_closed_loop_targets_need_thirty_points_more_manipulation_with_an_interv
     results += [_closed_loop_result("small", s, r) for s, r in enumerate((0.3, 0.4))]
     for r in results:
         r["metrics"]["gripper_switch/precision"] = 0.7
-    met = {c: e["targets"] for c, e in study_aggregate.aggregate(results)["configs"].items()}
+    met = {c: e["targets"] for c, e in aggregate.aggregate(results)["configs"].items()}
     assert met["fix"]["closed_loop_manipulation"] and met["fix"]["closed_loop_navigation"]
     assert met["fix"]["switch_precision"]
     assert not met["small"]["closed_loop_manipulation"]  # +0.2: below the 30 points
@@ -166,7 +169,7 @@ def test_closed_loop_outcomes_count_each_episodes_phases():
         {"kind": "navigation", "success": True}, {"kind": "manipulation", "success": False}]},
         {"task": True, "navigation": True, "manipulation": True, "phases": [
             {"kind": "navigation", "success": True}, {"kind": "manipulation", "success": True}]}]
-    out = study_aggregate.closed_loop_outcomes(detail)
+    out = aggregate.closed_loop_outcomes(detail)
     assert out["success/task"] == [0, 1] and out["success/manipulation"] == [0, 1]
     assert out["phases/manipulation"] == [2, 1] and out["phase_successes/manipulation"] == [1, 1]
 
@@ -174,11 +177,11 @@ def test_closed_loop_outcomes_count_each_episodes_phases():
 def test_closed_loop_replicates_are_the_rate_on_each_resample_of_the_episodes():
     outcomes = {"success/task": [1, 0, 0, 1], "success/manipulation": [1, 0, 0, 1],
                 "phases/manipulation": [2, 2, 1, 1], "phase_successes/manipulation": [2, 1, 0, 1]}
-    counts = study_aggregate.study_stats.episode_counts(4)
-    rates = study_aggregate.closed_loop_replicates(outcomes, "phase_success/manipulation")
+    counts = intervals.episode_counts(4)
+    rates = aggregate.closed_loop_replicates(outcomes, "phase_success/manipulation")
     expected = counts @ np.array([2, 1, 0, 1.0]) / (counts @ np.array([2, 2, 1, 1.0]))
     np.testing.assert_allclose(rates, expected)
-    task = study_aggregate.closed_loop_replicates(outcomes, "success/task")
+    task = aggregate.closed_loop_replicates(outcomes, "success/task")
     assert task.mean() == pytest.approx(0.5, abs=0.05)
 
 
@@ -195,8 +198,8 @@ def test_the_world_episodes_widen_the_closed_loop_interval():
              for s, r in enumerate(rates)]
     resampled = [{**r, "closed_loop_episodes": outcomes()} for r in plain]
     key = "closed_loop/phase_success/manipulation"
-    narrow = study_aggregate.aggregate(plain)["configs"]["fix"]["vs_baseline"][key]
-    wide = study_aggregate.aggregate(resampled)["configs"]["fix"]["vs_baseline"][key]
+    narrow = aggregate.aggregate(plain)["configs"]["fix"]["vs_baseline"][key]
+    wide = aggregate.aggregate(resampled)["configs"]["fix"]["vs_baseline"][key]
     assert narrow[0] == pytest.approx(wide[0])
     assert wide[2] - wide[1] > narrow[2] - narrow[1]
 
@@ -225,32 +228,32 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
 
 def test_report_only_tables_the_finished_runs_and_trains_nothing(tmp_path):
     for seed in (0, 1):
-        folder = study.run_folder(tmp_path, "uniform", seed)
+        folder = study_run.run_folder(tmp_path, "uniform", seed)
         folder.mkdir(parents=True)
-        (folder / study.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
-    results = study.run_study(["uniform", "arm_focused"], [0, 1, 2], 10, tmp_path,
+        (folder / study_run.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
+    results = study_run.run_study(["uniform", "arm_focused"], [0, 1, 2], 10, tmp_path,
                               closed_loop_episodes=50, train=False)
     assert [(r["config"], r["seed"]) for r in results] == [("uniform", 0), ("uniform", 1)]
-    assert not study.run_folder(tmp_path, "arm_focused", 0).exists()
+    assert not study_run.run_folder(tmp_path, "arm_focused", 0).exists()
 
 
 def test_finished_runs_without_the_closed_loop_get_it_once_in_the_pool(tmp_path, monkeypatch):
     for seed in (0, 1):
-        folder = study.run_folder(tmp_path, "uniform", seed)
+        folder = study_run.run_folder(tmp_path, "uniform", seed)
         folder.mkdir(parents=True)
-        (folder / study.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
+        (folder / study_run.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
     measured = []
 
     def fake(folder, steps, episodes):
         measured.append(folder.name)
         return {"closed_loop/episodes": episodes}, {"success/task": [1] * episodes}
-    monkeypatch.setattr(study, "closed_loop_metrics", fake)
+    monkeypatch.setattr(study_run, "closed_loop_metrics", fake)
     for _ in range(2):
-        results = study.run_study(["uniform"], [0, 1], 10, tmp_path, parallel=2,
+        results = study_run.run_study(["uniform"], [0, 1], 10, tmp_path, parallel=2,
                                   closed_loop_episodes=3)
     assert sorted(measured) == ["seed_0", "seed_1"]
     assert all(r["closed_loop_episodes"] == {"success/task": [1, 1, 1]} for r in results)
-    saved = study.load_result(study.run_folder(tmp_path, "uniform", 1))
+    saved = study_run.load_result(study_run.run_folder(tmp_path, "uniform", 1))
     assert saved["metrics"]["closed_loop/episodes"] == 3
 
 
@@ -263,7 +266,7 @@ def test_closed_loop_failure_reasons_get_a_table_of_mean_fractions(tmp_path):
                               "closed_loop/failure/navigation/not_stopped": 1.0,
                               "closed_loop/gripper_switches/manipulation": 3.0}
         results.append(result)
-    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     text = (tmp_path / "study.md").read_text()
     header = next(line for line in text.splitlines() if "man: never_reached" in line)
     row = next(line for line in text.splitlines() if line.startswith("| uniform | ")
@@ -275,9 +278,9 @@ def test_closed_loop_failure_reasons_get_a_table_of_mean_fractions(tmp_path):
 
 def _with_replicates(result, spread, rng):
     """`result` with episode replicates spread around its own headline numbers."""
-    summary = study_aggregate.run_summary(result["metrics"], ActionLayout.from_config(LAYOUT))
+    summary = aggregate.run_summary(result["metrics"], ActionLayout.from_config(LAYOUT))
     result["episode_replicates"] = {"episodes": 20, **{
-        k: list(summary[k] + spread * rng.standard_normal(200)) for k in study_aggregate.COMPARED}}
+        k: list(summary[k] + spread * rng.standard_normal(200)) for k in aggregate.COMPARED}}
     return result
 
 
@@ -286,21 +289,21 @@ def test_intervals_widen_by_the_held_out_episodes_sampling_error_when_every_run_
     plain = [_result(c, s, g + 0.01 * s) for c, g in (("uniform", 0.0), ("fix", 0.3))
              for s in range(5)]
     resampled = [_with_replicates(dict(r), 0.2, rng) for r in plain]
-    narrow = study_aggregate.aggregate(plain)["configs"]["fix"]["vs_baseline"]["arm_gain"]
-    agg = study_aggregate.aggregate(resampled)
+    narrow = aggregate.aggregate(plain)["configs"]["fix"]["vs_baseline"]["arm_gain"]
+    agg = aggregate.aggregate(resampled)
     wide = agg["configs"]["fix"]["vs_baseline"]["arm_gain"]
     assert wide[0] == narrow[0] and wide[2] - wide[1] > 2 * (narrow[2] - narrow[1])
     assert agg["episode_resampling"] == {"episodes": 20, "replicates": 200}
-    assert study_aggregate.aggregate(resampled[:-1] + plain[-1:])["episode_resampling"] is None
+    assert aggregate.aggregate(resampled[:-1] + plain[-1:])["episode_resampling"] is None
 
 
 def test_the_report_says_which_errors_its_intervals_hold(tmp_path):
     rng = np.random.default_rng(0)
     results = [_with_replicates(_result(c, s, 0.1 * s), 0.1, rng)
                for c in ("uniform", "fix") for s in range(2)]
-    study.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     assert "held-out episodes' sampling error (20 episodes" in (tmp_path / "study.md").read_text()
-    study.write_reports(results[:-1] + [_result("fix", 1, 0.1)], tmp_path, steps=10,
+    study_main.write_reports(results[:-1] + [_result("fix", 1, 0.1)], tmp_path, steps=10,
                         command="python -m pi0_armfix.study")
     assert "the seeds' spread only" in (tmp_path / "study.md").read_text()
 
@@ -327,8 +330,8 @@ def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluati
             **{f"policy/{k}": v for k, v in policy.items()},
             **{f"mean_of_draws/{k}": v for k, v in mean.items()},
             **{f"persistence/{k}": v for k, v in held.items()}}
-    monkeypatch.setattr(study.study_stats, "episode_counts", lambda e: np.ones((2, e)))
-    replicates = study_aggregate.episode_replicates(sums, layout)
+    monkeypatch.setattr(intervals, "episode_counts", lambda e: np.ones((2, e)))
+    replicates = aggregate.episode_replicates(sums, layout)
 
     def measured(s):
         return eval_metrics.metrics_from_sums({k: v.sum() for k, v in s.items()}, layout)
@@ -337,27 +340,28 @@ def test_episode_replicates_on_a_resample_of_every_episode_once_are_the_evaluati
     metrics |= eval_metrics.skill_scores(metrics, reference, layout)
     metrics |= {f"mean_of_draws/{k}": v for k, v in eval_metrics.skill_scores(
         measured(mean), reference, layout).items()}
-    expected = study_aggregate.run_summary(metrics, layout)
+    expected = aggregate.run_summary(metrics, layout)
     assert np.isfinite(expected["arm_energy_skill"])
     assert expected["arm_skill_mean_of_draws"] > expected["arm_skill"]
     assert replicates["episodes"] == 3
-    for k in study_aggregate.COMPARED:
+    for k in aggregate.COMPARED:
         assert replicates[k] == pytest.approx([expected[k]] * 2)
 
 
 SLEEPING_STUDY = """
 import os, sys
 from pathlib import Path
-from pi0_armfix import study
+from pi0_armfix.study import main as study_main
+from pi0_armfix.study import run as study_run
 
 def sleeper(config, seed, steps, folder, overrides, evaluations):  # a slow training run
     return [sys.executable, "-c", "import os, time; open(%r, 'w').write(str(os.getpid())); "
             "time.sleep(120)" % str(Path(folder) / "pid")]
 
-study.train_command = sleeper
+study_run.train_command = sleeper
 sys.argv = ["study", "--configs=uniform,arm_focused", "--seeds=2", "--steps=3",
             "--workdir=" + sys.argv[1], "--closed_loop_episodes=0"]
-study.cli()
+study_main.cli()
 """
 
 
@@ -395,31 +399,31 @@ def test_ctrl_c_or_kill_stops_the_study_and_its_children_and_says_how_to_resume(
 
 
 def test_a_torn_result_json_is_named_with_the_fix(tmp_path):
-    folder = study.run_folder(tmp_path, "uniform", 0)
+    folder = study_run.run_folder(tmp_path, "uniform", 0)
     folder.mkdir(parents=True)
-    (folder / study.RESULT_FILE).write_text('{"config": "uniform", "se')
+    (folder / study_run.RESULT_FILE).write_text('{"config": "uniform", "se')
     with pytest.raises(ValueError, match=r"uniform/seed_0/result.json is not JSON .*delete it"):
-        study.load_result(folder)
+        study_run.load_result(folder)
 
 
 def test_a_config_with_overrides_of_its_own_passes_them_to_its_runs_only(tmp_path):
-    assert study.parse_config("arm_focused:b1k@data.video_access=random@seed=3") == (
+    assert study_run.parse_config("arm_focused:b1k@data.video_access=random@seed=3") == (
         "arm_focused", "b1k", ["data.video_access=random", "seed=3"])
-    command = study.train_command("arm_focused@data.video_access=random", 2, 10, tmp_path,
+    command = study_run.train_command("arm_focused@data.video_access=random", 2, 10, tmp_path,
                                   ["data.root=/d"])
     assert "--config=configs/arm_focused.py" in command
     assert command[-2:] == ["--config.data.root=/d", "--config.data.video_access=random"]
-    plain = study.train_command("arm_focused", 2, 10, tmp_path, ["data.root=/d"])
+    plain = study_run.train_command("arm_focused", 2, 10, tmp_path, ["data.root=/d"])
     assert plain[-1] == "--config.data.root=/d"
-    assert (study.run_folder(tmp_path, "arm_focused@data.root=/a/b", 0)
+    assert (study_run.run_folder(tmp_path, "arm_focused@data.root=/a/b", 0)
             == tmp_path / "arm_focused@data.root=_a_b" / "seed_0")
 
 
 def test_the_closed_loop_is_proportionate_to_the_training_budget_and_announced():
-    assert study.default_closed_loop_episodes(1500) == 12
-    assert study.default_closed_loop_episodes(6000) == 50
-    assert study.default_closed_loop_episodes(100) == 10
-    line = study.closed_loop_plan(runs=20, episodes=50)
+    assert study_run.default_closed_loop_episodes(1500) == 12
+    assert study_run.default_closed_loop_episodes(6000) == 50
+    assert study_run.default_closed_loop_episodes(100) == 10
+    line = study_run.closed_loop_plan(runs=20, episodes=50)
     assert "50 episodes x 3 tolerances x 20 runs = 3000 episodes of the demo world" in line
 
 
@@ -434,7 +438,7 @@ def test_the_learning_curve_table_has_a_row_per_config_and_evaluated_step():
 
     curves = {"arm_focused": [[{"step": 10, "loss": 1.0}, record(500, -0.2), record(1000, 0.1)],
                               [record(500, -0.4), record(1000, 0.3)]]}
-    table = study_report.curve_table(curves, {"groups": groups,
+    table = report.curve_table(curves, {"groups": groups,
                                               "arm_groups": ["left_arm", "right_arm"]})
     rows = [line for line in table if line.startswith("| arm_focused")]
     assert len(rows) == 2

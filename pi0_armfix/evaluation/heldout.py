@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix import study_stats
+from pi0_armfix.evaluation import intervals
 from pi0_armfix.data import batching
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import stats as stats_lib
@@ -176,12 +176,12 @@ class HeldOutChunks:
 
 def resampled_metrics(kept: Mapping[str, np.ndarray], layout) -> Iterator[dict[str, float]]:
     """The metrics of an evaluation's kept per-chunk sums (`HeldOutChunks.score`) on each of the
-    study's resamples of the held-out episodes (`study_stats.episode_counts`): per resample, the
+    study's resamples of the held-out episodes (`intervals.episode_counts`): per resample, the
     single draw's metrics with their skill over persistence, and the mean of the draws' skill
     under `mean_of_draws/skill/<g>` where the sums hold it."""
     _, episode = np.unique(kept[EPISODE], return_inverse=True)
     onehot = np.eye(int(episode.max()) + 1)[episode]  # [N, E]
-    counts = study_stats.episode_counts(onehot.shape[1])  # [B, E]
+    counts = intervals.episode_counts(onehot.shape[1])  # [B, E]
     totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
               if k != EPISODE}  # [B] each
     mean_prefix = f"{MEAN_OF_DRAWS}/"
@@ -201,7 +201,7 @@ def resampled_metrics(kept: Mapping[str, np.ndarray], layout) -> Iterator[dict[s
 
 
 def episode_intervals(kept: Mapping[str, np.ndarray], layout,
-                      confidence: float = study_stats.CONFIDENCE) -> dict[str, float]:
+                      confidence: float = intervals.CONFIDENCE) -> dict[str, float]:
     """Percentile bootstrap intervals over the held-out episodes (`resampled_metrics`: the
     study's resamples) of each group's skill, the single draw's and the mean of the draws',
     from an evaluation's kept per-chunk sums: `interval_low/<key>` and `interval_high/<key>` for

@@ -1,4 +1,4 @@
-"""The study's statistics: intervals over seeds whose coverage is tested (docs/evaluation.md).
+"""The statistics of held-out evaluations and studies: intervals over seeds and held-out episodes whose coverage is tested (docs/evaluation.md).
 
 Every run of a study is one seed of one config, scored on the same held-out chunks. A config's
 metric is a mean over its seeds; the difference of two configs' means gets a **Welch t interval**
@@ -6,7 +6,7 @@ metric is a mean over its seeds; the difference of two configs' means gets a **W
 over persistence, say) a one-sample t interval. With n seeds the t quantile, not the normal one,
 gives the stated coverage: the percentile bootstrap over 3 seeds that this module replaces
 excluded 0 in ~20 % of simulated no-effect studies at a nominal 5 %.
-`tests/test_study_stats.py` simulates no-effect studies (with and without a config x episode
+`tests/test_intervals.py` simulates no-effect studies (with and without a config x episode
 effect) and checks that a 95 % interval excludes 0 in 3-7 % of them.
 
 The held-out episodes are a sample too. Every seed is scored on the same episodes, so the seeds'

@@ -1,5 +1,5 @@
 """A study's report: `study.md` (every table beside the do-nothing rows) and `study.png`, from
-`study_aggregate.aggregate`; `study_curves.png` from the runs' metrics logs."""
+`aggregate.aggregate`; `study_curves.png` from the runs' metrics logs."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pi0_armfix import study_stats  # noqa: E402
+from pi0_armfix.evaluation import intervals
 from pi0_armfix.sim.world import FAILURE_REASONS  # noqa: E402
-from pi0_armfix.study_aggregate import (  # noqa: E402
+from pi0_armfix.study.aggregate import (  # noqa: E402
     CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, COMPARED_HEADINGS,
     PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number)
 from pi0_armfix.evaluation.heldout import MEAN_OF_DRAWS  # noqa: E402
@@ -82,7 +82,7 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
     lines = [f"# Study: {len(configs)} configs x {seeds} seeds, {steps} steps", "",
              f"`{command}`", ""]
     if study["anecdotal"]:
-        lines += [f"**{seeds} seed(s) per config, fewer than {study_stats.MIN_SEEDS}: the "
+        lines += [f"**{seeds} seed(s) per config, fewer than {intervals.MIN_SEEDS}: the "
                   "intervals below are anecdotes, not results.**", ""]
     lines += ["Held-out chunks sampled by the policy, mean ± std over seeds, every seed on the "
               "same chunks (evaluation units: absolute actions over each dim's training std). "
@@ -203,7 +203,7 @@ def success_curve_table(configs: Mapping[str, Any]) -> list[str]:
 
 
 def closed_loop_targets(study: Mapping[str, Any]) -> list[str]:
-    """Which config meets the closed-loop targets (`study_aggregate.Targets`)."""
+    """Which config meets the closed-loop targets (`aggregate.Targets`)."""
     targets = study["targets"]
     rows = [(n, c["targets"]) for n, c in study["configs"].items()
             if "closed_loop_manipulation" in c["targets"]]

@@ -1,9 +1,9 @@
-"""The study's intervals hold their stated coverage (pi0_armfix.study_stats)."""
+"""The study's intervals hold their stated coverage (pi0_armfix.evaluation.intervals)."""
 
 import numpy as np
 import pytest
 
-from pi0_armfix import study_stats
+from pi0_armfix.evaluation import intervals
 
 STUDIES = 4000  # simulated studies per check: a 95 % interval's miss rate to about +-0.7 %
 
@@ -14,7 +14,7 @@ def _miss_rate(effect: float, seeds: int, spread_b: float = 1.0, seed: int = 0) 
     rng = np.random.default_rng(seed)
     a = rng.normal(effect, 1.0, (STUDIES, seeds))
     b = rng.normal(0.0, spread_b, (STUDIES, seeds))
-    return float(np.mean([study_stats.excludes_zero(study_stats.welch_interval(x, y))
+    return float(np.mean([intervals.excludes_zero(intervals.welch_interval(x, y))
                           for x, y in zip(a, b)]))
 
 
@@ -30,23 +30,23 @@ def test_welch_interval_finds_a_real_effect_of_two_standard_deviations_over_5_se
 def test_one_sample_interval_covers_the_true_mean_95_percent_of_the_time():
     rng = np.random.default_rng(1)
     draws = rng.normal(0.3, 0.2, (STUDIES, 5))
-    covered = [low <= 0.3 <= high for _, low, high in map(study_stats.mean_interval, draws)]
+    covered = [low <= 0.3 <= high for _, low, high in map(intervals.mean_interval, draws)]
     assert 0.93 <= np.mean(covered) <= 0.97
 
 
 def test_bonferroni_widens_secondary_comparisons_only():
-    assert study_stats.comparison_confidence(True, 8) == 0.95
-    assert study_stats.comparison_confidence(False, 8) == pytest.approx(1 - 0.05 / 8)
-    assert study_stats.comparison_confidence(False, 1) == 0.95
+    assert intervals.comparison_confidence(True, 8) == 0.95
+    assert intervals.comparison_confidence(False, 8) == pytest.approx(1 - 0.05 / 8)
+    assert intervals.comparison_confidence(False, 1) == 0.95
 
 
 def test_one_seed_has_an_estimate_but_no_interval():
-    diff, low, high = study_stats.welch_interval([0.5], [0.1, 0.2])
+    diff, low, high = intervals.welch_interval([0.5], [0.1, 0.2])
     assert diff == pytest.approx(0.35) and np.isnan(low) and np.isnan(high)
 
 
 def test_nan_seeds_are_left_out():
-    assert study_stats.mean_interval([0.1, np.nan, 0.3])[0] == pytest.approx(0.2)
+    assert intervals.mean_interval([0.1, np.nan, 0.3])[0] == pytest.approx(0.2)
 
 
 EPISODES, RESAMPLED_STUDIES = 20, 2000
@@ -57,9 +57,9 @@ def _episode_study_miss_rate(effect: float, seed_spread: float, interaction: flo
     """Share of simulated studies whose interval excludes 0. Each run's metric is its mean over
     the same held-out episodes of seed effect + episode effect (shared) + config x episode effect
     (the part a comparison keeps: on other episodes the difference changes), 5 seeds per config;
-    the episode variance comes from the study's resamples, as in `study_aggregate.aggregate`."""
+    the episode variance comes from the study's resamples, as in `aggregate.aggregate`."""
     rng = np.random.default_rng(seed)
-    counts = study_stats.episode_counts(EPISODES)
+    counts = intervals.episode_counts(EPISODES)
     misses = 0
     for _ in range(RESAMPLED_STUDIES):
         shared = rng.normal(0.0, 1.0, EPISODES)
@@ -67,12 +67,12 @@ def _episode_study_miss_rate(effect: float, seed_spread: float, interaction: flo
                        + rng.normal(0.0, interaction, EPISODES) for c in ("a", "b")}
         per_episode["a"] = per_episode["a"] + effect
         replicates = {c: per_episode[c] @ counts.T / EPISODES for c in per_episode}  # [5, B]
-        variance = (study_stats.episode_variance(replicates["a"], EPISODES, replicates["b"])
+        variance = (intervals.episode_variance(replicates["a"], EPISODES, replicates["b"])
                     if with_episodes else 0.0)
-        interval = study_stats.welch_interval(
+        interval = intervals.welch_interval(
             per_episode["a"].mean(axis=1), per_episode["b"].mean(axis=1),
             episode_variance=variance, episodes=EPISODES)
-        misses += study_stats.excludes_zero(interval)
+        misses += intervals.excludes_zero(interval)
     return misses / RESAMPLED_STUDIES
 
 
@@ -92,7 +92,7 @@ def test_the_interval_with_the_episodes_still_finds_a_real_effect():
 
 
 def test_episode_resamples_are_the_same_for_every_run_and_draw_e_episodes_each():
-    counts = study_stats.episode_counts(EPISODES)
-    np.testing.assert_array_equal(counts, study_stats.episode_counts(EPISODES))
-    assert counts.shape == (study_stats.EPISODE_REPLICATES, EPISODES)
+    counts = intervals.episode_counts(EPISODES)
+    np.testing.assert_array_equal(counts, intervals.episode_counts(EPISODES))
+    assert counts.shape == (intervals.EPISODE_REPLICATES, EPISODES)
     assert (counts.sum(axis=1) == EPISODES).all()

@@ -1,9 +1,9 @@
 """A study's numbers: per config, mean and spread over seeds of every metric, each config's
-difference to the baseline with intervals over seeds and held-out episodes (`study_stats`), the
+difference to the baseline with intervals over seeds and held-out episodes (`evaluation.intervals`), the
 do-nothing rows, and the targets a config meets (docs/evaluation.md).
 
 Pure functions of the runs' `result.json` contents; `pi0_armfix.study` runs the study,
-`pi0_armfix.study_report` writes what this module computes.
+`pi0_armfix.study.report` writes what this module computes.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix import study_stats
+from pi0_armfix.evaluation import intervals
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import baselines as baselines_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
@@ -55,7 +55,7 @@ class Targets:
 def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
                        ) -> dict[str, Any]:
     """A run's headline numbers (`COMPARED`) on each of the study's resamples of its held-out
-    episodes (`study_stats.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
+    episodes (`intervals.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
     `{"episodes": E, <name>: [B] values}`."""
     num_episodes = len(np.unique(sums[heldout_lib.EPISODE]))
     replicates = {k: [] for k in COMPARED}
@@ -80,10 +80,10 @@ def closed_loop_outcomes(detail: Sequence[Mapping[str, Any]]) -> dict[str, list[
 
 def closed_loop_replicates(outcomes: Mapping[str, Sequence[int]], key: str) -> np.ndarray:
     """`[B]`: a run's closed-loop rate `key` (one of `CLOSED_LOOP_COMPARED`) on each of the
-    study's resamples of its episodes (`study_stats.episode_counts`, the same for every run of
+    study's resamples of its episodes (`intervals.episode_counts`, the same for every run of
     that many episodes)."""
     kind, name = key.split("/")[1], key.split("/")[0]
-    counts = study_stats.episode_counts(len(outcomes[f"success/{kind}"]))  # [B, E]
+    counts = intervals.episode_counts(len(outcomes[f"success/{kind}"]))  # [B, E]
     if name == "success":
         return counts @ np.asarray(outcomes[key], np.float64) / counts.sum(axis=1)
     phases = counts @ np.asarray(outcomes[f"phases/{kind}"], np.float64)
@@ -170,23 +170,23 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
             "mean": {k: _nanmean(v) for k, v in {**values, **headline}.items()},
             "std": {k: _nanstd(v) for k, v in {**values, **headline}.items()},
             "headline": {k: v.tolist() for k, v in headline.items()},
-            "arm_skill_interval": study_stats.mean_interval(
+            "arm_skill_interval": intervals.mean_interval(
                 headline["arm_skill"], episodes=episodes, episode_variance=(
-                    study_stats.episode_variance(replicates(config, "arm_skill"), episodes)
+                    intervals.episode_variance(replicates(config, "arm_skill"), episodes)
                     if resampled else 0.0)),
         }
     base_values = per_config[baseline]["headline"]
     base_runs = [r for r in results if r["config"] == baseline]
     for config in configs:
         entry = per_config[config]
-        confidence = study_stats.comparison_confidence(config in (primary, baseline),
+        confidence = intervals.comparison_confidence(config in (primary, baseline),
                                                        len(secondary))
         entry["comparison"] = ("baseline" if config == baseline else
                                "primary" if config == primary else "secondary")
         entry["confidence"] = confidence
-        entry["vs_baseline"] = {k: study_stats.welch_interval(
+        entry["vs_baseline"] = {k: intervals.welch_interval(
             entry["headline"][k], base_values[k], confidence, episodes=episodes,
-            episode_variance=(study_stats.episode_variance(
+            episode_variance=(intervals.episode_variance(
                 replicates(config, k), episodes, replicates(baseline, k))
                 if resampled and config != baseline else 0.0))
             for k in COMPARED}
@@ -202,7 +202,7 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
             "do_nothing": {name: {**m, **run_summary(m, layout)} for name, m in do_nothing.items()
                            if m},
             "ceiling": dict(ceiling) if ceiling else None,
-            "min_seeds": seeds, "anecdotal": seeds < study_stats.MIN_SEEDS,
+            "min_seeds": seeds, "anecdotal": seeds < intervals.MIN_SEEDS,
             "episode_resampling": resampled, "targets": dataclasses.asdict(targets)}
 
 
@@ -222,10 +222,10 @@ def closed_loop_comparisons(runs: Sequence[Mapping[str, Any]],
             continue
         variance = 0.0
         if episodes:
-            variance = study_stats.episode_variance(
+            variance = intervals.episode_variance(
                 [closed_loop_replicates(r[CLOSED_LOOP_EPISODES], key) for r in runs], episodes,
                 [closed_loop_replicates(r[CLOSED_LOOP_EPISODES], key) for r in base_runs])
-        out[CLOSED_LOOP + key] = study_stats.welch_interval(
+        out[CLOSED_LOOP + key] = intervals.welch_interval(
             [r["metrics"][CLOSED_LOOP + key] for r in runs],
             [r["metrics"][CLOSED_LOOP + key] for r in base_runs], confidence,
             episodes=episodes, episode_variance=variance)

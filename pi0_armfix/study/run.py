@@ -1,63 +1,11 @@
-"""Every config x every seed -> tables with intervals over seeds, every number beside doing
-nothing: which lever fixes the arms, and by how much? (docs/evaluation.md)
-
-    python -m pi0_armfix.study --configs=uniform,arm_focused,arm_delta [--seeds=5] \
-        [--primary=arm_focused] [--steps=<the main job's>] [--evaluations=4] \
-        [--workdir=runs/study] [--parallel=1] [--override=data.root=/data/b1k] \
-        [--closed_loop_episodes=-1]
-
-Each (config, seed) trains in its own run folder `<workdir>/<config>/seed_<s>` through
-`python -m pi0_armfix.train` (`--config.seed=s`, `--config.train.total_steps=steps`, a held-out
-evaluation every steps / `--evaluations` steps and at the end: the learning curve), its console
-output in `train.log` there. A run whose
-`result.json` exists is finished and skipped; an interrupted one resumes from its checkpoints, so
-rerunning the same command finishes a study (seed-major: an interrupted study has every config's
-first seeds). The results of all finished runs are gathered into:
-
-  study.md    per group: skill over persistence, motion gain and ratio, error, each with the
-              do-nothing rows (and the ceiling on the demo); gripper switch precision / recall /
-              F1 with the event counts; each config's difference to the first config (the
-              baseline) with a Welch t interval over seeds widened by the held-out episodes'
-              sampling error (`study_stats`), and the targets.
-  study.json  every run's metrics, the per-seed headline values and every aggregate.
-  study.png   per-group skill and motion gain, mean with the seeds' spread as error bars, the
-              do-nothing predictors as markers.
-  study_curves.png  the training loss and each group's held-out skill against the step (every
-              evaluation the runs logged), mean over seeds with their range; study.md's last
-              table holds the same per config and step.
-
-Every held-out number is the single draw's (what a robot executes), with the mean of the
-`eval.num_draws` draws and the energy skill beside it (docs/evaluation.md).
-
-Closed loop (`--closed_loop_episodes=N`; the default, -1, is one episode per 120 training steps
-within [10, 50], announced at start with its estimated time; 0 = off): every run's final checkpoint also
-drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N
---tolerances=1,2,4`, the same N episodes for every run), and study.md / study.png add, mean ± std
-over seeds: the share of navigation and manipulation phases that succeeded, the episodes whose
-every phase of a kind succeeded (and the whole task), why the phases failed, the success curve at
-2x and 4x the world's tolerances, and the difference to the baseline with an interval over seeds
-and the world episodes (resampled like the held-out ones, from the per-episode outcomes kept in
-`result.json`). A finished run without them gets them on the next call.
-
-A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1k`), optionally
-with overrides of its own after `@` (`arm_focused@data.video_access=random`: two variants of one
-file compare); every `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
-`pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
-configs with other normalizations or delta actions compare).
-
-The held-out episodes' sampling error: every run's evaluation keeps its per-chunk sums
-(`eval/step_<N>/chunk_sums.npz`); the study recomputes the run's headline numbers on resamples of
-the held-out episodes (the same resamples for every run) and keeps them in `result.json`
-(`episode_replicates`). A finished run without the sums is evaluated again from its checkpoint
-(`pi0_armfix.evaluate`); one kept without either leaves the intervals to the seeds alone, and
-study.md says so.
-"""
+"""Running a study's runs: one training subprocess per (config, seed) in its run folder, resumed
+where interrupted, then its held-out episode replicates and its closed loop, each kept in the run's
+`result.json` (the study's entry point and its outputs: `pi0_armfix.study`)."""
 
 from __future__ import annotations
 
 import concurrent.futures
 import contextlib
-import functools
 import json
 import os
 import signal
@@ -68,21 +16,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from absl import app, flags
 from tqdm import tqdm
 
-from pi0_armfix import console, evaluate, inference, study_stats
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.configs import base as base_config
 from pi0_armfix.data import json_files
-from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.study_aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
-                                        CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES, aggregate,
+from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
+                                        CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         closed_loop_outcomes, episode_replicates)
-from pi0_armfix.study_report import curve_table, markdown, plot_curves, plot_study
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -91,8 +33,6 @@ RESULT_FILE = "result.json"
 CLOSED_LOOP_SECONDS = 3.0
 CLOSED_LOOP_STEPS_PER_EPISODE = 120  # the default closed loop: one episode per this many steps
 
-
-# ---------------------------------------------------------------------- running
 
 
 def run_folder(workdir: Path, config: str, seed: int) -> Path:
@@ -206,7 +146,7 @@ def closed_loop_metrics(folder: Path, steps: int, episodes: int
     """Runs the closed-loop evaluation of a run's step `steps` (`pi0_armfix.evaluate
     --closed_loop`, with the success curve at `CLOSED_LOOP_TOLERANCES`) and returns its rates as
     `closed_loop/<name>` metrics (the curve's as `closed_loop/curve/<f>x/<name>`) and the
-    per-episode outcomes (`study_aggregate.closed_loop_outcomes`)."""
+    per-episode outcomes (`aggregate.closed_loop_outcomes`)."""
     factors = ",".join(f"{f:g}" for f in CLOSED_LOOP_TOLERANCES)
     _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
              f"--step={steps}", "--closed_loop", f"--episodes={episodes}",
@@ -340,143 +280,3 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
             raise StudyInterrupted(f"{finished} of {len(configs) * len(seeds)} runs finished"
                                    ) from None
     return [results[c, s] for c in configs for s in seeds]
-
-
-# ---------------------------------------------------------------------- reports
-
-
-def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
-                    ) -> dict[str, float] | None:
-    """The ceiling's metrics (`evaluation.ceiling`, the embedded demo only): from the runs'
-    `ceiling/...` metrics, or, for runs evaluated before the ceiling existed, measured on the
-    first run's held-out chunks. None on other data, or without the first run's checkpoints."""
-    prefix = heldout_lib.CEILING + "/"
-    for result in results:
-        found = {k[len(prefix):]: v for k, v in result["metrics"].items() if k.startswith(prefix)}
-        if found:
-            return found
-    first = results[0]
-    try:
-        run = inference.restore_run(run_folder(workdir, first["config"], first["seed"]))
-    except ValueError:  # results copied without their checkpoints: no ceiling to measure
-        return None
-    if run.config.data.root:
-        return None
-    groups = evaluate.eval_groups(run.config.eval, run.layout)
-    chunks = heldout_lib.HeldOutChunks(
-        DataSpec.from_config(run.config, run.layout), run.config.eval, run.norm_stats,
-        horizon=run.model_config.action_horizon,
-        sums=functools.partial(eval_metrics.chunk_sums, layout=run.layout,
-                                  gripper_groups=groups["gripper_groups"],
-                                  switch_tolerance=run.config.eval.switch_tolerance))
-    return chunks.reference[heldout_lib.CEILING]
-
-
-def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps: int,
-                  command: str, primary: str | None = None,
-                  ceiling: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """Writes `study.md`, `study.json`, `study.png` and (from the runs' metrics logs, where
-    kept) `study_curves.png` into `workdir`; returns the aggregate."""
-    study = aggregate(results, primary=primary, ceiling=ceiling)
-    (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
-    json_files.write_json_atomic(workdir / "study.json",
-                                {"command": command, "steps": steps, "runs": list(results),
-                                 **study})
-    plot_study(study, workdir / "study.png")
-    curves: dict[str, list[list[dict]]] = {}
-    for result in results:
-        folder = run_folder(workdir, result["config"], result["seed"])
-        curves.setdefault(result["config"], []).append(
-            metrics_log.read_metrics(folder / metrics_log.METRICS_FILE))
-    with open(workdir / "study.md", "a") as report:
-        report.write("\n".join(curve_table(curves, study)) + "\n")
-    plot_curves(curves, study["groups"], workdir / "study_curves.png")
-    return study
-
-
-# ---------------------------------------------------------------------- entrypoint
-
-
-def main(argv: Sequence[str]) -> None:
-    if len(argv) > 1:
-        raise app.UsageError(f"unexpected arguments {argv[1:]}")
-    FLAGS = flags.FLAGS
-    console.quiet_library_logging()
-    configs = [c for c in FLAGS.configs if c]
-    if not configs:
-        raise SystemExit("pi0_armfix.study: --configs names no config")
-    missing = [c for c in configs
-               if not (console.configs_dir() / f"{parse_config(c)[0]}.py").is_file()]
-    if missing:
-        raise SystemExit(f"pi0_armfix.study: --configs names {missing}, which are not files of "
-                         f"{console.configs_dir()}: use {', '.join(console.config_names())}")
-    if FLAGS.seeds < 1 or FLAGS.steps < 1 or FLAGS.parallel < 1 or FLAGS.evaluations < 1:
-        raise SystemExit("pi0_armfix.study: --seeds, --steps, --parallel and --evaluations must "
-                         "be >= 1")
-    episodes = (default_closed_loop_episodes(FLAGS.steps) if FLAGS.closed_loop_episodes < 0
-                else FLAGS.closed_loop_episodes)
-    bad = [o for o in FLAGS.override if "=" not in o]
-    if bad:
-        raise SystemExit(f"pi0_armfix.study: --override {bad} must be key=value "
-                         "(e.g. data.root=/data/b1k)")
-    bad = [c for c in configs if any("=" not in o for o in parse_config(c)[2])]
-    if bad:
-        raise SystemExit(f"pi0_armfix.study: --configs {bad}: what follows a config's '@' must "
-                         "be key=value (e.g. arm_focused@data.video_access=random)")
-    if FLAGS.primary and FLAGS.primary not in configs:
-        raise SystemExit(f"pi0_armfix.study: --primary={FLAGS.primary} is not one of --configs "
-                         f"{configs}")
-    if FLAGS.seeds < study_stats.MIN_SEEDS:
-        print(f"study: {FLAGS.seeds} seed(s) per config: the intervals will be anecdotes "
-              f"(use --seeds={study_stats.MIN_SEEDS} or more for results)", flush=True)
-    if episodes and not FLAGS.report_only:
-        print(closed_loop_plan(len(configs) * FLAGS.seeds, episodes), flush=True)
-    workdir = Path(FLAGS.workdir).absolute()
-    command = "python -m pi0_armfix.study " + " ".join(sys.argv[1:])
-    # Ctrl-C or kill: stop the children (each in its own process group), start no other.
-    signal.signal(signal.SIGINT, CHILDREN.stop)
-    signal.signal(signal.SIGTERM, CHILDREN.stop)
-    try:
-        results = run_study(configs, list(range(FLAGS.seeds)), FLAGS.steps, workdir,
-                            FLAGS.override, FLAGS.parallel, episodes,
-                            train=not FLAGS.report_only, evaluations=FLAGS.evaluations)
-    except StudyInterrupted as stopped:
-        raise SystemExit(f"pi0_armfix.study: stopped; {stopped}. Rerun the same command to go "
-                         "on: finished runs are kept, an interrupted one resumes from its last "
-                         "checkpoint") from None
-    except (RuntimeError, ValueError) as err:
-        raise SystemExit(f"pi0_armfix.study: {err}") from None
-    write_reports(results, workdir, steps=FLAGS.steps, command=command,
-                  primary=FLAGS.primary or None, ceiling=ceiling_metrics(results, workdir))
-    print((workdir / "study.md").read_text())
-    print(f"study.md, study.json, study.png (and study_curves.png where the runs kept their "
-          f"metrics logs) in {workdir}")
-
-
-def cli() -> None:
-    """The `pi0-armfix-study` console script (also `python -m pi0_armfix.study`)."""
-    flags.DEFINE_list("configs", ["uniform", "arm_focused"],
-                      "config names of configs/ (the first is the baseline)")
-    flags.DEFINE_integer("seeds", study_stats.MIN_SEEDS, "seeds per config (0 .. seeds-1); "
-                         f"fewer than {study_stats.MIN_SEEDS} give anecdotes, not intervals")
-    flags.DEFINE_string("primary", "", "the config whose comparison with the baseline is the "
-                        "study's question (95 % interval; the others are Bonferroni-corrected); "
-                        "default: the second config")
-    flags.DEFINE_integer("steps", base_config.get_config().train.total_steps,
-                         "training steps of every run (default: the main job's)")
-    flags.DEFINE_string("workdir", "runs/study", "study folder (one run folder per config/seed)")
-    flags.DEFINE_integer("parallel", 1, "runs trained at the same time")
-    flags.DEFINE_bool("report_only", False, "write the tables of the finished runs and train "
-                      "nothing (a partial study, labelled with its seed counts)")
-    flags.DEFINE_multi_string("override", [], "key=value passed to every run as --config.key")
-    flags.DEFINE_integer("closed_loop_episodes", -1, "episodes of the demo world each run's "
-                         "final checkpoint drives at each tolerance (0: no closed-loop "
-                         "evaluation; -1: one per "
-                         f"{CLOSED_LOOP_STEPS_PER_EPISODE} training steps, within [10, 50])")
-    flags.DEFINE_integer("evaluations", 4, "held-out evaluations per run, evenly spaced, the last "
-                         "at --steps (the learning curves)")
-    app.run(main, flags_parser=console.flags_parser("pi0_armfix.study"))
-
-
-if __name__ == "__main__":
-    cli()

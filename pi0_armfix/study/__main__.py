@@ -1,0 +1,5 @@
+"""`python -m pi0_armfix.study`: see `pi0_armfix.study.main`."""
+
+from pi0_armfix.study.main import cli
+
+cli()
