@@ -1,308 +1,23 @@
-"""Held-out evaluation with actions sampled by the policy: is an arm stagnating, and does the
-policy do better than doing nothing? (docs/evaluation.md)
-
-During training (every `eval.every` steps) and offline on a checkpoint:
+"""`python -m pi0_armfix.evaluate`: a checkpoint's held-out evaluation (`pi0_armfix.evaluation.
+evaluator`, docs/evaluation.md) or, with `--closed_loop`, its policy driving the demo world
+(`pi0_armfix.evaluation.closed_loop`).
 
     python -m pi0_armfix.evaluate --workdir=runs/arm_focused [--step=N] [--params=ema|params]
-
-The held-out set is the dataset's last `eval.episodes` episodes (never trained on). Its chunks
-tile each episode's timeline (`tiled_chunk_starts`: every switch event once), at most
-`eval.max_chunks` of them, the same chunks at every evaluation; the policy samples each from the
-same noise (`eval.num_steps` Euler steps), so two evaluations differ only by the params. The
-sampled chunks are turned back into absolute actions in the data's units (normalization and
-delta actions undone) and every dim is divided by the training split's std of the absolute
-actions (`evaluation_scale`): runs with different normalizations or action representations are
-measured in the same units. The metrics are `pi0_armfix.evaluation.metrics`'s, for the policy
-and for the do-nothing predictors of `pi0_armfix.evaluation.baselines` scored on the same chunks
-(keys `persistence/...`, `state_copy/...`); `skill/<g>` is the policy's error against holding the
-previous action. Figures: predicted vs true trajectories (data units) of the chunks that move the
-`eval.plot_groups` most, and the per-group loss curves of `metrics.jsonl`.
+    python -m pi0_armfix.evaluate --workdir=runs/arm_focused --closed_loop [--episodes=50] \
+        [--tolerances=1,2,4]
 """
 
 from __future__ import annotations
 
-import functools
-import json
-import math
-from collections.abc import Mapping, Sequence
-from typing import Any, NamedTuple
+from collections.abc import Sequence
 
-import jax
-import numpy as np
 from absl import app, flags
-from etils import epath
-from tqdm import tqdm
 
-from pi0_armfix import console, hysteresis, inference
-from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import sources
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix import console
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.evaluation.outputs import strict_json, writable_folder
-from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import flow_model
-from pi0_armfix.model import noise as noise_lib
-from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.evaluation.evaluator import evaluate_checkpoint, format_metrics
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
-from pi0_armfix.training import plots
-from pi0_armfix.training import metrics_log
-from pi0_armfix.training import sharding as sharding_lib
-
-TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
-METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
-STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluations, in eval/
-
-
-def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
-                ) -> dict[str, tuple[str, ...]]:
-    """`{"gripper_groups", "plot_groups"}`: the `eval.*` keys, or when empty the layout's groups of
-    role gripper, and of role arm or gripper (every group if it declares none)."""
-    return {
-        "gripper_groups": tuple(eval_cfg["gripper_groups"]) or layout.groups_with_role("gripper"),
-        "plot_groups": (tuple(eval_cfg["plot_groups"]) or layout.groups_with_role("arm", "gripper")
-                        or layout.group_names),
-    }
-
-
-def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_devices: int
-                      ) -> None:
-    """Raises ValueError naming every `eval.*` group key the evaluation cannot run with at once,
-    then the first other bad key."""
-    problems = []
-    for field in ("gripper_groups", "plot_groups"):
-        unknown = [g for g in eval_cfg[field] if g not in layout.groups]
-        if unknown:
-            problems.append(f"eval.{field} names {unknown}")
-    if problems:
-        raise ValueError(f"{'; '.join(problems)}, which are not groups of the layout "
-                         f"({list(layout.group_names)}); set the key(s) to () to take the groups "
-                         "from the layout's roles (layout.roles)")
-    if eval_cfg["batch_size"] <= 0 or eval_cfg["batch_size"] % num_devices:
-        raise ValueError(f"eval.batch_size = {eval_cfg['batch_size']} must be a positive multiple "
-                         f"of the number of devices ({num_devices})")
-    for key in ("max_chunks", "num_steps", "num_draws", "average_draws"):
-        if eval_cfg[key] <= 0:
-            raise ValueError(f"eval.{key} = {eval_cfg[key]} must be positive")
-    if not 0.0 < eval_cfg["temperature"] <= 1.0:
-        raise ValueError(f"eval.temperature = {eval_cfg['temperature']} must be in (0, 1] (the "
-                         "initial noise's scale; 1 = the flow as trained)")
-    if hysteresis.check_thresholds(eval_cfg.get("gripper_hysteresis", ()),
-                                   "eval.gripper_hysteresis") and not layout.groups_with_role(
-                                       "gripper"):
-        raise ValueError("eval.gripper_hysteresis is set but the layout has no group of role "
-                         "gripper (layout.roles); set it to ()")
-    tolerance = eval_cfg.get("switch_tolerance", 2)
-    if tolerance < 0:
-        raise ValueError(f"eval.switch_tolerance = {tolerance} must be >= 0 (steps by which a "
-                         "predicted gripper switch may miss the true one)")
-
-
-# ---------------------------------------------------------------------- the evaluator
-
-class Evaluation(NamedTuple):
-    """One evaluation: `metrics` (`HeldOutChunks.score`: the single draw's with its skill, the
-    mean of the draws' under `mean_of_draws/...`, the energy score, and each reference's under
-    `<name>/...`), the single draw's `predicted` and the `true` absolute chunks `[N, H, A]` in
-    evaluation units, and the per-chunk sums the study resamples (`chunk_sums`, to be written
-    as `heldout.CHUNK_SUMS_FILE`)."""
-
-    metrics: dict[str, float]
-    predicted: np.ndarray
-    true: np.ndarray
-    chunk_sums: dict[str, np.ndarray]
-
-
-class Evaluator:
-    """Samples the fixed held-out chunks with given params and measures them.
-
-    Built once per run (reads the held-out episodes, compiles the sampler on first use).
-
-    Args:
-      spec: the run's data spec (its layout, held-out split, normalization, seed).
-      eval_cfg: the run's `eval` section.
-      model_config: the run's model.
-      norm_stats: the run's `{"actions", "state"}` statistics.
-      tokenize: the run's prompt tokenizer.
-      mesh: the run's mesh; params_sharding: NamedShardings of the params.
-      source: the run's opened data source (None = open the one `spec` names).
-      noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
-    """
-
-    def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
-                 model_config: model_config_lib.Pi0Config,
-                 norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
-                 mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
-                 noise_factor: np.ndarray | None = None):
-        layout = spec.layout
-        check_eval_config(eval_cfg, layout, mesh.size)
-        self.layout = layout
-        self.eval_cfg = eval_cfg
-        self.groups = eval_groups(eval_cfg, layout)
-        self.chunks = heldout_lib.HeldOutChunks(
-            spec, eval_cfg, norm_stats, horizon=model_config.action_horizon,
-            sums=functools.partial(eval_metrics.chunk_sums, layout=layout,
-                                      gripper_groups=self.groups["gripper_groups"],
-                                      switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
-            tokenize=tokenize, image_size=model_config.image_resolution, source=source)
-        self.batch_sharding = sharding_lib.batch_sharding(mesh)
-        self.draws, self.average = eval_cfg["num_draws"], eval_cfg["average_draws"]
-        # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on
-        # the evaluation batch size nor on which batch it lands in.
-        shape = (self.draws * self.average, len(self.chunks.frames), model_config.action_horizon,
-                 model_config.action_dim)
-        self.noise = eval_cfg["temperature"] * np.asarray(noise_lib.flow_noise(
-            jax.random.key(spec.seed), (shape[0] * shape[1], *shape[2:]), noise_factor)
-        ).reshape(shape)
-        sample = functools.partial(flow_model.sample_actions, config=model_config,
-                                   num_steps=eval_cfg["num_steps"], num_draws=shape[0])
-        self._sample = jax.jit(
-            lambda params, noise, observation: sample(params, None, observation, noise=noise),
-            in_shardings=(params_sharding, None, self.batch_sharding),
-            out_shardings=sharding_lib.replicated(mesh))
-
-    def _global(self, x: np.ndarray) -> jax.Array:
-        """This process's rows of a host batch `x` as a global array."""
-        per_process = len(x) // jax.process_count()
-        start = jax.process_index() * per_process
-        return jax.make_array_from_process_local_data(self.batch_sharding,
-                                                      x[start:start + per_process], x.shape)
-
-    def sample(self, params: Any) -> np.ndarray:
-        """The policy's chunks `[M, N, H, D]` (normalized) of all held-out chunks: M =
-        `eval.num_draws` draws, each the mean of `eval.average_draws` (the same noise every
-        call)."""
-        predicted, start = [], 0
-        for batch, rows in zip(tqdm(self.chunks.batches, desc="eval", leave=False,
-                                    disable=jax.process_index() != 0), self.chunks.batch_rows):
-            observation = jax.tree.map(self._global, {k: v for k, v in batch.items()
-                                                      if k not in ("actions", "action_is_pad")})
-            size = len(batch["actions"])
-            noise = np.zeros((len(self.noise), size, *self.noise.shape[2:]), np.float32)
-            noise[:, :rows] = self.noise[:, start:start + rows]
-            draws = self._sample(params, noise.reshape(-1, *noise.shape[2:]), observation)
-            predicted.append(np.asarray(draws)[:, :rows])
-            start += rows
-        draws = np.concatenate(predicted, axis=1)
-        return draws.reshape(self.draws, self.average, *draws.shape[1:]).mean(axis=1)
-
-    def __call__(self, params: Any) -> Evaluation:
-        """Samples the held-out chunks with `params` and scores them (`Evaluation`)."""
-        chunks = self.chunks
-        draws = np.stack([chunks.transform.absolute_actions(d, chunks.frames)
-                          for d in self.sample(params)]) / chunks.scale
-        metrics, sums = chunks.score(draws)
-        return Evaluation(metrics, draws[0], chunks.true, sums)
-
-    def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
-             title: str) -> None:
-        """Trajectory figure of the chunks whose `eval.plot_groups` move most in the data."""
-        plot_groups = self.groups["plot_groups"]
-        dims = np.concatenate([self.layout.group_dims(g) for g in plot_groups])
-        # The base and torso beside the groups of interest: stagnation is the contrast.
-        shown = [g for g in self.layout.groups_with_role("base", "torso") if g not in plot_groups]
-        shown += list(plot_groups)
-        motion = np.linalg.norm(
-            eval_metrics.displacement(true, self.chunks.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
-        rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
-        scale = self.chunks.scale
-        plots.plot_trajectories(predicted[rows] * scale, true[rows] * scale, self.layout,
-                                shown, path, title)
-
-
-def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
-    """A table: per group the single draw's error and skill over persistence, the skill of the
-    mean of the draws and the energy-score skill, the single draw's motion gain and ratio, then
-    the error and gain of each reference predictor on the same chunks (the do-nothing
-    baselines; the ceiling on the demo); then gripper switches."""
-    references = [name for name in ("persistence", "state_copy", heldout_lib.CEILING)
-                  if f"{name}/err/{layout.group_names[0]}" in metrics]
-    draws = int(metrics.get("draws", 1))
-    mean = heldout_lib.MEAN_OF_DRAWS
-    lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action) of "
-             "the single draw (what a robot executes; its interval a bootstrap over the held-out "
-             f"episodes), of the mean of {draws} draws, and of the energy score of the {draws} "
-             "draws (spread counted fairly); gain: 1 = moves like the data, 0 = still or "
-             "unrelated",
-             f"{'group':<15}{'err':>9}{'skill':>9}{'[95 % over episodes]':>22}"
-             f"{f'mean {draws}':>9}{'energy':>9}{'gain':>8}{'ratio':>8}"
-             + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'gain':>7}"
-                       for name in references)]
-    for g in layout.group_names:
-        lines.append(
-            f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>9.3f}"
-            + "{:>22}".format("[{:+.3f}, {:+.3f}]".format(
-                metrics.get(f'interval_low/skill/{g}', math.nan),
-                metrics.get(f'interval_high/skill/{g}', math.nan)))
-            + f"{metrics.get(f'{mean}/skill/{g}', math.nan):>9.3f}"
-            f"{metrics.get(f'energy_skill/{g}', math.nan):>9.3f}"
-            f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>8.3f}"
-            + "".join(f" |{metrics[f'{name}/err/{g}']:>16.4f}"
-                      f"{metrics[f'{name}/motion_gain/{g}']:>7.3f}" for name in references))
-    counts = "/".join(str(int(metrics[f"gripper_switch/{k}"])) for k in ("tp", "fp", "fn"))
-    lines.append("gripper switches (each event once): " + ", ".join(
-        f"{name} {metrics[f'gripper_switch/{name}']:.3f}" for name in ("precision", "recall", "f1"))
-        + f", TP/FP/FN {counts}")
-    return "\n".join(lines)
-
-
-# ---------------------------------------------------------------------- offline entrypoint
-
-def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
-                        params_name: str = "ema", levers: Mapping[str, float] | None = None
-                        ) -> tuple[int, dict[str, float], ActionLayout, epath.Path]:
-    """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
-    writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
-    the run kept them, else the params) or "params"; `levers`: inference levers in place of the
-    run's (`inference.restore_run`). The metrics go to `metrics.json` there (with levers other
-    than the plain sampler's, `metrics<inference.lever_tag>.json`, which the stagnation figure
-    leaves out). Returns `(step, metrics, layout, metrics path)`."""
-    run = inference.restore_run(workdir, step, params_name, levers)
-    tag = inference.lever_tag(run.config.eval)
-    workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
-    out = workdir / "eval" / f"step_{step}"
-    writable_folder(out)  # before the sampling, not after
-    model_config, params = run.model_config, run.params
-    mesh = sharding_lib.make_mesh(1)
-    spec = DataSpec.from_config(config, layout)
-    source = sources.open_source(spec.options, layout)
-    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
-    with jax.set_mesh(mesh):
-        evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
-                              params_sharding=sharding_lib.tree_shardings(params, mesh),
-                              source=source, noise_factor=inference.run_noise_factor(
-                                  workdir, config, layout, model_config))
-        metrics, predicted, true, sums = evaluator(params)
-    chunk_sums_file = epath.Path(heldout_lib.CHUNK_SUMS_FILE)
-    heldout_lib.save_chunk_sums(out / f"{chunk_sums_file.stem}{tag}{chunk_sums_file.suffix}",
-                                sums)
-    metrics_path = out / f"{epath.Path(METRICS_FILE).stem}{tag}.json"
-    # Strict JSON: a metric with nothing to measure (NaN) is null.
-    metrics_path.write_text(json.dumps(
-        {"step": step, "params": run.params_name,
-         **{key: config.eval[key] for key in inference.LEVERS},
-         **strict_json({k: float(v) for k, v in metrics.items()})},
-        indent=2, allow_nan=False) + "\n")
-    evaluator.plot(predicted, true, out / f"trajectories{tag}.png", f"step {step}: predicted "
-                   "(dashed) vs true (solid)")
-    plots.plot_group_losses(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE), layout,
-                            out / "group_losses.png")
-    plots.plot_stagnation(offline_records(workdir), layout, workdir / "eval" / STAGNATION_FILE)
-    return step, metrics, layout, metrics_path
-
-
-def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:
-    """Every offline evaluation of a run (`eval/step_<N>/metrics.json`), in step order: a run
-    evaluated at several checkpoints draws its stagnation figure from them (`eval/`
-    `stagnation.png`), like the one training draws from its in-run evaluations."""
-    found = []
-    for path in epath.Path(workdir).glob(f"eval/step_*/{METRICS_FILE}"):
-        record = json.loads(path.read_text())
-        found.append({k: math.nan if v is None else v for k, v in record.items()})
-    return sorted(found, key=lambda r: r["step"])
 
 
 def main(argv: Sequence[str]) -> None:
@@ -354,13 +69,14 @@ def cli() -> None:
     flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
                          "episodes (the demo dataset is seed 0)")
     flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
-                      "grippers' hysteresis (pi0_armfix.hysteresis), in action units; unset: the "
+                      "grippers' hysteresis (pi0_armfix.policies.hysteresis), in action units; unset: the "
                       "run's eval.gripper_hysteresis; empty: none")
     console.define_lever_flags()
     flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "
                       "(e.g. 1,2,4: the same episodes with the world's tolerances doubled and "
                       "quadrupled; empty: the world as it is only)")
     app.run(main, flags_parser=console.flags_parser("pi0_armfix.evaluate"))
+
 
 
 if __name__ == "__main__":

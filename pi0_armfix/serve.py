@@ -6,208 +6,29 @@
 Any openpi client works against it (`openpi_client.websocket_client_policy.WebsocketClientPolicy`,
 B1K's evaluation harness): on connect the server sends its metadata; then every binary message is
 an observation dict, answered by `{"actions": float32 [H, A], "server_timing": {"infer_ms"}}`,
-actions absolute and in the dataset's units (`pi0_armfix.inference.RunPolicy`). Messages are
+actions absolute and in the dataset's units (`pi0_armfix.policies.inference.RunPolicy`). Messages are
 msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
 read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
 message naming the problem (openpi's client raises it as a RuntimeError); the connection and the
 server stay up. `GET /healthz` answers 200 (openpi's health check). With `--gripper_hysteresis`
 (or the run's `eval.gripper_hysteresis`), each connection's gripper commands pass the hysteresis
-of `pi0_armfix.hysteresis`, held across its requests as if the client executed `--n_exec` actions
+of `pi0_armfix.policies.hysteresis`, held across its requests as if the client executed `--n_exec` actions
 of every chunk.
 """
+
 
 from __future__ import annotations
 
 import asyncio
-import functools
-import http
 import logging
-import math
 import socket
-import threading
-import time
-import traceback
 from collections.abc import Sequence
-from typing import Any
 
-import msgpack
-import numpy as np
 from absl import app, flags
-from websockets import exceptions as websockets_exceptions
-from websockets.asyncio import server as ws_server
 
-from pi0_armfix import console, harness, hysteresis, inference
-
-
-# ---------------------------------------------------------------------- openpi's msgpack encoding
-
-def _pack_array(obj: Any) -> Any:
-    if isinstance(obj, (np.ndarray, np.generic)) and obj.dtype.kind in ("V", "O", "c"):
-        raise ValueError(f"unsupported dtype {obj.dtype}")
-    if isinstance(obj, np.ndarray):
-        return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str,
-                b"shape": obj.shape}
-    if isinstance(obj, np.generic):
-        return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
-    return obj
-
-
-# What a request may carry: numbers and booleans (and byte/unicode strings). Never objects: an
-# object array built from network bytes is a table of pointers (a crash, or worse).
-ACCEPTED_KINDS = "biufSU"
-
-
-class MalformedArray(ValueError):
-    """An array of a request that is not what it claims to be (or not allowed)."""
-
-
-def _request_dtype(text: Any) -> np.dtype:
-    try:
-        dtype = np.dtype(text.decode() if isinstance(text, bytes) else text)
-    except (TypeError, ValueError) as e:
-        raise MalformedArray(f"an array's dtype {text!r} is not a numpy dtype ({e})") from None
-    if dtype.kind not in ACCEPTED_KINDS or dtype.fields is not None:
-        raise MalformedArray(f"an array's dtype {dtype.str!r} is not accepted (numbers, booleans and "
-                         "strings only)")
-    return dtype
-
-
-def _unpack_array(obj: dict) -> Any:
-    if b"__ndarray__" in obj:
-        dtype = _request_dtype(obj.get(b"dtype"))
-        shape, data = obj.get(b"shape"), obj.get(b"data")
-        if (not isinstance(shape, (list, tuple)) or not all(
-                isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
-                or not isinstance(data, bytes)):
-            raise MalformedArray(f"an array's shape {shape!r} or data is malformed")
-        if math.prod(shape) * dtype.itemsize != len(data):
-            raise MalformedArray(f"an array of shape {tuple(shape)} and dtype {dtype.str} needs "
-                             f"{math.prod(shape) * dtype.itemsize} bytes, the request holds "
-                             f"{len(data)}")
-        return np.frombuffer(data, dtype=dtype).reshape(shape)
-    if b"__npgeneric__" in obj:
-        dtype = _request_dtype(obj.get(b"dtype"))
-        try:
-            return dtype.type(obj.get(b"data"))
-        except (TypeError, ValueError, OverflowError) as e:
-            raise MalformedArray(f"a scalar of dtype {dtype.str} is malformed ({e})") from None
-    return obj
-
-
-MAX_MESSAGE_MB = 64  # three 720p RGBA images and a state are ~11 MiB
-PROTOCOLS = ("openpi", "b1k")  # openpi's request/reply; B1K's evaluation harness (harness.py)
-pack = functools.partial(msgpack.packb, default=_pack_array)
-unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
-
-
-# ---------------------------------------------------------------------- the server
-
-class PolicyServer:
-    """Serves `policy` (a `RunPolicy`, or anything with `infer([obs]) -> [1, H, A]` and
-    `metadata()`) to websocket clients, one request at a time; `latch` filters each client's
-    gripper commands (its held commands after the first `n_exec` actions of a chunk; None: all)."""
-
-    def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000,
-                 latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None, *,
-                 sock: socket.socket | None = None,
-                 max_message_bytes: int = MAX_MESSAGE_MB << 20, protocol: str = "openpi",
-                 seed: int = 0, prompt: str = "", rtc: bool = False):
-        if protocol not in PROTOCOLS:
-            raise ValueError(f"--protocol={protocol!r}: choose one of {PROTOCOLS}")
-        self.policy, self.host, self.port = policy, host, port
-        self.latch, self.n_exec = latch, n_exec
-        self.sock, self.max_message_bytes = sock, max_message_bytes
-        self.protocol, self.seed, self.prompt, self.rtc = protocol, seed, prompt, rtc
-        self.sessions: dict[Any, harness.HarnessSession] = {}
-        self.warm = threading.Event()  # /healthz answers 200 once set (the sampler compiled)
-        self._metadata = pack(policy.metadata())
-
-    def session(self, client: Any) -> harness.HarnessSession:
-        """The harness session of `client` (`--protocol=b1k`), made on its first message."""
-        if client not in self.sessions:
-            n_exec = self.n_exec or max(self.policy.horizon // 2, 1)
-            latch = None if self.latch is None else hysteresis.GripperLatch(
-                self.latch.dims, self.latch.open_above, self.latch.close_below)  # its own streams
-            self.sessions[client] = harness.HarnessSession(self.policy, n_exec, self.seed,
-                                                           self.prompt, self.rtc, latch)
-        return self.sessions[client]
-
-    def answer(self, message: bytes | str, client: Any = None) -> bytes | str | None:
-        """One request of `client` -> the packed reply, the error text, or None where the
-        protocol sends none (B1K's reset). Never raises."""
-        try:
-            if isinstance(message, str):
-                raise ValueError("requests are binary msgpack messages, got a text message")
-            try:
-                observation = unpack(message)
-            except MalformedArray as e:
-                raise ValueError(f"the request is malformed: {e}") from None
-            except Exception as e:  # msgpack raises several types for garbage
-                raise ValueError(f"the request is not msgpack ({type(e).__name__}: {e})") from e
-            if not isinstance(observation, dict):
-                raise ValueError(f"the request must be an observation dict, got "
-                                 f"{type(observation).__name__}")
-            if self.protocol == "b1k":
-                start = time.monotonic()
-                reply = self.session(client).answer(observation)
-                if reply is None:
-                    return None
-                return pack({**reply, "server_timing": {
-                    "infer_ms": 1000 * (time.monotonic() - start)}})
-            start = time.monotonic()
-            actions = self.policy.infer([observation])[0]
-            if self.latch is not None:
-                actions = self.latch(client, actions, self.n_exec)
-            return pack({"actions": actions,
-                         "server_timing": {"infer_ms": 1000 * (time.monotonic() - start)}})
-        except ValueError as e:
-            return f"pi0_armfix.serve: {e}"
-        except Exception:  # a bug of ours: report it, keep serving
-            return f"pi0_armfix.serve: internal error\n{traceback.format_exc()}"
-
-    async def _handle(self, websocket) -> None:
-        try:
-            await websocket.send(self._metadata)
-            # A request sent while the sampler compiles waits for it: the warm-up's draw and a
-            # client's never interleave.
-            await self._warmed.wait()
-            async for message in websocket:
-                reply = self.answer(message, client=websocket.id)
-                if reply is not None:
-                    await websocket.send(reply)
-        except websockets_exceptions.ConnectionClosed:
-            pass  # the client left (or sent more than --max_message_mb): nothing to answer
-        finally:
-            if self.latch is not None:
-                self.latch.forget(websocket.id)
-            self.sessions.pop(websocket.id, None)
-
-    def _health(self, connection, request):
-        if request.path == "/healthz":
-            if self.warm.is_set():
-                return connection.respond(http.HTTPStatus.OK, "OK\n")
-            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, "compiling\n")
-        return None
-
-    async def serve(self, ready: asyncio.Event | None = None) -> None:
-        """Serves until cancelled; sets `ready` once listening (and `self.port` to the bound
-        port, for port 0)."""
-        where = ({"sock": self.sock} if self.sock is not None
-                 else {"host": self.host, "port": self.port})
-        self._warmed = asyncio.Event()
-        async with ws_server.serve(self._handle, compression=None,
-                                   max_size=self.max_message_bytes,
-                                   process_request=self._health, **where) as server:
-            self.port = server.sockets[0].getsockname()[1]
-            if ready is not None:
-                ready.set()
-            warm_up = getattr(self.policy, "warm_up", None)
-            if warm_up is not None:  # compiled before /healthz says the server is ready
-                sizes = harness.IMAGE_SIZES if self.protocol == "b1k" else ()
-                await asyncio.to_thread(warm_up, *([sizes] if sizes else []))
-            self.warm.set()
-            self._warmed.set()
-            await server.serve_forever()
+from pi0_armfix import console
+from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.serving.server import MAX_MESSAGE_MB, PROTOCOLS, PolicyServer
 
 
 def main(argv: Sequence[str]) -> None:
@@ -265,12 +86,12 @@ def cli() -> None:
                         "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state' or 'prompt'); "
                         "'' = B1K's openpi keys")
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
-                      "hysteresis (pi0_armfix.hysteresis), in action units; unset: the run's "
+                      "hysteresis (pi0_armfix.policies.hysteresis), in action units; unset: the run's "
                       "eval.gripper_hysteresis; empty: none")
     flags.DEFINE_enum("protocol", "openpi", PROTOCOLS, "openpi: a chunk per request "
                       "({'actions': [H, A]}); b1k: BEHAVIOR-1K's evaluation harness (one action "
                       "per request from a server-side queue, resets, its keys; "
-                      "pi0_armfix/harness.py)")
+                      "pi0_armfix/serving/harness.py)")
     flags.DEFINE_integer("seed", 0, "b1k: noise seed of the first episode (episode e: seed + e)")
     flags.DEFINE_bool("rtc", False, "b1k: each new chunk softly follows the unexecuted tail of "
                       "the last (real-time chunking, as evaluate --closed_loop --rtc)")

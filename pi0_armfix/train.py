@@ -63,7 +63,8 @@ from etils import epath
 from ml_collections import config_flags
 from tqdm import tqdm
 
-from pi0_armfix import console, evaluate
+from pi0_armfix import console
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import background, batching, pipeline, sources, video_stream
@@ -137,7 +138,7 @@ class Run:
     train_step: Callable
     train_iter: pipeline.TrainIterator
     checkpoints: checkpoint.Checkpoints
-    evaluator: evaluate.Evaluator | None
+    evaluator: evaluator_lib.Evaluator | None
     norm_stats_json: dict[str, Any]
     lock: Any = None  # the workdir's lock file (process 0), released by closing it
 
@@ -158,7 +159,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size")
     batch_sharding = sharding_lib.batch_sharding(mesh)
     if spec.evaluates:
-        evaluate.check_eval_config(spec.eval, layout, mesh.size)
+        evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)
 
     # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
     # passes over the data before they all hold.
@@ -219,7 +220,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
         evaluator = None
         if spec.evaluates:
-            evaluator = evaluate.Evaluator(data, spec.eval, model_config, norm_stats, tokenize,
+            evaluator = evaluator_lib.Evaluator(data, spec.eval, model_config, norm_stats, tokenize,
                                            mesh=mesh, params_sharding=state_shardings.params,
                                            source=source, noise_factor=noise_factor)
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
@@ -474,7 +475,7 @@ def _plots_dir(workdir: epath.Path) -> epath.Path:
     return path
 
 
-def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: int,
+def _evaluate(evaluator: evaluator_lib.Evaluator, state: state_lib.TrainState, step: int,
               writer: metrics_log.MetricsWriter, workdir: epath.Path,
               layout: ActionLayout) -> None:
     params = state.ema_params if state.ema_params is not None else state.params
@@ -487,7 +488,7 @@ def _evaluate(evaluator: evaluate.Evaluator, state: state_lib.TrainState, step: 
         plots.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
     _say(f"step {step} held-out evaluation (sampled actions):\n"
-         + evaluate.format_metrics(metrics, layout))
+         + evaluator_lib.format_metrics(metrics, layout))
     if jax.process_index() == 0:
         evaluator.plot(predicted, true, _plots_dir(workdir) / f"trajectories_{step}.png",
                        f"step {step}: predicted (dashed) vs true (solid), held-out chunks")

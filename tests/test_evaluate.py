@@ -10,7 +10,7 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import evaluate
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.evaluation import baselines, ceiling
 from pi0_armfix.evaluation import heldout
@@ -221,7 +221,7 @@ def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
     eval_cfg = dict(gripper_groups=("claw",), plot_groups=(), batch_size=8, max_chunks=16,
                     num_steps=10)
     with pytest.raises(ValueError, match=r"eval.gripper_groups names \['claw'\]"):
-        evaluate.check_eval_config(eval_cfg, LAYOUT, num_devices=1)
+        evaluator_lib.check_eval_config(eval_cfg, LAYOUT, num_devices=1)
 
 
 @pytest.fixture(scope="module")
@@ -364,7 +364,7 @@ def test_held_out_chunks_beyond_max_chunks_are_an_even_subset_without_overlap():
 
 def _evaluate_in_process(workdir, **eval_changes):
     import jax
-    from pi0_armfix import inference
+    from pi0_armfix.policies import inference
     from pi0_armfix.data import sources
     from pi0_armfix.data.data_spec import DataSpec
     from pi0_armfix.model import tokenizer as tokenizer_lib
@@ -377,7 +377,7 @@ def _evaluate_in_process(workdir, **eval_changes):
     source = sources.open_source(spec.options, run.layout)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     with jax.set_mesh(mesh):
-        evaluator = evaluate.Evaluator(
+        evaluator = evaluator_lib.Evaluator(
             spec, config.eval, run.model_config, run.norm_stats, tokenize, mesh=mesh,
             params_sharding=sharding_lib.tree_shardings(run.params, mesh), source=source)
         return evaluator(run.params)
@@ -393,7 +393,7 @@ def test_a_held_out_set_smaller_than_a_batch_is_padded_and_scores_as_unpadded(tr
 
 
 def test_a_trained_runs_output_on_a_constant_dim_is_the_constant(trained):
-    from pi0_armfix import inference
+    from pi0_armfix.policies import inference
     policy = inference.RunPolicy.from_workdir(trained)
     rng = np.random.default_rng(0)
     observations = [{**{key: rng.integers(0, 255, (32, 32, 3), np.uint8)

@@ -20,7 +20,10 @@ from websockets.sync.client import connect
 import b1k2026_fixture
 import b1k_fixture
 import train_fixtures as tf
-from pi0_armfix import harness, hysteresis, inference, serve, train
+from pi0_armfix import train
+from pi0_armfix.serving import server as server_lib
+from pi0_armfix.serving import harness
+from pi0_armfix.policies import hysteresis, inference
 
 CAMERAS = list(harness.CAMERAS)
 
@@ -46,7 +49,7 @@ def run2026(tmp_path_factory):
 
 
 def _serve(workdir, **kwargs):
-    server = serve.PolicyServer(inference.RunPolicy.from_workdir(workdir), "127.0.0.1", 0,
+    server = server_lib.PolicyServer(inference.RunPolicy.from_workdir(workdir), "127.0.0.1", 0,
                                 protocol="b1k", **kwargs)
     loop, ready = asyncio.new_event_loop(), asyncio.Event()
     threading.Thread(target=lambda: loop.run_until_complete(server.serve(ready)),
@@ -62,21 +65,21 @@ class HarnessClient:
 
     def __init__(self, port, chunk=0):
         self.ws = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None)
-        self.metadata = serve.unpack(self.ws.recv())
+        self.metadata = server_lib.unpack(self.ws.recv())
         self.chunk = chunk
 
     def reset(self):
-        self.ws.send(serve.pack({"reset": True}))  # and no reply is read
+        self.ws.send(server_lib.pack({"reset": True}))  # and no reply is read
 
     def act(self, observation):
         request = dict(observation)
         if self.chunk > 1:
             request[harness.CHUNK_SIZE] = self.chunk
-        self.ws.send(serve.pack(request))
+        self.ws.send(server_lib.pack(request))
         response = self.ws.recv()
         if isinstance(response, str):
             raise RuntimeError(f"Error in inference server:\n{response}")
-        reply = serve.unpack(response)
+        reply = server_lib.unpack(response)
         if "action" not in reply:
             raise RuntimeError(f"Server response missing 'action' key: {reply}")
         if self.chunk > 1:
@@ -166,7 +169,7 @@ def test_healthz_says_ready_only_once_the_sampler_is_compiled():
         def warm_up(self):
             release.wait(30)
 
-    server = serve.PolicyServer(Compiling(), "127.0.0.1", 0)
+    server = server_lib.PolicyServer(Compiling(), "127.0.0.1", 0)
     loop, ready = asyncio.new_event_loop(), asyncio.Event()
     threading.Thread(target=lambda: loop.run_until_complete(server.serve(ready)),
                      daemon=True).start()

@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from pi0_armfix.configs import base
-from pi0_armfix import evaluate, hysteresis, inference, serve
+from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.serving import server as server_lib
+from pi0_armfix.policies import hysteresis, inference
 from pi0_armfix.action_space import ActionLayout
 
 OPEN, CLOSE = 0.9, -0.98
@@ -65,7 +67,7 @@ def test_an_invalid_hysteresis_key_fails_the_config_check_before_training():
     config = base.get_config()
     config.eval.gripper_hysteresis = (-0.9, 0.9)
     with pytest.raises(ValueError, match="eval.gripper_hysteresis"):
-        evaluate.check_eval_config(config.eval, B1K, num_devices=1)
+        evaluator_lib.check_eval_config(config.eval, B1K, num_devices=1)
 
 
 class _Undecided:
@@ -94,10 +96,10 @@ def test_the_closed_loop_policy_keeps_a_closed_gripper_closed_through_dithering(
 
 
 def test_the_server_keeps_each_clients_gripper_held_across_its_requests():
-    server = serve.PolicyServer(_Undecided(), latch=hysteresis.GripperLatch([22], OPEN, CLOSE))
-    request = serve.pack({"state": np.zeros(23)})
+    server = server_lib.PolicyServer(_Undecided(), latch=hysteresis.GripperLatch([22], OPEN, CLOSE))
+    request = server_lib.pack({"state": np.zeros(23)})
     server.answer(request, client="a")
-    actions = serve.unpack(server.answer(request, client="a"))["actions"]
+    actions = server_lib.unpack(server.answer(request, client="a"))["actions"]
     np.testing.assert_array_equal(actions[:, 22], [-1.0] * 4)
-    fresh = serve.unpack(server.answer(request, client="b"))["actions"]
+    fresh = server_lib.unpack(server.answer(request, client="b"))["actions"]
     np.testing.assert_allclose(fresh[:, 22], [0.3, -0.2, 0.4, -0.1], rtol=1e-6)

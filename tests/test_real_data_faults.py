@@ -20,7 +20,8 @@ import train_fixtures as tf
 from train_fixtures import cache_dir  # noqa: F401  (pytest fixture)
 from pi0_armfix.configs import arm_curriculum, base
 from data_fixtures import identify_frame, make_episodes, write_dataset
-from pi0_armfix import evaluate, train
+from pi0_armfix import train
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import selection
 from pi0_armfix.data import cameras as cameras_lib
@@ -224,10 +225,10 @@ def test_eval_defaults_follow_the_layout_roles():
                           roles={"arm": "arm", "claw": "gripper"})
     eval_cfg = dict(gripper_groups=(), plot_groups=(), batch_size=8, max_chunks=16, num_steps=2,
                     num_draws=2, average_draws=1, temperature=1.0)
-    evaluate.check_eval_config(eval_cfg, layout, 1)
-    assert evaluate.eval_groups(eval_cfg, layout) == {"gripper_groups": ("claw",),
+    evaluator_lib.check_eval_config(eval_cfg, layout, 1)
+    assert evaluator_lib.eval_groups(eval_cfg, layout) == {"gripper_groups": ("claw",),
                                                       "plot_groups": ("arm", "claw")}
-    assert evaluate.eval_groups(eval_cfg, LAYOUT)["gripper_groups"] == (
+    assert evaluator_lib.eval_groups(eval_cfg, LAYOUT)["gripper_groups"] == (
         "left_gripper", "right_gripper")
 
 

@@ -14,7 +14,8 @@ import pytest
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix.configs import base
-from pi0_armfix import inference, train
+from pi0_armfix import train
+from pi0_armfix.policies import inference
 from pi0_armfix.training import finite_checkpoints
 from pi0_armfix.training import checkpoint, fingerprint, preemption, sharding
 

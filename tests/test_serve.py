@@ -21,7 +21,8 @@ from websockets.sync.client import connect
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix import inference, serve
+from pi0_armfix.serving import server as server_lib
+from pi0_armfix.policies import inference
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import outputs
 from pi0_armfix.data import batching, sources
@@ -44,7 +45,7 @@ def run(tmp_path_factory, demo_root):  # noqa: F811
 @pytest.fixture(scope="module")
 def server(run):
     """A server on a free port, in a thread of this process; (server, its policy's twin)."""
-    policy_server = serve.PolicyServer(inference.RunPolicy.from_workdir(run), "127.0.0.1", 0)
+    policy_server = server_lib.PolicyServer(inference.RunPolicy.from_workdir(run), "127.0.0.1", 0)
     loop, ready = asyncio.new_event_loop(), asyncio.Event()
     threading.Thread(target=lambda: loop.run_until_complete(policy_server.serve(ready)),
                      daemon=True).start()
@@ -65,7 +66,7 @@ def test_a_request_sent_while_the_sampler_compiles_waits_for_it(run):
         compiled.append(policy._draws)
 
     policy.warm_up = slow_warm_up
-    server = serve.PolicyServer(policy, "127.0.0.1", 0)
+    server = server_lib.PolicyServer(policy, "127.0.0.1", 0)
     loop, ready = asyncio.new_event_loop(), asyncio.Event()
     threading.Thread(target=lambda: loop.run_until_complete(server.serve(ready)),
                      daemon=True).start()
@@ -160,7 +161,7 @@ def test_an_object_array_is_refused_and_the_server_keeps_serving(server):
     state = {b"__ndarray__": True, b"data": bytes(range(16)), b"dtype": "|O", b"shape": [2]}
     request = msgpack.packb({**{k: v for k, v in observation.items()
                                 if k != "observation/state"}, "observation/state": state},
-                            default=serve._pack_array)
+                            default=server_lib._pack_array)
     assert "dtype '|O' is not accepted" in _raw_request(server.port, request)
     client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
     assert client.infer(observation)["actions"].shape[1] == 23
@@ -176,7 +177,7 @@ def test_an_object_array_is_refused_and_the_server_keeps_serving(server):
     ({b"__npgeneric__": True, b"data": 1, b"dtype": "|O"}, "is not accepted")])
 def test_malformed_arrays_are_refused_before_use(array, message):
     with pytest.raises(ValueError, match=message):
-        serve.unpack(msgpack.packb({"x": array}))
+        server_lib.unpack(msgpack.packb({"x": array}))
 
 
 def test_an_empty_image_and_a_text_state_are_refused_by_key(server):
@@ -192,7 +193,7 @@ def test_an_empty_image_and_a_text_state_are_refused_by_key(server):
 
 
 def test_a_request_over_the_size_cap_closes_only_that_connection(run):
-    small = serve.PolicyServer(inference.RunPolicy.from_workdir(run), "127.0.0.1", 0,
+    small = server_lib.PolicyServer(inference.RunPolicy.from_workdir(run), "127.0.0.1", 0,
                                max_message_bytes=4096)
     loop, ready = asyncio.new_event_loop(), asyncio.Event()
     threading.Thread(target=lambda: loop.run_until_complete(small.serve(ready)),
@@ -220,7 +221,7 @@ def test_a_client_that_leaves_mid_answer_is_no_error_of_the_server():
         def metadata(self):
             return {}
 
-    asyncio.run(serve.PolicyServer(Stub())._handle(Leaving()))
+    asyncio.run(server_lib.PolicyServer(Stub())._handle(Leaving()))
 
 
 def test_images_of_any_size_compile_the_sampler_once(run):
@@ -250,8 +251,8 @@ def test_a_port_in_use_is_one_line_before_the_policy_loads(run, cache_dir):  # n
 
 def test_arrays_round_trip_between_the_server_and_openpis_encoding():
     payload = {"a": np.arange(6, dtype=np.float32).reshape(2, 3), "b": np.int64(3), "c": "x"}
-    for packed, unpack in ((serve.pack(payload), openpi_msgpack.unpackb),
-                           (openpi_msgpack.packb(payload), serve.unpack)):
+    for packed, unpack in ((server_lib.pack(payload), openpi_msgpack.unpackb),
+                           (openpi_msgpack.packb(payload), server_lib.unpack)):
         restored = unpack(packed)
         np.testing.assert_array_equal(restored["a"], payload["a"])
         assert restored["b"] == 3 and restored["c"] == "x"

@@ -10,7 +10,7 @@ of the demo world (`pi0_armfix.sim.env`, episode 0, one frame each); it prints t
 `infer` (p50, p95, mean, max) and the server's own `infer_ms`, after `--warmup` untimed requests
 (the first compiles the sampler).
 
-`--protocol=b1k` measures what B1K's evaluation harness meets (`pi0_armfix/harness.py`): the
+`--protocol=b1k` measures what B1K's evaluation harness meets (`pi0_armfix/serving/harness.py`): the
 seconds from the server's start until `/healthz` answers 200, the first step's latency right
 after it (reset, then one RGBA 224² observation with the proprio and `task_id`, no warm-up
 request: the server compiled before it said it was ready), and the per-step latency of the
@@ -84,7 +84,8 @@ def harness_latency(workdir: Path, port: int, steps: int) -> None:
     """`--protocol=b1k`: start-up, first step after /healthz 200, per-step latency."""
     from websockets.sync.client import connect
 
-    from pi0_armfix import harness, serve
+    from pi0_armfix.serving import server as server_lib
+    from pi0_armfix.serving import harness
     from pi0_armfix.data import run_inputs
 
     inputs = run_inputs.load(workdir)
@@ -100,12 +101,12 @@ def harness_latency(workdir: Path, port: int, steps: int) -> None:
     ready = time.perf_counter() - start
     try:
         with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
-            meta = serve.unpack(ws.recv())
-            ws.send(serve.pack({"reset": True}))  # the harness reads no reply
+            meta = server_lib.unpack(ws.recv())
+            ws.send(server_lib.pack({"reset": True}))  # the harness reads no reply
             latencies = []
             for _ in range(steps + 1):
                 sent = time.perf_counter()
-                ws.send(serve.pack(observation))
+                ws.send(server_lib.pack(observation))
                 reply = ws.recv()
                 if isinstance(reply, str):
                     raise RuntimeError(reply)

@@ -19,7 +19,7 @@ from typing import Any
 import jax
 from etils import epath
 
-from pi0_armfix import hysteresis, inference
+from pi0_armfix.policies import hysteresis, inference
 from pi0_armfix.data import json_files
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.sim import env as env_lib

@@ -64,7 +64,9 @@ from typing import Any
 
 from absl import app, flags
 
-from pi0_armfix import console, evaluate, inference
+from pi0_armfix import console
+from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.policies import inference
 from pi0_armfix.configs import base as base_config
 from pi0_armfix.data import json_files
 from pi0_armfix.data.data_spec import DataSpec
@@ -95,7 +97,7 @@ def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
         return None
     if run.config.data.root:
         return None
-    groups = evaluate.eval_groups(run.config.eval, run.layout)
+    groups = evaluator_lib.eval_groups(run.config.eval, run.layout)
     chunks = heldout_lib.HeldOutChunks(
         DataSpec.from_config(run.config, run.layout), run.config.eval, run.norm_stats,
         horizon=run.model_config.action_horizon,

@@ -45,7 +45,8 @@ import orbax.checkpoint as ocp
 from absl import app, flags
 from etils import epath
 
-from pi0_armfix import console, inference
+from pi0_armfix import console
+from pi0_armfix.policies import inference
 from pi0_armfix.evaluation.outputs import writable_folder
 from pi0_armfix.data import run_inputs, sources
 from pi0_armfix.data import json_files

@@ -28,7 +28,7 @@ import ml_collections
 import numpy as np
 from etils import epath
 
-from pi0_armfix import hysteresis
+from pi0_armfix.policies import hysteresis
 from pi0_armfix.configs import base as base_config
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import batching, run_inputs, sources, transforms

@@ -20,7 +20,7 @@ one and replans (one model call for every env that needs it) when the queue is e
 `n_exec` actions of each chunk (receding horizon, as the closed-loop evaluation); with `rtc`,
 each new chunk softly follows the previous chunk's unexecuted tail (real-time chunking, as
 `evaluate --closed_loop --follow_tail`), and with a gripper latch the grippers commit
-(`pi0_armfix.hysteresis`, per env). Each connection samples from its own noise stream: a reset
+(`pi0_armfix.policies.hysteresis`, per env). Each connection samples from its own noise stream: a reset
 empties the queues and tails and restarts the stream from the server's seed plus the episode
 count, so an evaluation rerun with the same seed gets the same actions whatever other
 connections do. The prompt is the run's own for `task_id` (`meta/tasks.jsonl` of its dataset,
@@ -38,7 +38,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from pi0_armfix import inference
+from pi0_armfix.policies import inference
 
 CAMERAS = {"robot_r1::robot_r1:zed_link:Camera:0::rgb": "base_0_rgb",
            "robot_r1::robot_r1:left_realsense_link:Camera:0::rgb": "left_wrist_0_rgb",

@@ -1,0 +1,2 @@
+"""The policy: a trained run restored for inference (`inference`) and the grippers' hysteresis
+(`hysteresis`)."""
