@@ -113,8 +113,7 @@ def _missing_key_message(error: AttributeError | KeyError, argv: list[str]) -> s
 
 
 def configs_dir() -> Path:
-    """The experiment configs installed with the package (`pi0_armfix.configs`: the repository's
-    `configs/` folder)."""
+    """The experiment configs installed with the package (`pi0_armfix/configs/`)."""
     from pi0_armfix import configs
 
     return Path(configs.__file__).parent

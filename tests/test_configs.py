@@ -11,7 +11,7 @@ import pytest
 import train_fixtures as tf
 from train_fixtures import demo_root  # noqa: F401  (a pytest fixture)
 from pi0_armfix.configs import base
-from pi0_armfix import train
+from pi0_armfix import console, train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
 from pi0_armfix.data import selection
@@ -35,7 +35,7 @@ B1K = ActionLayout.preset("b1k_r1pro")
 
 
 def load(name: str, arg: str | None = None) -> ml_collections.ConfigDict:
-    path = tf.REPO_ROOT / "configs" / f"{name}.py"
+    path = tf.REPO_ROOT / "pi0_armfix" / "configs" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -53,7 +53,7 @@ def flat_keys(config: ml_collections.ConfigDict) -> set[str]:
 
 
 def test_every_config_file_is_listed():
-    found = {p.stem for p in (tf.REPO_ROOT / "configs").glob("*.py")} - {"base", "__init__"}
+    found = {p.stem for p in (tf.REPO_ROOT / "pi0_armfix" / "configs").glob("*.py")} - {"base", "__init__"}
     assert found == set(CONFIGS)
 
 
@@ -209,3 +209,16 @@ def test_config_trains_at_tiny_scale(name, tmp_path, demo_root):
         arm = B1K.group_dims("left_arm")
         assert not np.allclose(np.asarray(balanced["std"])[arm], plain.std[arm])
         np.testing.assert_allclose(balanced["mean"], plain.mean, rtol=1e-6)
+
+
+def test_the_package_and_the_top_level_hold_no_symbolic_link_so_sdists_and_every_platform_see_the_configs():
+    links = [p for p in [*tf.REPO_ROOT.iterdir(), *(tf.REPO_ROOT / "pi0_armfix").rglob("*")]
+             if p.is_symlink()]
+    assert not links
+    assert (tf.REPO_ROOT / "pi0_armfix" / "configs" / "base.py").is_file()
+
+
+def test_a_config_path_from_any_folder_is_the_installed_config(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    resolved = console.installed_config("--config=configs/arm_focused.py:b1k")
+    assert resolved == f"--config={console.configs_dir() / 'arm_focused.py'}:b1k"

@@ -63,6 +63,6 @@ def test_a_built_wheel_ships_the_configs_and_data_inside_the_package_and_no_top_
     (wheel,) = tmp_path.glob("*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     shipped = {Path(n).stem for n in names if n.startswith("pi0_armfix/configs/")}
-    assert shipped == {p.stem for p in (tf.REPO_ROOT / "configs").glob("*.py")}
+    assert shipped == {p.stem for p in (tf.REPO_ROOT / "pi0_armfix" / "configs").glob("*.py")}
     assert not [n for n in names if n.split("/")[0] == "configs"]
     assert "pi0_armfix/reference/b1k_2025_norm_stats.json" in names  # the demo world poses from it

@@ -2,7 +2,7 @@
 
     python -m pi0_armfix.bench faults [--kills=20] [--steps=40] [--seed=0]
 
-1. A reference run: `configs/loss_balanced.py` (loss-balancer state) with EMA params and a
+1. A reference run: `pi0_armfix/configs/loss_balanced.py` (loss-balancer state) with EMA params and a
    curriculum switch, on the `tiny` preset and a small demo dataset, `--steps` steps uninterrupted,
    a checkpoint after every step and a record of every step.
 2. The same command in another folder, interrupted and restarted until `--kills` faults are in
@@ -219,7 +219,7 @@ def main(argv: Sequence[str]) -> None:
     args = parser.parse_args(argv[1:])
     with tempfile.TemporaryDirectory(prefix="faults-") as folder:
         print(f"fault injection: {args.kills} faults into a {args.steps}-step run "
-              "(configs/loss_balanced.py, tiny preset, EMA, curriculum)", flush=True)
+              "(pi0_armfix/configs/loss_balanced.py, tiny preset, EMA, curriculum)", flush=True)
         tally = run(args.kills, args.steps, args.seed, Path(folder))
     print("tally:")
     for key, value in tally.items():

@@ -145,13 +145,13 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
             f"state copy: the current state explains >= {COPY_EXPLAINED:.0%} of {copy}'s targets "
             "and leaves them a small share of what the loss can still teach; weights multiply "
             "that residual. Try delta actions relative to the state first "
-            "(data.delta_action_mask, configs/arm_focused.py), or state dropout "
-            "(configs/state_dropout.py).")
+            "(data.delta_action_mask, pi0_armfix/configs/arm_focused.py), or state dropout "
+            "(pi0_armfix/configs/state_dropout.py).")
     if magnitude:
         lines.append(
             f"magnitude: {magnitude} carry less than {MAGNITUDE_RATIO:.0%} of their dims' share "
-            "of the uniform loss. Try per-group weights (configs/arm_weights_3x.py) or balanced "
-            "normalization (configs/arm_focused_balanced.py).")
+            "of the uniform loss. Try per-group weights (pi0_armfix/configs/arm_weights_3x.py) or balanced "
+            "normalization (pi0_armfix/configs/arm_focused_balanced.py).")
     if not lines:
         lines.append("neither mechanism in the data: the groups carry their share of the loss "
                      "and the state does not explain their targets; if they still stagnate, look "

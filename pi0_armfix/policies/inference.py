@@ -107,7 +107,7 @@ def run_noise_factor(workdir: epath.Path, config: ml_collections.ConfigDict,
 
 
 def with_current_keys(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
-    """A run's saved config with every `eval` key it predates at its default (`configs/base.py`):
+    """A run's saved config with every `eval` key it predates at its default (`pi0_armfix/configs/base.py`):
     how a policy is sampled and scored, which training never read."""
     defaults = base_config.get_config().eval
     config = ml_collections.ConfigDict(config.to_dict())

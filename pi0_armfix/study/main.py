@@ -39,7 +39,7 @@ every phase of a kind succeeded (and the whole task), why the phases failed, the
 and the world episodes (resampled like the held-out ones, from the per-episode outcomes kept in
 `result.json`). A finished run without them gets them on the next call.
 
-A config is a file name of `configs/` (`arm_focused`, optionally `arm_focused:b1k`), optionally
+A config is a file name of `pi0_armfix/configs/` (`arm_focused`, optionally `arm_focused:b1k`), optionally
 with overrides of its own after `@` (`arm_focused@data.video_access=random`: two variants of one
 file compare); every `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
@@ -191,7 +191,7 @@ def main(argv: Sequence[str]) -> None:
 def cli() -> None:
     """The `pi0-armfix-study` console script (also `python -m pi0_armfix.study`)."""
     flags.DEFINE_list("configs", ["uniform", "arm_focused"],
-                      "config names of configs/ (the first is the baseline)")
+                      "config names of pi0_armfix/configs/ (the first is the baseline)")
     flags.DEFINE_integer("seeds", intervals.MIN_SEEDS, "seeds per config (0 .. seeds-1); "
                          f"fewer than {intervals.MIN_SEEDS} give anecdotes, not intervals")
     flags.DEFINE_string("primary", "", "the config whose comparison with the baseline is the "
