@@ -13,10 +13,10 @@ import pytest
 from absl import flags
 
 from pi0_armfix.configs import base as base_config
-from data_fixtures import make_episodes, write_dataset
+from data_fixtures import B1K_CAMERAS, make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import batching, pipeline, sources, transforms
+from pi0_armfix.data import batching, pipeline, sources, transforms, video
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
 from pi0_armfix.data.episodes import EpisodeTable
@@ -365,6 +365,22 @@ def lerobot_config(tmp_path_factory):
     config.data.root = str(root)
     config.eval.episodes = 2
     return config
+
+
+def test_held_out_video_frames_are_decoded_at_the_size_the_training_frames_are(tmp_path):
+    cameras = {name: (48, 48) for name in B1K_CAMERAS}
+    root = write_dataset(tmp_path / "ds", make_episodes(4, cameras=cameras), "v2.1",
+                         image_format="video")
+    config = base_config.get_config()
+    config.data.root, config.eval.episodes = str(root), 1
+    spec = DataSpec.from_config(config, ActionLayout.from_config(config.layout))
+    heldout = dataset_lib.heldout_table(spec, image_size=(16, 16))
+    full = dataset_lib.heldout_table(spec)
+    first = int(heldout.episode_starts[0])
+    for camera, image in heldout.images(first).items():
+        assert image.shape == (16, 16, 3)
+        np.testing.assert_array_equal(image, video.fit_frames(full.images(first)[camera],
+                                                              (16, 16)))
 
 
 def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config, tmp_path):

@@ -21,6 +21,7 @@ from websockets.sync.client import connect
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+from pi0_armfix.data import video
 from pi0_armfix.serving import server as server_lib
 from pi0_armfix.policies import inference
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
@@ -92,7 +93,8 @@ def test_the_policy_builds_the_inputs_training_builds_and_undoes_the_delta(run, 
     transform = batching.BatchTransform(
         table, layout, norm_stats=policy.run.norm_stats,
         norm_mode=model_config_lib.norm_mode(config), action_horizon=policy.horizon,
-        delta_mask=policy.delta_mask, tokenize=policy.tokenize)
+        delta_mask=policy.delta_mask, tokenize=policy.tokenize,
+        image_size=policy.run.model_config.image_resolution)  # as training builds them
     frames = np.array([5, 40])
     expected = transform(frames)
     stored = pq.read_table(demo_root / "data/chunk-000/episode_000000.parquet")
@@ -234,6 +236,17 @@ def test_images_of_any_size_compile_the_sampler_once(run):
                                     for key in inference.B1K_KEYS.cameras}}
         assert policy.infer([bigger]).shape[1:] == (policy.horizon, 23)
     assert flow_model.sample_actions._cache_size() == compiled
+
+
+def test_a_served_image_gets_the_resize_every_trained_frame_got(run):
+    policy = inference.RunPolicy.from_workdir(run)
+    size = policy.run.model_config.image_resolution
+    picture = np.random.default_rng(0).integers(0, 256, (1, 3 * size[0], 3 * size[1], 3),
+                                                 np.uint8)
+    trained = video.fit_frames(picture, size)  # what a decoder or a batch of stored images gives
+    assert trained.shape[1:3] == tuple(size)
+    np.testing.assert_array_equal(policy._fit(picture), policy._fit(trained))
+    np.testing.assert_allclose(policy._fit(trained), trained / 127.5 - 1, atol=1e-6)
 
 
 def test_a_port_in_use_is_one_line_before_the_policy_loads(run, cache_dir):  # noqa: F811

@@ -50,3 +50,33 @@ def test_hevc_written_by_the_project_has_closed_gops_that_any_reader_can_seek(tm
                       options={"x265-params": "log-level=none"})
     types = _keyframe_nal_types(path)
     assert types & {19, 20} and 21 not in types  # IDR keyframes only
+
+
+def _textured_frames(count: int, size: int) -> np.ndarray:
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    rng = np.random.default_rng(0)
+    frames = [np.stack([128 + 100 * np.sin(6 * xx + t + 3 * yy), 128 + 100 * np.cos(9 * yy - t),
+                        128 + 60 * np.sin(13 * (xx + yy))], -1) + rng.normal(0, 20, (size, size, 3))
+              for t in range(count)]
+    return np.clip(np.stack(frames), 0, 255).astype(np.uint8)
+
+
+def test_a_decoder_asked_for_a_size_returns_the_one_resize_a_served_image_gets(tmp_path):
+    path = tmp_path / "cam.mp4"
+    video.write_video(path, _textured_frames(6, 96), 30)
+    fitted, full = video.VideoDecoder(path, 30, size=(32, 32)), video.VideoDecoder(path, 30)
+    for i in range(6):
+        frame = fitted.frame_at(i / 30)
+        assert frame.shape == (32, 32, 3)
+        np.testing.assert_array_equal(frame, video.fit_frames(full.frame_at(i / 30), (32, 32)))
+
+
+def test_fitting_keeps_the_aspect_ratio_never_enlarges_and_works_on_batches():
+    images = _textured_frames(4, 64)[:, :, :48]  # [4, 64, 48, 3]
+    fitted = video.fit_frames(images, (32, 32))
+    assert fitted.shape == (4, 32, 24, 3)
+    np.testing.assert_array_equal(fitted[2], video.fit_frames(images[2], (32, 32)))
+    assert video.fit_frames(images, (128, 128)) is images
+    # the area filter: a flat colour stays that colour
+    flat = np.full((2, 90, 90, 3), 77, np.uint8)
+    assert (video.fit_frames(flat, (30, 30)) == 77).all()

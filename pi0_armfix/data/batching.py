@@ -18,6 +18,7 @@ from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data import transforms
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.video import fit_frames
 
 Tokenize = Callable[[str], tuple[np.ndarray, np.ndarray]]
 
@@ -172,7 +173,8 @@ class BatchTransform:
 
     def _images(self, frames: np.ndarray, decoded: Mapping[str, np.ndarray] | None = None
                 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """Every batch camera: the stored one, or zeros masked out where none feeds it."""
+        """Every batch camera: the stored one (fit inside `image_size`: `video.fit_frames`), or
+        zeros masked out where none feeds it."""
         reader = self.table.images
         if decoded is not None:
             per_frame = [{camera: images[i] for camera, images in decoded.items()}
@@ -186,7 +188,8 @@ class BatchTransform:
         images, masks = {}, {}
         for camera in cameras_lib.BATCH_CAMERAS:
             present = camera in provided
-            images[camera] = (np.stack([p[camera] for p in per_frame]) if present
+            images[camera] = (fit_frames(np.stack([p[camera] for p in per_frame]),
+                                         self.image_size) if present
                               else np.zeros((len(frames), *shape), np.uint8))
             masks[camera] = np.full(len(frames), present)
         return images, masks

@@ -108,13 +108,15 @@ def num_frames(source, episodes: np.ndarray) -> int:
     return int(source.episode_lengths[np.isin(source.episode_index, episodes)].sum())
 
 
-def heldout_table(spec: DataSpec, *, images: bool = True, source=None) -> EpisodeTable:
-    """The held-out episodes (the dataset's last `eval.episodes`) for evaluation."""
+def heldout_table(spec: DataSpec, *, images: bool = True, source=None,
+                  image_size: tuple[int, int] | None = None) -> EpisodeTable:
+    """The held-out episodes (the dataset's last `eval.episodes`) for evaluation; video frames
+    decoded to fit inside `image_size`, as the training frames are."""
     source = _source(spec, source)
     heldout = split_episodes(source.episode_index, spec.heldout_episodes)[1]
     if not len(heldout):
         raise ValueError("eval.episodes is 0: there are no held-out episodes to evaluate on")
-    return source.load_table(heldout, images=images)
+    return source.load_table(heldout, images=images, image_size=image_size)
 
 
 def training_blocks(spec: DataSpec, keys: Sequence[str] = ("actions", "state"), *, source=None,

@@ -443,7 +443,7 @@ class LeRobotSource:
         """The chosen episodes (None = all): actions, state (and the timestamps the video reader
         needs) read by row from the `frame_store`; images lazy (None if `images` is False or
         the dataset has no matched camera). `image_size`: (height, width) video frames are
-        resized to fit inside, in the decoder; None = as stored."""
+        resized to fit inside (`video.fit_frames`); None = as stored."""
         positions = self.positions(episodes)
         if not positions:
             raise ValueError(f"{self.root}: load_table needs at least one episode")

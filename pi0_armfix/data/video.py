@@ -7,9 +7,12 @@ on the way it skips the frames no other frame references (`SKIP_MARGIN`).
 `python -m pi0_armfix.tools.reencode_videos` rewrites such a dataset with short GOPs at the
 model's resolution; `python -m pi0_armfix.bench video` measures both.
 
-A decoder resizes in the decoder (libswscale, area filter) when asked for a `size`: the frame is
-scaled to fit inside it with its aspect ratio kept, never up, so the model's resize-with-pad of a
-square camera has nothing left to do and a 720² frame is never carried to the host at full size.
+Every camera frame reaches the model through one resize, `fit_frames` (libswscale's area filter on
+RGB, to fit inside the model's image size with the aspect ratio kept, never up): a decoder asked
+for a `size` applies it to each decoded frame (so a 720² frame is not kept at full size), the
+batches of stored images apply it (`batching.BatchTransform`), and so does the served policy to
+a client's images (`inference.RunPolicy`). Trained, held-out and served frames of one picture are
+then the same pixels, and the model's resize-with-pad of a square camera has nothing left to do.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import collections
 import fractions
 import itertools
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +48,28 @@ def fit_inside(height: int, width: int, size: tuple[int, int] | None) -> tuple[i
     return max(2, int(round(height * scale / 2)) * 2), max(2, int(round(width * scale / 2)) * 2)
 
 
+_SCALERS = threading.local()  # one libswscale context per thread, kept across frames
+
+
+def fit_frames(images: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
+    """uint8 `[..., h, w, 3]` -> `[..., h', w', 3]` fitting inside `size` (`fit_inside`), by
+    libswscale's area filter on RGB; unchanged when it already fits (see the module docstring)."""
+    height, width = fit_inside(images.shape[-3], images.shape[-2], size)
+    if (height, width) == images.shape[-3:-1]:
+        return images
+    import av  # PyAV is only needed where a frame is larger than the model's images
+
+    scaler = getattr(_SCALERS, "scaler", None)
+    if scaler is None:  # building a scaler per frame costs more CPU than the scaling itself
+        scaler = _SCALERS.scaler = av.video.reformatter.VideoReformatter()
+    flat = images.reshape(-1, *images.shape[-3:])
+    out = np.stack([scaler.reformat(av.VideoFrame.from_ndarray(np.ascontiguousarray(image),
+                                                                format="rgb24"),
+                                    width=width, height=height, format="rgb24",
+                                    interpolation="AREA").to_ndarray() for image in flat])
+    return out.reshape(*images.shape[:-3], height, width, 3)
+
+
 class VideoDecoder:
     """Frames of one mp4 by timestamp. Not thread-safe: use one per thread.
 
@@ -57,7 +83,7 @@ class VideoDecoder:
       path: the mp4 file.
       fps: the dataset's frame rate (frame numbers are `round(time * fps)`).
       tolerance: see above.
-      size: (height, width) to fit frames inside, in the decoder (see the module docstring);
+      size: (height, width) to fit frames inside (`fit_frames`, see the module docstring);
         None = as stored.
       max_frames, max_gap: see above.
       threads: decode with FFmpeg's frame and slice threads (a random reader: several times
@@ -82,10 +108,7 @@ class VideoDecoder:
             self._stream.thread_type = "AUTO"
         context = self._stream.codec_context
         self.height, self.width = fit_inside(context.height, context.width, size)
-        self._resize = (self.height, self.width) != (context.height, context.width)
-        # One scaler kept for the stream: a frame's own reformat builds a new one every frame,
-        # which costs more CPU than the scaling itself.
-        self._reformatter = av.video.reformatter.VideoReformatter()
+        self._size = size
         self._frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self._decoder = None
         self._position = -1  # number of the last frame the decoder returned
@@ -125,11 +148,7 @@ class VideoDecoder:
                 return
 
     def _array(self, frame) -> np.ndarray:
-        if self._resize:
-            frame = self._reformatter.reformat(frame, width=self.width, height=self.height,
-                                               format="rgb24", interpolation="AREA")
-            return frame.to_ndarray()
-        return frame.to_ndarray(format="rgb24")
+        return fit_frames(frame.to_ndarray(format="rgb24"), self._size)
 
     def frame_at(self, seconds: float) -> np.ndarray:
         """uint8 [h, w, 3], the frame nearest to `seconds` (within `tolerance` frames)."""

@@ -98,7 +98,8 @@ class HeldOutChunks:
                  sums: Callable[..., dict[str, np.ndarray]], tokenize=None,
                  image_size: tuple[int, int] = (224, 224), source=None):
         layout = spec.layout
-        table = dataset_lib.heldout_table(spec, source=source, images=tokenize is not None)
+        table = dataset_lib.heldout_table(spec, source=source, images=tokenize is not None,
+                                          image_size=image_size)
         self.transform = batching.BatchTransform(
             table, layout, norm_stats=norm_stats, norm_mode=spec.norm, action_horizon=horizon,
             delta_mask=spec.delta_mask, tokenize=tokenize, actions_only=tokenize is None,

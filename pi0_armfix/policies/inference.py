@@ -34,6 +34,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import batching, run_inputs, sources, transforms
 from pi0_armfix.data import chunk_stats as chunk_stats_lib
 from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.video import fit_frames
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
@@ -277,9 +278,11 @@ class RunPolicy:
             self._fit(np.zeros((1, *size, 3), np.uint8))
 
     def _fit(self, images: np.ndarray) -> np.ndarray:
-        """uint8 `[B, h, w, 3]` -> float32 `[B, *image_resolution, 3]` in [-1, 1] (the model's
-        own conversion and resize-with-pad)."""
-        return np.asarray(self._to_model_images(images))
+        """uint8 `[B, h, w, 3]` -> float32 `[B, *image_resolution, 3]` in [-1, 1]: the resize
+        every trained frame had (`video.fit_frames`), then the model's own conversion and
+        resize-with-pad."""
+        resolution = self.run.model_config.image_resolution
+        return np.asarray(self._to_model_images(fit_frames(images, resolution)))
 
     @classmethod
     def from_workdir(cls, workdir: epath.PathLike, step: int | None = None,

@@ -7,8 +7,8 @@ Why: BEHAVIOR-1K 2025 stores each camera as HEVC (720² head, 480² wrists) with
 episode, so reading one random training sample decodes, per camera, everything from the
 episode's start up to the sample (half an episode, ~6000 frames, on average): far below what a
 GPU consumes (`python -m pi0_armfix.bench video` measures it). B1K's 1st-place team re-encoded
-to 224²; so does this tool: every frame is decoded once, in order, resized in the decoder to fit
-inside `--size`² (aspect kept), and written with a keyframe every `--gop` frames, at the same
+to 224²; so does this tool: every frame is decoded once, in order, resized to fit inside `--size`²
+(`video.fit_frames`, aspect kept), and written with a keyframe every `--gop` frames, at the same
 timestamps, so a random read costs at most `--gop` small frames per camera.
 
 The output is a LeRobot dataset of the same layout version that the project (and LeRobot) read
