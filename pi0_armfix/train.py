@@ -64,16 +64,18 @@ from ml_collections import config_flags
 from tqdm import tqdm
 
 from pi0_armfix import console
-from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import background, batching, pipeline, sources, video_stream
-from pi0_armfix.data import chunk_stats as chunk_stats_lib
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import run_inputs
+from pi0_armfix.data import background
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import batching, pipeline, video_stream
+from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline import run_inputs
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import flow_model, pretrained
+from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint, finite_checkpoints, fingerprint, plots, preemption
 from pi0_armfix.training import metrics_log

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pi0_armfix.data.lerobot_writer import LeRobotWriter
+from pi0_armfix.data.formats.lerobot_writer import LeRobotWriter
 
 # B1K's stored camera names (RGB only; depth is added where a test needs it).
 B1K_CAMERAS = {

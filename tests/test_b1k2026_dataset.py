@@ -15,11 +15,11 @@ import train_fixtures as tf
 from pi0_armfix.configs import arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import train
-from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.policies import inference
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import selection
-from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.policies import inference
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 

@@ -12,10 +12,11 @@ import train_fixtures as tf
 from pi0_armfix.configs import arm_curriculum, arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import train
-from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import selection, video_stream
-from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data import selection
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.pipeline import video_stream
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.training import checkpoint, sharding
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
                               filter_arm_heavy_episodes, recompute_balanced_norm_stats)

@@ -4,8 +4,8 @@
 import numpy as np
 import pytest
 
-from pi0_armfix.data import chunk_stats, transforms
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.pipeline import chunk_stats, transforms
 from pi0_armfix.model import noise as noise_lib
 
 H = 4

@@ -10,14 +10,14 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import demo_root  # noqa: F401  (a pytest fixture)
-from pi0_armfix.configs import base
 from pi0_armfix import console, train
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
+from pi0_armfix.configs import base
 from pi0_armfix.data import selection
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.training import checkpoint, sharding
-from pi0_armfix.data.data_spec import DataSpec
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",

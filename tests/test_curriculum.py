@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import curriculum as curriculum_lib
-from pi0_armfix.data import pipeline, transforms
-from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.pipeline import curriculum as curriculum_lib
+from pi0_armfix.data.pipeline import pipeline
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics import stats as stats_lib
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 BATCH = 6
@@ -42,7 +43,7 @@ def iterator(table, data, seed=0):
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
     run = pipeline.TrainIterator(dataset, spec.curriculum, sharding=sharding,
                                  global_batch_size=BATCH, seed=seed)
-    normalizer = transforms.Normalizer.from_stats(stats["actions"], "zscore")
+    normalizer = normalize.Normalizer.from_stats(stats["actions"], "zscore")
     return run, normalizer
 
 

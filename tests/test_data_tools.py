@@ -12,12 +12,14 @@ import pytest
 from pi0_armfix.configs import base as base_config
 from data_fixtures import write_dataset
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import sampling, sources, transforms
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline import sampling
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import motion as motion_lib
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
                               filter_arm_heavy_episodes, recompute_balanced_norm_stats)
@@ -105,7 +107,7 @@ def test_streaming_motion_equals_one_block():
 
 # ---------------------------------------------------------------------- balanced normalization
 
-@pytest.mark.parametrize("mode", transforms.NORM_MODES)
+@pytest.mark.parametrize("mode", stats_lib.NORM_MODES)
 def test_balanced_stats_give_every_group_the_same_motion_rms(mode):
     table = table_of(b1k_like_episodes())
     stats = stats_lib.compute_norm_stats(stats_lib.table_blocks(table), ("actions",),
@@ -114,8 +116,8 @@ def test_balanced_stats_give_every_group_the_same_motion_rms(mode):
                                                        max_scale=100.0)
     report = next(r for r in reports if r.mode == mode)
     _, active = motion_lib.normalized_units(stats, mode)
-    before = group_motion_rms(table, transforms.Normalizer.from_stats(stats, mode), active)
-    after = group_motion_rms(table, transforms.Normalizer.from_stats(balanced, mode), active)
+    before = group_motion_rms(table, normalize.Normalizer.from_stats(stats, mode), active)
+    after = group_motion_rms(table, normalize.Normalizer.from_stats(balanced, mode), active)
     moving = before > 0
     assert before[moving].max() / before[moving].min() > 5  # the data is imbalanced
     np.testing.assert_allclose(after[moving], report.target, rtol=1e-3)

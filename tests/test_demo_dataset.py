@@ -13,9 +13,9 @@ import pytest
 from ml_collections import ConfigDict
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import demo, video
-from pi0_armfix.data.lerobot import LeRobotSource
-from pi0_armfix.data.sources import open_source
+from pi0_armfix.data.formats import demo, video
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.formats.sources import open_source
 from pi0_armfix.sim.world import B1K_2025_NORM_STATS
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")

@@ -10,12 +10,12 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.evaluation import baselines, ceiling
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout
 from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.action_space import ActionLayout
 
 LAYOUT = ActionLayout(groups={"base": (0, 2), "arm": (2, 5), "gripper": (5, 6)}, real_dim=6,
                       action_dim=8, velocity_groups=("base",))
@@ -365,8 +365,8 @@ def test_held_out_chunks_beyond_max_chunks_are_an_even_subset_without_overlap():
 def _evaluate_in_process(workdir, **eval_changes):
     import jax
     from pi0_armfix.policies import inference
-    from pi0_armfix.data import sources
-    from pi0_armfix.data.data_spec import DataSpec
+    from pi0_armfix.data.formats import sources
+    from pi0_armfix.data.pipeline.data_spec import DataSpec
     from pi0_armfix.model import tokenizer as tokenizer_lib
     from pi0_armfix.training import sharding as sharding_lib
     run = inference.restore_run(workdir)

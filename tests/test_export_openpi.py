@@ -11,11 +11,11 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix.policies import inference
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import pretrained
 from pi0_armfix.model.tree import flatten_tree
+from pi0_armfix.policies import inference
 from pi0_armfix.tools import export_openpi
 
 # Delta torso and arm actions on a state reordered into the action order, as on B1K.
@@ -156,9 +156,9 @@ def test_openpis_formula_on_the_exported_stats_is_the_runs_normalization(mode):
     assert adjusted == {"state": [2], "actions": [2]}
     exported = {key: stats_lib.NormStats(**{k: np.asarray(v) for k, v in value.items()})
                 for key, value in written["norm_stats"].items()}
-    run_map = transforms.Normalizer.from_stats(stats, mode)
+    run_map = normalize.Normalizer.from_stats(stats, mode)
     x = mean + rng.normal(size=(50, 4))
-    np.testing.assert_allclose(transforms.openpi_normalize(x, exported["state"], mode), run_map(x),
+    np.testing.assert_allclose(normalize.openpi_normalize(x, exported["state"], mode), run_map(x),
                                rtol=1e-5, atol=1e-5)
     y = rng.normal(size=(50, 4))  # what a model samples, noise on the constant dim included
     openpi = exported["actions"]

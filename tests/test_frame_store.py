@@ -12,12 +12,12 @@ import pytest
 import b1k_fixture
 from data_fixtures import make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import frame_store as frame_store_lib
-from pi0_armfix.data.frame_store import FrameStore, FrameColumn
-from pi0_armfix.data.lerobot import LeRobotSource
-from pi0_armfix.data.lerobot_meta import VERSIONS
-from pi0_armfix.data.sampling import EpisodeFrames
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.formats import frame_store as frame_store_lib
+from pi0_armfix.data.formats.frame_store import FrameStore, FrameColumn
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.formats.lerobot_meta import VERSIONS
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.pipeline.sampling import EpisodeFrames
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 
@@ -185,8 +185,9 @@ def _iterator(root, *, batch_size, num_workers=0, images=False, process_index=0,
     import ml_collections
     from absl import flags
 
-    from pi0_armfix.data import pipeline, sources
-    from pi0_armfix.data import stats as stats_lib
+    from pi0_armfix.data.pipeline import pipeline
+    from pi0_armfix.data.formats import sources
+    from pi0_armfix.data.statistics import stats as stats_lib
 
     flags.FLAGS.mark_as_parsed()  # grain's worker processes read absl flags
     config = ml_collections.ConfigDict({
@@ -263,7 +264,7 @@ def _nan_dataset(tmp_path):
 def test_nan_in_the_actions_is_named_by_episode_and_file_in_the_stats_pass(tmp_path):
     import ml_collections
 
-    from pi0_armfix.data import dataset as dataset_lib
+    from pi0_armfix.data.pipeline import dataset as dataset_lib
 
     root = _nan_dataset(tmp_path)
     config = ml_collections.ConfigDict({"eval": {"episodes": 0}, "data": {"root": str(root)}})

@@ -9,8 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from data_fixtures import make_episodes, write_dataset
-from pi0_armfix.data import lerobot_stats
-from pi0_armfix.data.lerobot_writer import LeRobotWriter, hf_feature
+from pi0_armfix.data.formats import lerobot_stats
+from pi0_armfix.data.formats.lerobot_writer import LeRobotWriter, hf_feature
 from pi0_armfix.tools.reencode_videos import reencode_dataset
 
 HEAD, DEPTH = "observation.images.rgb.head", "observation.images.depth.head"

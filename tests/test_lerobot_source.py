@@ -12,12 +12,12 @@ from ml_collections import ConfigDict
 from data_fixtures import (B1K_CAMERAS, identify_frame, make_episodes, write_dataset)
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.cameras import match_cameras
-from pi0_armfix.data.lerobot import LeRobotSource
-from pi0_armfix.data.lerobot_meta import VERSIONS
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data.sources import open_source
-from pi0_armfix.data.video import VideoDecoder
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.formats.lerobot_meta import VERSIONS
+from pi0_armfix.data.formats.sources import open_source
+from pi0_armfix.data.formats.video import VideoDecoder
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 

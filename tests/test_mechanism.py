@@ -1,12 +1,13 @@
-"""The stagnation mechanism a dataset has (pi0_armfix.data.mechanism), on synthetic data built to
+"""The stagnation mechanism a dataset has (pi0_armfix.tools.mechanism), on synthetic data built to
 have one, the other, or neither."""
 
 import numpy as np
 import pytest
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import mechanism, stats
-from pi0_armfix.data.stats import NormStats
+from pi0_armfix.data.statistics import stats
+from pi0_armfix.data.statistics.stats import NormStats
+from pi0_armfix.tools import mechanism
 
 LAYOUT = ActionLayout(groups={"base": (0, 1), "arm": (1, 3)}, real_dim=3, action_dim=4,
                       velocity_groups=("base",), roles={"base": "base", "arm": "arm"})

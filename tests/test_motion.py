@@ -1,5 +1,5 @@
 """The arm-heavy filter's episode motion: a velocity group (the B1K base) moves by its command,
-a position group by the change of its target (docs/design.md §2, `pi0_armfix.data.motion`)."""
+a position group by the change of its target (docs/design.md §2, `pi0_armfix.data.statistics.motion`)."""
 
 import json
 
@@ -9,9 +9,9 @@ import pytest
 from pi0_armfix.configs import base as base_config
 from data_fixtures import write_dataset
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.statistics import motion as motion_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.tools import filter_arm_heavy_episodes
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")

@@ -15,13 +15,15 @@ from absl import flags
 from pi0_armfix.configs import base as base_config
 from data_fixtures import B1K_CAMERAS, make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import batching, pipeline, sources, transforms, video
-from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.cameras import BATCH_CAMERAS
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.formats import sources, video
+from pi0_armfix.data.pipeline import batching, pipeline, transforms
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 REPO = Path(__file__).resolve().parents[1]
@@ -80,7 +82,7 @@ def batches_of(table, *, batch_size=8, steps=6, data=None, seed=0, process_index
 
 def frames_of(table, batch):
     """The frame index of each sample of a batch (dim 0 of its first action)."""
-    normalizer = transforms.Normalizer.from_stats(table_stats(table)["actions"], "zscore")
+    normalizer = normalize.Normalizer.from_stats(table_stats(table)["actions"], "zscore")
     return np.rint(normalizer.inverse(batch["actions"][:, 0])[:, 0]).astype(int)
 
 
@@ -125,8 +127,8 @@ def test_actions_only_batch_has_no_images_or_prompt():
 def test_actions_are_normalized_padded_chunks_of_the_sampled_frame():
     table = frame_table()
     stats = table_stats(table)
-    action_norm = transforms.Normalizer.from_stats(stats["actions"], "zscore")
-    state_norm = transforms.Normalizer.from_stats(stats["state"], "zscore")
+    action_norm = normalize.Normalizer.from_stats(stats["actions"], "zscore")
+    state_norm = normalize.Normalizer.from_stats(stats["state"], "zscore")
     for batch in batches_of(table, steps=4):
         frames = frames_of(table, batch)
         index, is_pad = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
@@ -187,7 +189,7 @@ def test_delta_actions_are_relative_to_the_current_state():
                                      action_horizon=HORIZON, global_batch_size=8,
                                      actions_only=True)
     batch = dataset[0]
-    raw = transforms.Normalizer.from_stats(stats["actions"], "zscore").inverse(batch["actions"])
+    raw = normalize.Normalizer.from_stats(stats["actions"], "zscore").inverse(batch["actions"])
     frames = np.rint(raw[:, 0, 0]).astype(int)
     index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
     expected = table.actions[index][..., 7:14] - table.state[frames][:, None, 7:14]
@@ -219,7 +221,7 @@ def chunk_targets(table, norm_stats):
 
 def passthrough_stats(width):
     """Stats the normalizer leaves values unchanged with: mean 0 and std + eps = 1."""
-    return stats_lib.NormStats(mean=np.zeros(width), std=np.full(width, 1.0 - transforms.EPS),
+    return stats_lib.NormStats(mean=np.zeros(width), std=np.full(width, 1.0 - normalize.EPS),
                                q01=-np.ones(width), q99=np.ones(width))
 
 
@@ -327,7 +329,7 @@ def test_global_arrays_are_sharded_over_the_batch_axis():
     script = textwrap.dedent("""
         import numpy as np, jax
         from tests.test_pipeline import frame_table, spec_of, table_stats
-        from pi0_armfix.data import pipeline
+        from pi0_armfix.data.pipeline import pipeline
         table = frame_table()
         spec = spec_of()
         dataset = pipeline.train_batches(
@@ -393,7 +395,7 @@ def test_held_out_episodes_are_the_last_ones_and_never_trained_on(lerobot_config
                                        action_horizon=HORIZON, global_batch_size=8,
                                        sharding=single_device_sharding(),
                                        tokenize=CountingTokenizer())
-    normalizer = transforms.Normalizer.from_stats(
+    normalizer = normalize.Normalizer.from_stats(
         stats_lib.fit_width(stats["actions"], 23, "actions"), "zscore")
     seen = set()
     for _ in range(12):

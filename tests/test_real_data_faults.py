@@ -21,15 +21,15 @@ from train_fixtures import cache_dir  # noqa: F401  (pytest fixture)
 from pi0_armfix.configs import arm_curriculum, base
 from data_fixtures import identify_frame, make_episodes, write_dataset
 from pi0_armfix import train
-from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import selection
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import sources
-from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data import selection
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.tools import compute_norm_stats
-from pi0_armfix.data.data_spec import DataSpec
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 

@@ -13,7 +13,7 @@ import pytest
 import b1k_fixture
 from data_fixtures import identify_frame, make_episodes, write_dataset
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data.formats.lerobot import LeRobotSource
 from pi0_armfix.tools.reencode_videos import reencode_dataset
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")

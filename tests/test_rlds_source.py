@@ -10,8 +10,8 @@ from PIL import Image
 
 from data_fixtures import frame_colour
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data.rlds import RldsSource
-from pi0_armfix.data.sources import open_source
+from pi0_armfix.data.formats.rlds import RldsSource
+from pi0_armfix.data.formats.sources import open_source
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 LENGTHS = (5, 8, 6)

@@ -1,4 +1,4 @@
-"""A run's config is read once (pi0_armfix.training.run_spec, pi0_armfix.data.data_spec): resolved
+"""A run's config is read once (pi0_armfix.training.run_spec, pi0_armfix.data.pipeline.data_spec): resolved
 and checked before any I/O, every module handed its part."""
 
 import sys
@@ -12,12 +12,12 @@ from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import arm_focused, base
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.training.run_spec import RunSpec
 
 # Where the config may be read: the resolver and the readers of one section each.
 READERS = {"pi0_armfix.training.run_spec", "pi0_armfix.action_space", "pi0_armfix.model.config",
-           "pi0_armfix.data.data_spec"}
+           "pi0_armfix.data.pipeline.data_spec"}
 
 
 def _reading_modules(monkeypatch) -> list[str]:

@@ -21,15 +21,16 @@ from websockets.sync.client import connect
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix.data import video
-from pi0_armfix.serving import server as server_lib
-from pi0_armfix.policies import inference
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.formats import video
+from pi0_armfix.data.pipeline import batching
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import outputs
-from pi0_armfix.data import batching, sources
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import flow_model
+from pi0_armfix.model import inputs as model_inputs_lib
+from pi0_armfix.policies import inference
+from pi0_armfix.serving import server as server_lib
 from pi0_armfix.sim import world as world_lib
 from pi0_armfix.sim.env import DemoWorldEnv
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from pi0_armfix.data import demo
+from pi0_armfix.data.formats import demo
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout
 from pi0_armfix.sim import world as world_lib

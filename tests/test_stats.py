@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from pi0_armfix.data import json_files
-from pi0_armfix.data import stats as stats_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.sim.world import B1K_2025_NORM_STATS
 
 REFERENCE = B1K_2025_NORM_STATS

@@ -14,10 +14,10 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix.configs import base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import sources
+from pi0_armfix.configs import base
+from pi0_armfix.data.formats import sources
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
@@ -92,7 +92,7 @@ def test_unknown_config_key_is_an_error(tmp_path, cache_dir, demo_root):
 def test_nan_data_with_supplied_norm_stats_is_named_before_the_first_step(tmp_path,
                                                                           monkeypatch):
     from data_fixtures import make_episodes, write_dataset
-    from pi0_armfix.data import stats as stats_lib
+    from pi0_armfix.data.statistics import stats as stats_lib
 
     monkeypatch.setenv("PI0_ARMFIX_CACHE", str(tmp_path / "cache"))
     episodes = make_episodes(6, cameras={})
@@ -224,8 +224,8 @@ def test_pretrained_params_are_the_state_at_step_zero(tmp_path, demo_root):
 
 def test_a_run_opens_its_dataset_once_and_builds_its_frame_store_once(tmp_path, demo_root,
                                                                      monkeypatch):
-    from pi0_armfix.data import frame_store
-    from pi0_armfix.data.lerobot import LeRobotSource
+    from pi0_armfix.data.formats import frame_store
+    from pi0_armfix.data.formats.lerobot import LeRobotSource
 
     monkeypatch.setenv("PI0_ARMFIX_CACHE", str(tmp_path / "cache"))
     opened, built = [], []

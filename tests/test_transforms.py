@@ -6,8 +6,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import transforms
-from pi0_armfix.data.stats import CONSTANT_SPREAD, NORM_MODES, NormStats
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics.stats import CONSTANT_SPREAD, NORM_MODES, NormStats
 
 B1K = ActionLayout.preset("b1k_r1pro")
 # The official B1K baseline's *state* order: grippers last (docs/design.md §2).
@@ -25,27 +26,27 @@ def make_stats(width=5, seed=0):
 def test_zscore_is_openpi_formula():
     stats = make_stats()
     x = np.random.default_rng(1).normal(size=(4, 5)).astype(np.float32)
-    y = transforms.Normalizer.from_stats(stats, "zscore")(x)
+    y = normalize.Normalizer.from_stats(stats, "zscore")(x)
     np.testing.assert_allclose(y, (x - stats.mean) / (stats.std + 1e-6), rtol=1e-5, atol=1e-6)
 
 
 def test_quantile_is_openpi_formula():
     stats = make_stats()
     x = np.random.default_rng(1).normal(size=(4, 5)).astype(np.float32)
-    y = transforms.Normalizer.from_stats(stats, "quantile")(x)
+    y = normalize.Normalizer.from_stats(stats, "quantile")(x)
     expected = (x - stats.q01) / (stats.q99 - stats.q01 + 1e-6) * 2 - 1
     np.testing.assert_allclose(y, expected, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("mode", NORM_MODES)
 def test_inverse_undoes_normalization(mode):
-    normalizer = transforms.Normalizer.from_stats(make_stats(), mode)
+    normalizer = normalize.Normalizer.from_stats(make_stats(), mode)
     x = np.random.default_rng(2).normal(size=(3, 6, 5)).astype(np.float32)
     np.testing.assert_allclose(normalizer.inverse(normalizer(x)), x, rtol=1e-5, atol=1e-5)
 
 
 def test_inverse_reads_the_real_dims_of_a_padded_array():
-    normalizer = transforms.Normalizer.from_stats(make_stats(), "zscore")
+    normalizer = normalize.Normalizer.from_stats(make_stats(), "zscore")
     x = np.ones((2, 5), np.float32)
     padded = transforms.pad_last(normalizer(x), 32)
     np.testing.assert_allclose(normalizer.inverse(padded), x, rtol=1e-5)
@@ -59,7 +60,7 @@ def constant_last_dim_stats(spread=1e-9):
 
 @pytest.mark.parametrize("mode", NORM_MODES)
 def test_a_constant_dim_normalizes_to_zero_and_round_trips_exactly(mode):
-    normalizer = transforms.Normalizer.from_stats(constant_last_dim_stats(), mode)
+    normalizer = normalize.Normalizer.from_stats(constant_last_dim_stats(), mode)
     x = np.full((2, 5), 0.5, np.float32)
     y = normalizer(x)
     assert np.all(y[:, 4] == 0.0)
@@ -68,7 +69,7 @@ def test_a_constant_dim_normalizes_to_zero_and_round_trips_exactly(mode):
 
 @pytest.mark.parametrize("mode", NORM_MODES)
 def test_a_constant_dim_unnormalizes_to_its_constant_whatever_the_model_puts_there(mode):
-    normalizer = transforms.Normalizer.from_stats(constant_last_dim_stats(), mode)
+    normalizer = normalize.Normalizer.from_stats(constant_last_dim_stats(), mode)
     y = np.random.default_rng(3).normal(size=(7, 5)).astype(np.float32)
     assert np.all(normalizer.inverse(y)[:, 4] == np.float32(0.5))
     assert normalizer.constant.tolist() == [False] * 4 + [True]
@@ -78,14 +79,14 @@ def test_a_constant_dim_unnormalizes_to_its_constant_whatever_the_model_puts_the
 def test_one_threshold_decides_constant(mode):
     below = constant_last_dim_stats(0.99 * CONSTANT_SPREAD)
     above = constant_last_dim_stats(1.01 * CONSTANT_SPREAD)
-    assert transforms.Normalizer.from_stats(below, mode).constant[4]
-    assert not transforms.Normalizer.from_stats(above, mode).constant[4]
+    assert normalize.Normalizer.from_stats(below, mode).constant[4]
+    assert not normalize.Normalizer.from_stats(above, mode).constant[4]
     assert below.constant(mode)[4] and not above.constant(mode)[4]
 
 
 def test_unknown_norm_mode_is_an_error():
     with pytest.raises(ValueError, match="data.norm must be one of"):
-        transforms.Normalizer.from_stats(make_stats(), "minmax")
+        normalize.Normalizer.from_stats(make_stats(), "minmax")
 
 
 def test_pad_last_zero_pads_and_refuses_to_cut():
@@ -148,9 +149,9 @@ def test_per_timestep_normalizer_normalizes_each_chunk_position_with_its_own_sta
     rng = np.random.default_rng(0)
     mean, std = rng.normal(size=(4, 3)), rng.uniform(0.5, 2.0, size=(4, 3))
     stats = NormStats(mean=mean, std=std, q01=mean - 2 * std, q99=mean + 2 * std)
-    normalizer = transforms.Normalizer.from_stats(stats, "zscore")
+    normalizer = normalize.Normalizer.from_stats(stats, "zscore")
     chunks = rng.normal(size=(5, 4, 3))
-    np.testing.assert_allclose(normalizer(chunks), (chunks - mean) / (std + transforms.EPS),
+    np.testing.assert_allclose(normalizer(chunks), (chunks - mean) / (std + normalize.EPS),
                                rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(normalizer.inverse(normalizer(chunks)), chunks, atol=1e-5)
     assert normalizer.width == 3

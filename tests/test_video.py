@@ -1,9 +1,9 @@
-"""Frames by timestamp from mp4 files (pi0_armfix.data.video.VideoDecoder)."""
+"""Frames by timestamp from mp4 files (pi0_armfix.data.formats.video.VideoDecoder)."""
 
 import numpy as np
 
 from data_fixtures import frame_colour
-from pi0_armfix.data import video
+from pi0_armfix.data.formats import video
 
 
 def test_every_frame_of_an_open_gop_hevc_file_with_b_frames_is_read_in_any_order(tmp_path):

@@ -1,4 +1,4 @@
-"""Episodes streamed front to back (pi0_armfix.data.video_stream) on B1K 2025's layout: HEVC with
+"""Episodes streamed front to back (pi0_armfix.data.pipeline.video_stream) on B1K 2025's layout: HEVC with
 one keyframe per episode."""
 
 import collections
@@ -9,8 +9,9 @@ import pytest
 import b1k_fixture
 from data_fixtures import frame_colour, identify_frame
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import video, video_stream
-from pi0_armfix.data.lerobot import LeRobotSource
+from pi0_armfix.data.formats import video
+from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.pipeline import video_stream
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
 
@@ -206,7 +207,7 @@ _SOURCES = {"full": np.arange(10), "arm_heavy": np.array([0, 1])}
 
 
 def _curriculum_order(phases, **options):
-    from pi0_armfix.data.curriculum import Curriculum, parse_curriculum
+    from pi0_armfix.data.pipeline.curriculum import Curriculum, parse_curriculum
 
     curriculum = Curriculum(parse_curriculum(phases), seed=0)
     return video_stream.curriculum_episode_order(

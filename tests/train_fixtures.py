@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from pi0_armfix.data import demo
+from pi0_armfix.data.formats import demo
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TINY_EPISODES = 8  # 6 to train on, 2 held out

@@ -41,8 +41,8 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.bench import common
 from pi0_armfix.cache import cache_root
-from pi0_armfix.data.data_spec import DataSpec
-from pi0_armfix.data.lerobot_writer import LeRobotWriter
+from pi0_armfix.data.formats.lerobot_writer import LeRobotWriter
+from pi0_armfix.data.pipeline.data_spec import DataSpec
 
 _LAYOUT = "b1k_r1pro"
 
@@ -127,8 +127,8 @@ def _cpu_seconds() -> float:
 
 def _stats_child(root: str) -> None:
     """Runs in the child: one stats pass; prints timing and memory as JSON."""
-    from pi0_armfix.data import stats as stats_lib
-    from pi0_armfix.data.lerobot import LeRobotSource
+    from pi0_armfix.data.statistics import stats as stats_lib
+    from pi0_armfix.data.formats.lerobot import LeRobotSource
 
     source = LeRobotSource(root, ActionLayout.preset(_LAYOUT))
     frames = int(source.episode_lengths.sum())
@@ -155,9 +155,9 @@ def bench_stats(root: Path) -> dict[str, float]:
 
 def bench_pipeline(root: Path, batch_size: int, horizon: int, steps: int, warmup: int,
                    num_workers: int) -> dict[str, float]:
-    from pi0_armfix.data import dataset as dataset_lib
-    from pi0_armfix.data import pipeline
-    from pi0_armfix.data import stats as stats_lib
+    from pi0_armfix.data.pipeline import dataset as dataset_lib
+    from pi0_armfix.data.pipeline import pipeline
+    from pi0_armfix.data.statistics import stats as stats_lib
 
     spec = DataSpec.from_config(common.data_config(str(root), num_workers),
                                 ActionLayout.preset(_LAYOUT))
@@ -227,7 +227,7 @@ class SyntheticSource:
 
     @property
     def frame_store(self):
-        from pi0_armfix.data.frame_store import FrameStore
+        from pi0_armfix.data.formats.frame_store import FrameStore
 
         return FrameStore.open(self, progress=False)
 
@@ -258,8 +258,8 @@ def _memory_child(arg: str) -> None:
         return
     import jax
 
-    from pi0_armfix.data import pipeline
-    from pi0_armfix.data import stats as stats_lib
+    from pi0_armfix.data.pipeline import pipeline
+    from pi0_armfix.data.statistics import stats as stats_lib
 
     workers, batch_size, horizon, steps = (int(p) for p in parts[2:])
     spec = DataSpec.from_config(common.data_config(source.root, workers),

@@ -152,7 +152,7 @@ def _losses(workdir: Path) -> list[dict]:
 
 def run(kills: int, steps: int, seed: int, folder: Path) -> dict[str, object]:
     """The benchmark in `folder`; returns its tally."""
-    from pi0_armfix.data import demo
+    from pi0_armfix.data.formats import demo
 
     root = demo.write_demo_dataset(folder / "demo", demo.DemoSpec(num_episodes=8))
     env = _env(folder / "cache")

@@ -86,7 +86,7 @@ def harness_latency(workdir: Path, port: int, steps: int) -> None:
 
     from pi0_armfix.serving import server as server_lib
     from pi0_armfix.serving import harness
-    from pi0_armfix.data import run_inputs
+    from pi0_armfix.data.pipeline import run_inputs
 
     inputs = run_inputs.load(workdir)
     width = inputs.state_width if inputs is not None else 23

@@ -31,13 +31,14 @@ from collections.abc import Sequence
 
 import jax
 
-from pi0_armfix.bench import model as bench_model
-from pi0_armfix.configs import arm_focused, base
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import pipeline, sources
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.bench import model as bench_model
+from pi0_armfix.configs import arm_focused, base
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline import pipeline
+from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib

@@ -53,7 +53,7 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.bench import common
 from pi0_armfix.cache import build_lock, cache_root, digest
-from pi0_armfix.data.lerobot_writer import LeRobotWriter
+from pi0_armfix.data.formats.lerobot_writer import LeRobotWriter
 
 _LAYOUT = "b1k_r1pro"
 _CAMERAS = ("observation.images.rgb.head", "observation.images.rgb.left_wrist",
@@ -170,7 +170,7 @@ def bench_root(episodes: int, frames: int, head: int, wrist: int, content: str =
 def random_reads(root: Path, size: int, samples: int) -> dict[str, float]:
     """Random frames of the original through the training reader (fresh decoders per sample,
     as a shuffled stream across thousands of episodes meets them)."""
-    from pi0_armfix.data.lerobot import LeRobotSource
+    from pi0_armfix.data.formats.lerobot import LeRobotSource
 
     source = LeRobotSource(root, ActionLayout.preset(_LAYOUT))
     rng = np.random.default_rng(0)
@@ -204,9 +204,10 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
     """The training iterator's samples/s; for a stream also the memory of its processes and the
     latency of a resume from the state after the timed steps. `stream`: (open episodes, shuffle
     window, stride)."""
-    from pi0_armfix.data import dataset as dataset_lib
-    from pi0_armfix.data import pipeline, sources
-    from pi0_armfix.data.data_spec import DataSpec
+    from pi0_armfix.data.pipeline import dataset as dataset_lib
+    from pi0_armfix.data.pipeline import pipeline
+    from pi0_armfix.data.formats import sources
+    from pi0_armfix.data.pipeline.data_spec import DataSpec
 
     config = common.data_config(str(root), num_workers)
     (config.data.stream_episodes, config.data.stream_shuffle,
@@ -280,7 +281,7 @@ def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window
     """Distinct episodes among `samples` consecutive samples (`distinct`; among `long_samples`
     too where > 0: `distinct_long`) and the chance that two samples `lag` apart share their
     episode, streamed and drawn at random."""
-    from pi0_armfix.data import video_stream
+    from pi0_armfix.data.pipeline import video_stream
 
     rng = np.random.default_rng(0)
     lengths = rng.integers(mean_frames // 2, 3 * mean_frames // 2 + 1, episodes)
@@ -304,8 +305,8 @@ def sample_diversity(episodes: int, mean_frames: int, open_episodes: int, window
 
 
 def main(argv: list[str]) -> None:
-    from pi0_armfix.data import video_stream
-    from pi0_armfix.data.lerobot import LeRobotSource
+    from pi0_armfix.data.pipeline import video_stream
+    from pi0_armfix.data.formats.lerobot import LeRobotSource
     from pi0_armfix.tools.reencode_videos import reencode_dataset
 
     args = _parse(argv)

@@ -128,7 +128,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
-    # How camera frames are read (pi0_armfix.data.video_stream): 'random' = each sample's frame on
+    # How camera frames are read (pi0_armfix.data.pipeline.video_stream): 'random' = each sample's frame on
     # request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded front to
     # back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC has one
     # keyframe per episode; a curriculum's weights choose the episodes opened); 'auto' = 'stream'

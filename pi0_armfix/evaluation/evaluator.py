@@ -30,11 +30,10 @@ import numpy as np
 from etils import epath
 from tqdm import tqdm
 
-from pi0_armfix.policies import hysteresis, inference
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import sources
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
@@ -42,8 +41,9 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import plots
+from pi0_armfix.policies import hysteresis, inference
 from pi0_armfix.training import metrics_log
+from pi0_armfix.training import plots
 from pi0_armfix.training import sharding as sharding_lib
 
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure

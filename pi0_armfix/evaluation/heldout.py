@@ -22,13 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix.evaluation import intervals
-from pi0_armfix.data import batching
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.pipeline import batching
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import baselines as baselines_lib
 from pi0_armfix.evaluation import ceiling as ceiling_lib
+from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.sim.world import DemoSpec
 

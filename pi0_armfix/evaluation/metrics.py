@@ -43,8 +43,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout, gripper_boundary
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.statistics import stats as stats_lib
 
 
 def _last_valid(x: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -28,18 +28,20 @@ import ml_collections
 import numpy as np
 from etils import epath
 
-from pi0_armfix.policies import hysteresis
-from pi0_armfix.configs import base as base_config
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import batching, run_inputs, sources, transforms
-from pi0_armfix.data import chunk_stats as chunk_stats_lib
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data.video import fit_frames
+from pi0_armfix.configs import base as base_config
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.formats.video import fit_frames
+from pi0_armfix.data.pipeline import batching, run_inputs, transforms
+from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import flow_model
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
-from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.policies import hysteresis
 from pi0_armfix.training import checkpoint
 from pi0_armfix.training import sharding as sharding_lib
 
@@ -236,8 +238,8 @@ class RunPolicy:
         norm_mode = model_config_lib.norm_mode(config)
         state_stats = stats_lib.fit_width(run.norm_stats["state"], state_width,
                                           "norm stats 'state'")
-        self.state_norm = transforms.Normalizer.from_stats(state_stats, norm_mode)
-        self.token_state = functools.partial(transforms.openpi_normalize, stats=state_stats,
+        self.state_norm = normalize.Normalizer.from_stats(state_stats, norm_mode)
+        self.token_state = functools.partial(normalize.openpi_normalize, stats=state_stats,
                                              mode=norm_mode)
         self.action_norm = batching.action_normalizer(run.norm_stats, layout.real_dim, norm_mode,
                                                       self.horizon)

@@ -1,6 +1,6 @@
 """The demo world: one B1K-like mobile manipulator, its physics, its task plan and its cameras.
 
-The single source of truth of the demo: the dataset generator (`pi0_armfix.data.demo`) records the
+The single source of truth of the demo: the dataset generator (`pi0_armfix.data.formats.demo`) records the
 scripted teleoperator (`sim.expert`) acting in this world, and the Gymnasium environment
 (`sim.env`) lets any policy act in it instead. World parameters live in `DemoSpec`.
 
@@ -117,7 +117,7 @@ WHITE = (255, 255, 255)
 
 @dataclasses.dataclass(frozen=True)
 class DemoSpec:
-    """Parameters of the demo world and of its teleoperator (see `pi0_armfix.data.demo`)."""
+    """Parameters of the demo world and of its teleoperator (see `pi0_armfix.data.formats.demo`)."""
 
     num_episodes: int = 120  # the last 20 (4 per task) are the default held-out set
     seed: int = 0

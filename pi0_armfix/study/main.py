@@ -65,14 +65,14 @@ from typing import Any
 from absl import app, flags
 
 from pi0_armfix import console
-from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.policies import inference
 from pi0_armfix.configs import base as base_config
 from pi0_armfix.data import json_files
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
+from pi0_armfix.policies import inference
 from pi0_armfix.study.aggregate import aggregate
 from pi0_armfix.study.report import curve_table, markdown, plot_curves, plot_study
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,

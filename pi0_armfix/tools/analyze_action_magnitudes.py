@@ -17,7 +17,7 @@ does not name a file), per layout group:
   no moving base group, the median group): the static weights that even out the groups' motion,
   capped at 10 with a warning (a group that barely moves would get a weight of tens).
 
-The stagnation mechanism (`pi0_armfix.data.mechanism`, docs/mechanisms.md), per group: its share
+The stagnation mechanism (`pi0_armfix.tools.mechanism`, docs/mechanisms.md), per group: its share
 of the uniform loss (the magnitude mechanism), the part of its targets the current state
 explains and its share of what is left (the state-copy mechanism), the change within a chunk;
 then a verdict naming the mechanism(s) found and the lever to try first. One more streaming pass
@@ -46,13 +46,13 @@ from ml_collections import config_flags
 
 from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import mechanism as mechanism_lib
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import sources
-from pi0_armfix.data.data_spec import DataSpec
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import motion as motion_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.tools import mechanism as mechanism_lib
 
 GRIPPER_END_FRACTION = 0.1  # "near an end": within this fraction of [q01, q99] from it
 GRIPPER_END_MASS = 0.8  # share of the frames near the two ends

@@ -34,7 +34,7 @@ from absl import app, flags
 from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import json_files
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib

@@ -6,7 +6,7 @@
 One streaming pass over the training episodes (`--episodes=train`, the default: all but the
 `eval.episodes` held out, as training computes them) or every episode (`--episodes=all`); the
 tool prints which episodes and how many frames it reads. Exact
-float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.stats`), for actions
+float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.statistics.stats`), for actions
 (in the model's action space: the dims of `data.delta_action_mask` relative to the state, over
 every step of the model's chunks of `model.action_horizon`, see `dataset.block_norm_stats`) and
 state. These are plain statistics whatever `data.balanced_norm` says;
@@ -24,10 +24,10 @@ from ml_collections import config_flags
 
 from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import sources
-from pi0_armfix.data.data_spec import DataSpec
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 
 

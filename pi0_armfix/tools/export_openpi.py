@@ -46,13 +46,14 @@ from absl import app, flags
 from etils import epath
 
 from pi0_armfix import console
-from pi0_armfix.policies import inference
-from pi0_armfix.evaluation.outputs import writable_folder
-from pi0_armfix.data import run_inputs, sources
 from pi0_armfix.data import json_files
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import run_inputs
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.statistics import stats as stats_lib
+from pi0_armfix.evaluation.outputs import writable_folder
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.policies import inference
 
 EXPORT_FILE = "pi0_armfix_export.json"
 OPENPI_PRESETS = {"pi0": "pi0", "pi05": "pi05"}  # our preset -> openpi's model of that size
@@ -136,7 +137,7 @@ def openpi_norm_stats(norm_stats: Mapping[str, stats_lib.NormStats], mode: str, 
                       ) -> tuple[dict[str, Any], dict[str, list[int]]]:
     """A run's statistics (`mode` "zscore" or "quantile") in openpi's `norm_stats.json` form, and
     the constant dims per key whose statistics were rewritten so that openpi's formula computes
-    the run's map (`transforms.Normalizer`)."""
+    the run's map (`normalize.Normalizer`)."""
     out, adjusted = {}, {}
     for key in ("state", "actions"):
         stats = norm_stats[key]

@@ -14,7 +14,7 @@ so a base driving at a constant speed counts as moving. Manipulation groups: rol
 robot, with the other groups. `arm_movement` / `base_movement` are the mean
 relative motion over the arm / base groups, `arm_to_base_ratio` their ratio; an episode is
 selected iff ratio >= arm_ratio_threshold, arm_movement >= min_arm_movement and (if given)
-base_movement <= max_base_movement. Full definitions: `pi0_armfix.data.motion`.
+base_movement <= max_base_movement. Full definitions: `pi0_armfix.data.statistics.motion`.
 
 Writes `{"episodes": [dataset episode ids], "per_episode": [...], "thresholds": {...}}`; set
 `--config.data.arm_heavy_episodes` to it. With that key '' the curriculum selects the same
@@ -35,10 +35,10 @@ from ml_collections import config_flags
 
 from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import sources
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import motion as motion_lib
 from pi0_armfix.model import config as model_config_lib
 
 

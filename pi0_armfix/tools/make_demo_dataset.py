@@ -1,4 +1,4 @@
-"""Writes the B1K-like demo dataset (see `pi0_armfix.data.demo`) to a new folder.
+"""Writes the B1K-like demo dataset (see `pi0_armfix.data.formats.demo`) to a new folder.
 
   python -m pi0_armfix.tools.make_demo_dataset --output=/tmp/demo [--episodes=100] [--seed=0] \
       [--version=v2.1|v3.0] [--video_codec=libx265 --video_gop=8]
@@ -20,7 +20,7 @@ import dataclasses
 from absl import app, flags
 
 from pi0_armfix import console
-from pi0_armfix.data import demo
+from pi0_armfix.data.formats import demo
 
 _OUTPUT = flags.DEFINE_string("output", None, "New folder to write the dataset into.",
                               required=True)

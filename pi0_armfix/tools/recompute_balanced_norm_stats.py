@@ -5,7 +5,7 @@
 
 Per-dim means stay; each group's spread is multiplied by one factor so that every group's RMS of
 frame-to-frame motion within episodes, in normalized units, equals the median over the groups,
-the factor capped to [1/max_scale, max_scale] (`pi0_armfix.data.motion.balanced_norm_stats`),
+the factor capped to [1/max_scale, max_scale] (`pi0_armfix.data.statistics.motion.balanced_norm_stats`),
 separately for z-score (std) and quantile (q01/q99) normalization, so the file serves either
 `data.norm`. Groups that move little next to their spread (the arms) get a smaller spread: their
 motion is amplified, not the imbalance (an earlier tool multiplied std by target/group_std, which
@@ -23,11 +23,11 @@ from ml_collections import config_flags
 
 from pi0_armfix import console
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import sources
-from pi0_armfix.data.data_spec import DataSpec
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import motion as motion_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 
 

@@ -41,8 +41,8 @@ from tqdm import tqdm
 
 from pi0_armfix import console
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data.lerobot_writer import codec_name
-from pi0_armfix.data.video import VideoDecoder, VideoWriter
+from pi0_armfix.data.formats.lerobot_writer import codec_name
+from pi0_armfix.data.formats.video import VideoDecoder, VideoWriter
 
 
 def video_features(info: dict, chosen: str, root: Path) -> list[str]:

@@ -28,7 +28,7 @@ import ml_collections
 import optax
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import pretrained
 from pi0_armfix.training import fingerprint

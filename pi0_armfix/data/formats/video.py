@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pi0_armfix.data.files import unreadable
+from pi0_armfix.data.formats.files import unreadable
 
 # Timestamps are float32: a row one frame late can compute to 1.0000114 frames. Time comparisons
 # allow this much (in frames) beyond the tolerance they apply.

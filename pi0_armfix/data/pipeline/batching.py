@@ -15,26 +15,27 @@ import numpy as np
 
 from pi0_armfix.action_space import ActionLayout, gripper_boundary
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.video import fit_frames
+from pi0_armfix.data.formats.video import fit_frames
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.statistics import normalize
+from pi0_armfix.data.statistics import stats as stats_lib
 
 Tokenize = Callable[[str], tuple[np.ndarray, np.ndarray]]
 
 
 def action_normalizer(norm_stats: Mapping[str, stats_lib.NormStats], real_dim: int,
-                      norm_mode: str, action_horizon: int) -> transforms.Normalizer:
+                      norm_mode: str, action_horizon: int) -> normalize.Normalizer:
     """The actions' normalizer: per chunk position (`[H, A]`) when the stats hold an
     `actions_per_timestep` entry (`data.norm_per_timestep`, see `data.chunk_stats`), else per dim."""
     per_timestep = norm_stats.get("actions_per_timestep")
     if per_timestep is None:
         actions = stats_lib.fit_width(norm_stats["actions"], real_dim, "norm stats 'actions'")
-        return transforms.Normalizer.from_stats(actions, norm_mode)
+        return normalize.Normalizer.from_stats(actions, norm_mode)
     if per_timestep.mean.shape != (action_horizon, real_dim):
         raise ValueError(f"per-timestep norm stats have shape {per_timestep.mean.shape}; the run "
                          f"needs [action_horizon={action_horizon}, real_dim={real_dim}]")
-    return transforms.Normalizer.from_stats(per_timestep, norm_mode)
+    return normalize.Normalizer.from_stats(per_timestep, norm_mode)
 
 
 def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
@@ -59,7 +60,7 @@ def loss_mask(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayou
 
 
 def absolute_actions(actions: np.ndarray, state: np.ndarray, *,
-                     action_norm: transforms.Normalizer, delta_mask: np.ndarray | None
+                     action_norm: normalize.Normalizer, delta_mask: np.ndarray | None
                      ) -> np.ndarray:
     """Normalized chunks `[b, H, >= A]` sampled at `state` `[b, S]` (the selected state, data
     units) -> absolute actions `[b, H, A]` in the data's units: normalization undone, then each
@@ -136,8 +137,8 @@ class BatchTransform:
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
         self.action_norm = action_normalizer(norm_stats, layout.real_dim, norm_mode,
                                              self.horizon)
-        self.state_norm = transforms.Normalizer.from_stats(state, norm_mode)
-        self.token_state = functools.partial(transforms.openpi_normalize, stats=state,
+        self.state_norm = normalize.Normalizer.from_stats(state, norm_mode)
+        self.token_state = functools.partial(normalize.openpi_normalize, stats=state,
                                              mode=norm_mode)
 
     def __call__(self, frames: np.ndarray, images: Mapping[str, np.ndarray] | None = None

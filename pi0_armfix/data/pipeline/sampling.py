@@ -17,11 +17,11 @@ from collections.abc import Sequence
 import grain
 import numpy as np
 
-from pi0_armfix.data import curriculum as curriculum_lib
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.pipeline import curriculum as curriculum_lib
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import motion as motion_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 
 
 class EpisodeFrames(Sequence):

@@ -31,8 +31,8 @@ of a file that holds many: a row whose time falls past its segment's last frame 
 frame when it overruns by at most `data.video_tolerance_frames`, and is an error naming the
 episode, the row and the file otherwise (it would read the next episode's frames). Decoders are per thread, so any number of Grain threads may read at once.
 `LeRobotSource.probe` decodes the first and last frame of a sample of episodes before training.
-The metadata (versions, templates, episode records, prompts) is `data/lerobot_meta.py`; the lazy
-frame decoding `data/lerobot_frames.py`; this module holds the source.
+The metadata (versions, templates, episode records, prompts) is `data/formats/lerobot_meta.py`; the lazy
+frame decoding `data/formats/lerobot_frames.py`; this module holds the source.
 
 Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
 
@@ -41,7 +41,7 @@ task). Where that is a task *name* rather than a prompt (B1K 2026 stores the sna
 `turning_on_radio`), `meta/tasks.jsonl` rows `{"task_name": name, "task": prompt}` give the prompt
 (B1K 2025 writes the same rows); a name without such a row is its own prompt.
 
-`pi0_armfix.data.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource` reads
+`pi0_armfix.data.formats.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource` reads
 them: `iter_blocks` streams actions/state one parquet row group at a time without per-row Python
 (the statistics passes, and the one-time build of the on-disk `FrameStore`), `load_table`
 builds an `EpisodeTable` whose columns are read by row from that store and whose images are
@@ -63,17 +63,17 @@ import numpy as np
 import pyarrow as pa
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.cache import digest
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import selection as selection_lib
-from pi0_armfix.cache import digest
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.frame_store import FrameStore
-from pi0_armfix.data.files import lfs_pointer_message, unreadable
-from pi0_armfix.data.lerobot_frames import LeRobotFrameImages, segment_time
-from pi0_armfix.data.lerobot_meta import (ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3,
+from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
+from pi0_armfix.data.formats.frame_store import FrameStore
+from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, segment_time
+from pi0_armfix.data.formats.lerobot_meta import (ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3,
                                        major_version, matrix, open_parquet, task_prompts_of,
                                        task_rows, vector, with_prompts)
-from pi0_armfix.data.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
+from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
 
 # Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
 PROBE_DECODE_FRAMES = 1800

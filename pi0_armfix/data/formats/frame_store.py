@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pi0_armfix.cache import build_lock, cache_root, digest
-from pi0_armfix.data import stats as stats_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 
 COLUMNS = ("actions", "state", "timestamp")
 _DTYPES = {"actions": np.float32, "state": np.float32, "timestamp": np.float64}

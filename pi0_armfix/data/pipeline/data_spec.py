@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import curriculum as curriculum_lib
 from pi0_armfix.data import selection as selection_lib
-from pi0_armfix.data import transforms
+from pi0_armfix.data.pipeline import curriculum as curriculum_lib
+from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.model import config as model_config_lib
 
 

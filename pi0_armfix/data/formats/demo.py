@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pi0_armfix.cache import build_lock, cache_root, digest
-from pi0_armfix.data.lerobot_writer import LeRobotWriter
+from pi0_armfix.data.formats.lerobot_writer import LeRobotWriter
 from pi0_armfix.sim import render
 from pi0_armfix.sim.expert import demonstration
 from pi0_armfix.sim.world import TASKS, DemoSpec, World  # noqa: F401 (TASKS: the demo's tasks)

@@ -1,7 +1,7 @@
 """LeRobot datasets' metadata (codebase v2.0, v2.1, v3.0): versions, file templates, the
 episode records of `meta/episodes*` with their files and video segments, the tasks' prompts, and
 the parquet and JSON-lines readers that name the file they fail on. What the layouts hold:
-`pi0_armfix.data.lerobot`'s docstring."""
+`pi0_armfix.data.formats.lerobot`'s docstring."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pi0_armfix.data.files import lfs_pointer_message, unreadable
+from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 
 ACTION = "action"
 STATE = "observation.state"

@@ -69,14 +69,14 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         if not root:
             raise ValueError("data.root is '' (the built-in demo dataset, a LeRobot dataset) but "
                              "data.format is 'rlds'; set data.format='lerobot' or a data.root")
-        from pi0_armfix.data.rlds import RldsSource  # TFDS is slow to import; only load it here
+        from pi0_armfix.data.formats.rlds import RldsSource  # TFDS is slow to import; only load it here
 
         return RldsSource(root, layout, split=data_cfg.get("split", "train"), cameras=cameras,
                           use_images=images)
-    from pi0_armfix.data.lerobot import LeRobotSource
+    from pi0_armfix.data.formats.lerobot import LeRobotSource
 
     if not root:
-        from pi0_armfix.data.demo import demo_root
+        from pi0_armfix.data.formats.demo import demo_root
 
         root = demo_root()
     return LeRobotSource(

@@ -33,13 +33,13 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import sources
 from pi0_armfix.data import json_files
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
-from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import stats as stats_lib
 
 PER_TIMESTEP_FILE = "norm_stats_per_timestep.json"
 CORRELATION_FILE = "action_chunk_correlation.npy"

@@ -55,16 +55,16 @@ import grain
 import jax
 import numpy as np
 
-from pi0_armfix.data import curriculum as curriculum_lib
-from pi0_armfix.data import dataset as dataset_lib
-from pi0_armfix.data import sources
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
-from pi0_armfix.data import video_stream
-from pi0_armfix.data.batching import BatchTransform, Tokenize
-from pi0_armfix.data.data_spec import DataSpec
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.sampling import SampleSelector, source_episodes, source_frames, stream_seed
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import curriculum as curriculum_lib
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.pipeline import video_stream
+from pi0_armfix.data.pipeline.batching import BatchTransform, Tokenize
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.pipeline.sampling import SampleSelector, source_episodes, source_frames, stream_seed
+from pi0_armfix.data.statistics import stats as stats_lib
 
 ConfigLike = Mapping[str, Any]
 

@@ -51,8 +51,8 @@ import numpy as np
 import tqdm
 
 from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
-from pi0_armfix.data.stats import NormStats
-from pi0_armfix.data.transforms import Normalizer
+from pi0_armfix.data.statistics.normalize import Normalizer
+from pi0_armfix.data.statistics.stats import NormStats
 
 
 class LogHistograms:

@@ -1,7 +1,7 @@
 """`LeRobotWriter`: writes LeRobot dataset roots (v2.0, v2.1, v3.0) one episode at a time.
 
 The demo dataset, the benchmarks, the re-encode tool and the tests write with it; what the three
-layouts hold is described in `pi0_armfix.data.lerobot`, which reads them. The metadata is written
+layouts hold is described in `pi0_armfix.data.formats.lerobot`, which reads them. The metadata is written
 as LeRobot's own writer writes it, so that LeRobot's loader and tools take the root as their own:
   - every data parquet file declares its features in the schema metadata (`huggingface`:
     `{"info": {"features": ...}}` in Hugging Face `datasets`' form, cameras stored in the
@@ -31,11 +31,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data import lerobot_stats
-from pi0_armfix.data.lerobot_meta import (ACTION, STATE, V2_DATA_PATH, V2_VIDEO_PATH,
+from pi0_armfix.data.formats import lerobot_stats
+from pi0_armfix.data.formats.lerobot_meta import (ACTION, STATE, V2_DATA_PATH, V2_VIDEO_PATH,
                                           V3_DATA_PATH, V3_EPISODES_PATH, V3_VIDEO_PATH,
                                           VERSIONS)
-from pi0_armfix.data.video import write_video
+from pi0_armfix.data.formats.video import write_video
 
 
 def _list_array(values: np.ndarray) -> pa.Array:

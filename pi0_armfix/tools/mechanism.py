@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.statistics import stats as stats_lib
 
 MAGNITUDE_RATIO = 0.5  # loss share below this fraction of the dim share: a magnitude imbalance
 COPY_EXPLAINED = 0.9  # state explains at least this much of a group's targets ...

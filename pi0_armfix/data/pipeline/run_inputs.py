@@ -16,8 +16,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data import json_files
+from pi0_armfix.data import selection as selection_lib
 
 INPUTS_FILE = "policy_inputs.json"
 TOKENIZER_FILE = "tokenizer.model"

@@ -30,15 +30,15 @@ import numpy as np
 
 from pi0_armfix import state_space
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data import curriculum as curriculum_lib
-from pi0_armfix.data import motion as motion_lib
-from pi0_armfix.data import selection as selection_lib
-from pi0_armfix.data import sources
 from pi0_armfix.data import json_files
-from pi0_armfix.data import stats as stats_lib
-from pi0_armfix.data import transforms
-from pi0_armfix.data.data_spec import DataSpec
+from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.formats import sources
+from pi0_armfix.data.pipeline import curriculum as curriculum_lib
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import motion as motion_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 # The per-frame statistics of the absolute actions, kept beside openpi's two entries: the
 # evaluation's units (`pi0_armfix.evaluation.heldout.evaluation_scale`) whatever the normalization (balanced
 # stats rescale "actions") or representation (delta dims hold chunk deltas in "actions").

@@ -52,9 +52,9 @@ import grain
 import numpy as np
 from grain import experimental as grain_experimental
 
-from pi0_armfix.data.curriculum import Curriculum, counter_uniform
-from pi0_armfix.data.lerobot_frames import LeRobotFrameImages
-from pi0_armfix.data.sampling import stream_seed
+from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages
+from pi0_armfix.data.pipeline.curriculum import Curriculum, counter_uniform
+from pi0_armfix.data.pipeline.sampling import stream_seed
 
 
 ACCESS_MODES = ("auto", "stream", "random")

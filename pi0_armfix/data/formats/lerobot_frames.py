@@ -16,10 +16,10 @@ import numpy as np
 import pyarrow as pa
 
 from pi0_armfix.data import cameras as cameras_lib
-from pi0_armfix.data.frame_store import FrameColumn
-from pi0_armfix.data.files import unreadable
-from pi0_armfix.data.lerobot_meta import EpisodeRecord, open_parquet
-from pi0_armfix.data.video import TIME_EPSILON_FRAMES, VideoDecoder
+from pi0_armfix.data.formats.files import unreadable
+from pi0_armfix.data.formats.frame_store import FrameColumn
+from pi0_armfix.data.formats.lerobot_meta import EpisodeRecord, open_parquet
+from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder
 
 def segment_time(start: float, stop: float, timestamp: float, fps: float, tolerance: float,
                  where: str, path: Path) -> float:

@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.cache import digest
+from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.frame_store import FrameStore
+from pi0_armfix.data.formats.frame_store import FrameStore
 
 _KEYS = ("actions", "state")
 
