@@ -110,3 +110,7 @@ STATE_PRESETS: dict[str, StatePreset] = {
         StatePart("right_gripper", (22,)),
     )),
 }
+# The embedded demo world stores the baseline's 23-D state (grippers last); read in the action
+# order it serves delta actions and the state-copy baseline with the same information. The one
+# place that names it: the world writes it, the data reads it, the delta configs select it.
+DEMO_STATE_PRESET = "b1k_baseline23"

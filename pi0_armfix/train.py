@@ -43,59 +43,37 @@ where the bracketed flags may be left to `jax.distributed`'s cluster detection (
 from __future__ import annotations
 
 import collections
-import contextlib
-import dataclasses
 import errno
-import functools
-import json
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import jax
 import ml_collections
-from jax.experimental import multihost_utils
-import numpy as np
 from absl import app, flags
 from etils import epath
 from ml_collections import config_flags
 from tqdm import tqdm
 
 from pi0_armfix import console
-from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import background
-from pi0_armfix.data.formats import sources
-from pi0_armfix.data.pipeline import batching, pipeline, video_stream
-from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
-from pi0_armfix.data.pipeline import dataset as dataset_lib
-from pi0_armfix.data.pipeline import run_inputs
+from pi0_armfix.data.pipeline import pipeline
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.model import flow_model, pretrained
-from pi0_armfix.model import noise as noise_lib
-from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import checkpoint, finite_checkpoints, fingerprint, plots, preemption
+from pi0_armfix.training import checkpoint, finite_checkpoints, plots, preemption
 from pi0_armfix.training import metrics_log
-from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
-from pi0_armfix.training import step as step_lib
-from pi0_armfix.training import workdir_lock
-from pi0_armfix.training.run_spec import RunSpec
+from pi0_armfix.training.setup import ConfigurationError, Run, prepare, say
 
 
-NORM_STATS_FILE = "norm_stats.json"
 # Dispatched steps the loop may run ahead of the device. JAX dispatches asynchronously: unbounded,
 # the loop queued a whole log window of steps in milliseconds (their batches held in memory), the
 # bar counted them as done, and the log step's sync then stood still while the device caught up
 # (the ~5-8 s "stall" every train.log_every steps). Two keep the device fed.
 STEPS_IN_FLIGHT = 2
-
-
-class ConfigurationError(ValueError):
-    """A config, layout, data or checkpoint error, found before the first step."""
 
 
 class Stopped(RuntimeError):
@@ -109,204 +87,6 @@ class Stopped(RuntimeError):
 class DataError(RuntimeError):
     """A file of the dataset could not be read during training (the probe before the first step
     reads only a sample of episodes)."""
-
-
-def _create_state(spec: RunSpec, params: Any) -> state_lib.TrainState:
-    return state_lib.create_train_state(params, tx=spec.tx, loss_cfg=spec.loss,
-                                        layout=spec.layout, ema_decay=spec.optim["ema_decay"])
-
-
-def _init_state(spec: RunSpec, state_shardings, params_shardings) -> state_lib.TrainState:
-    """The step-0 state: pretrained params (`model.pretrained`) or a random init, sharded."""
-    if spec.model_section["pretrained"]:
-        params = pretrained.load_pretrained(spec.model_section["pretrained"], spec.model,
-                                            shardings=params_shardings)
-        return jax.jit(functools.partial(_create_state, spec), in_shardings=(params_shardings,),
-                       out_shardings=state_shardings)(params)
-    init = lambda rng: _create_state(spec, flow_model.init_params(spec.model, rng))  # noqa: E731
-    return jax.jit(init, out_shardings=state_shardings)(jax.random.key(spec.seed))
-
-
-@dataclasses.dataclass
-class Run:
-    """A run ready for its next step: everything built from its spec, the state restored."""
-
-    spec: RunSpec
-    workdir: epath.Path
-    layout: ActionLayout
-    mesh: jax.sharding.Mesh
-    start: int  # steps already taken
-    state: state_lib.TrainState
-    train_step: Callable
-    train_iter: pipeline.TrainIterator
-    checkpoints: checkpoint.Checkpoints
-    evaluator: evaluator_lib.Evaluator | None
-    norm_stats_json: dict[str, Any]
-    lock: Any = None  # the workdir's lock file (process 0), released by closing it
-
-
-def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
-    """Resolves the config (`RunSpec`), opens the data, builds or restores the state, compiles
-    the step: everything a user can get wrong fails here, before any step."""
-    workdir = epath.Path(workdir).absolute()
-    is_main = jax.process_index() == 0
-    if workdir.exists() and not workdir.is_dir():
-        raise ValueError(f"--workdir {workdir} is a file, not a folder: name a new or existing "
-                         "run folder")
-    spec = RunSpec.resolve(config)
-    layout, model_config, data = spec.layout, spec.model, spec.data
-    if spec.warmup_note:
-        _say(f"note: {spec.warmup_note}")
-    mesh = sharding_lib.make_mesh(spec.fsdp)
-    sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size")
-    batch_sharding = sharding_lib.batch_sharding(mesh)
-    if spec.evaluates:
-        evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)
-
-    # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
-    # passes over the data before they all hold.
-    source = sources.open_source(data.options, layout)
-    for warning in dataset_lib.check_data(data, source):
-        _say(f"warning: {warning}")
-    keyframes = (source.video_keyframes()
-                 if data.get("images") and hasattr(source, "video_keyframes") else None)
-    video_access, video_why = video_stream.choose_access(
-        data.get("video_access"), keyframes, open_episodes=int(data.get("stream_episodes")),
-        shuffle_window=int(data.get("stream_shuffle")), stride=int(data.get("stream_stride")))
-    tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
-    for line in banner(spec, workdir, mesh, source, video_why if keyframes is not None else ""):
-        _say(line)
-
-    workdir.mkdir(parents=True, exist_ok=True)
-    lock = workdir_lock.lock_workdir(workdir) if is_main else None
-    with contextlib.ExitStack() as on_error:  # a failed start releases the workdir
-        if lock is not None:
-            on_error.callback(lock.close)
-        holds_run = (checkpoint.has_checkpoints(workdir / "checkpoints")
-                     or (workdir / NORM_STATS_FILE).exists())
-        for note in fingerprint.check_resume(workdir, spec.config_json, holds_run=holds_run,
-                                             may_write=is_main):
-            _say(f"note: {note}")
-        if jax.process_count() > 1:  # the others read the folder process 0 may have archived
-            multihost_utils.sync_global_devices("workdir checked")
-        if is_main:
-            (workdir / fingerprint.CONFIG_FILE).write_text(json.dumps(spec.config_json,
-                                                                      indent=2))
-            # What serving the run needs of its data: a run folder serves without it.
-            run_inputs.save(workdir, source, tokenize.model_proto)
-        resuming = checkpoint.has_checkpoints(workdir / "checkpoints")
-        norm_stats = dataset_lib.load_or_compute_norm_stats(
-            data, action_horizon=model_config.action_horizon,
-            cache_path=workdir / NORM_STATS_FILE, progress=is_main, source=source,
-            resuming=resuming, keep_cached=resuming and spec.train["resume"] == "force")
-        noise_factor = None
-        if spec.uses_chunk_stats:
-            chunk = chunk_stats_lib.load_or_compute_chunk_stats(
-                data, action_horizon=model_config.action_horizon, folder=workdir,
-                source=source, resuming=resuming)
-            if data.get("norm_per_timestep"):
-                norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}
-            if spec.loss["noise_beta"] < 1.0:
-                noise_factor = noise_lib.correlated_noise_factor(
-                    chunk.correlation, spec.loss["noise_beta"],
-                    horizon=model_config.action_horizon, real_dim=layout.real_dim,
-                    action_dim=layout.action_dim)
-        train_iter = pipeline.make_train_iterator(
-            data, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
-            global_batch_size=spec.train["batch_size"], sharding=batch_sharding,
-            tokenize=tokenize, source=source, image_size=model_config.image_resolution,
-            video_access=video_access)
-
-        abstract_state = jax.eval_shape(
-            lambda: _create_state(spec, flow_model.init_params(model_config, jax.random.key(0))))
-        state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
-        evaluator = None
-        if spec.evaluates:
-            evaluator = evaluator_lib.Evaluator(data, spec.eval, model_config, norm_stats, tokenize,
-                                           mesh=mesh, params_sharding=state_shardings.params,
-                                           source=source, noise_factor=noise_factor)
-        ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
-                                       every=spec.train["checkpoint_every"],
-                                       keep=spec.train["keep_checkpoints"])
-        latest = ckpts.latest_step()
-        if latest is not None and latest > spec.train["total_steps"]:
-            raise ConfigurationError(
-                f"workdir {workdir} holds a run at step {latest}, past train.total_steps = "
-                f"{spec.train['total_steps']}: nothing to train. Evaluate it (python -m "
-                f"pi0_armfix.evaluate --workdir={workdir}), or set train.total_steps above "
-                f"{latest} to train on")
-        with jax.set_mesh(mesh):
-            restored = ckpts.restore_latest(jax.tree.map(
-                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
-                abstract_state, state_shardings), say=_say)
-            start = 0
-            if restored is not None:
-                start, state, data_state = restored
-                train_iter.set_state(data_state)
-                _say(f"resumed from {ckpts.directory / str(start)}")
-            else:
-                state = _init_state(spec, state_shardings, state_shardings.params)
-        train_step = jax.jit(
-            functools.partial(step_lib.train_step, base_rng=jax.random.key(spec.seed),
-                              model_config=model_config, loss_cfg=spec.loss, layout=layout,
-                              tx=spec.tx, schedule=spec.schedule,
-                              ema_decay=spec.optim["ema_decay"], noise_factor=noise_factor,
-                              switch_threshold=batching.normalized_midpoints(
-                                  norm_stats, layout, data.norm,
-                                  model_config.action_horizon),
-                              loss_mask=batching.loss_mask(norm_stats, layout, data.norm,
-                                                           model_config.action_horizon)),
-            in_shardings=(state_shardings, batch_sharding),
-            out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
-            donate_argnums=0)
-        on_error.pop_all()
-        return Run(spec=spec, workdir=workdir, layout=layout, mesh=mesh, start=start,
-                   state=state, train_step=train_step, train_iter=train_iter, checkpoints=ckpts,
-                   evaluator=evaluator,
-                   norm_stats_json={"norm_stats": {k: v.to_json()
-                                                   for k, v in norm_stats.items()}},
-                   lock=lock)
-
-
-def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
-           video: str = "") -> list[str]:
-    """What a run is, in a few lines, before it starts on its long work (`video`: how its
-    camera frames are read, and why)."""
-    model_config, layout, data = spec.model, spec.layout, spec.data
-    num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
-        flow_model.param_shapes(model_config)))
-    held_out = source.num_episodes - len(dataset_lib.training_episodes(data, source))
-    frames = int(np.sum(source.episode_lengths))
-    root = getattr(source, "root", data.get("root"))
-    loss = spec.loss["strategy"]
-    if loss_lib.loss_strategy(loss).config_weights == "group":
-        loss += " " + ", ".join(f"{g} {w:g}" for g, w in spec.loss["group_weights"].items())
-    axes = ", ".join(f"{name}={size}" for name, size in mesh.shape.items())
-    selection = getattr(source, "state_selection", None)
-    preset = selection.preset if selection is not None else None
-    state = (f"{selection.stored_width}-D {data.get('state_key')!r} -> state preset "
-             f"{preset.name!r} ({preset.width}-D in the action order"
-             + (f"; written for {preset.dataset})" if preset.dataset else ")")
-             if preset is not None else f"{source.state_width}-D, as stored"
-             + (" (data.state_indices)" if data.get("state_indices") else ""))
-    return [
-        f"run       {workdir}",
-        f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "
-        f"process(es); mesh {axes}",
-        f"model     {spec.model_section['preset']}: {num_params / 1e6:.1f} M params, "
-        f"{model_config.dtype} "
-        f"activations, {model_config.action_horizon}-step chunks of {layout.action_dim} dims",
-        f"data      {root}{' (the embedded demo)' if not data.get('root') else ''}: "
-        f"{source.num_episodes} episodes ({held_out} held out), {frames:,} frames at "
-        f"{source.fps:g} fps, cameras {dict(source.cameras) or 'none'}",
-        f"state     {state}",
-        *([f"video     {video}"] if video else []),
-        f"loss      {loss}",
-        f"schedule  {spec.train['total_steps']} steps of batch {spec.train['batch_size']}, lr "
-        f"{spec.optim['lr']:g}; a record every {spec.train['log_every']} steps, a checkpoint "
-        f"every {spec.train['checkpoint_every']}, held-out evaluation "
-        + (f"every {spec.eval['every']}" if spec.evaluates else "off"),
-    ]
 
 
 def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str, float]:
@@ -344,7 +124,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                                           unit="step", disable=not is_main,
                                           dynamic_ncols=True) as bar:
             step_metrics = None
-            _say("compiling the train step (the first step waits for it: seconds for the demo, "
+            say("compiling the train step (the first step waits for it: seconds for the demo, "
                  "about a minute for pi0; JAX_COMPILATION_CACHE_DIR keeps it across runs)")
             compile_start = time.perf_counter()
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
@@ -361,12 +141,12 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     wait += time.perf_counter() - fetch_start
                 if batch_phase != phase:
                     phase = batch_phase
-                    _say(f"curriculum phase {phase} from step {step - 1}: "
+                    say(f"curriculum phase {phase} from step {step - 1}: "
                          f"{train_iter.curriculum.phases[phase].weights}")
                 state, step_metrics = run.train_step(state, batch)
                 if step == run.start + 1:
                     step_metrics["loss"].block_until_ready()
-                    _say(f"first step compiled and ran in {time.perf_counter() - compile_start:.1f}"
+                    say(f"first step compiled and ran in {time.perf_counter() - compile_start:.1f}"
                          " s")
                 in_flight.append(step_metrics["loss"])
                 if len(in_flight) > STEPS_IN_FLIGHT:
@@ -457,18 +237,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
       Stopped: SIGTERM or SIGINT stopped the run after a step (and its save).
       preemption.Abandoned: a second signal stopped it at once.
     """
-    with preemption.stop_on_signals(_say) as stop:
+    with preemption.stop_on_signals(say) as stop:
         try:
             run = prepare(config, workdir)
         except ValueError as e:
             raise ConfigurationError(str(e)) from e
         return train_loop(run, stop)
-
-
-def _say(message: str) -> None:
-    """A line on the console of process 0 that does not break the progress bar."""
-    if jax.process_index() == 0:
-        tqdm.write(message)
 
 
 def _plots_dir(workdir: epath.Path) -> epath.Path:
@@ -489,7 +263,7 @@ def _evaluate(evaluator: evaluator_lib.Evaluator, state: state_lib.TrainState, s
     if jax.process_index() == 0:
         plots.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
-    _say(f"step {step} held-out evaluation (sampled actions):\n"
+    say(f"step {step} held-out evaluation (sampled actions):\n"
          + evaluator_lib.format_metrics(metrics, layout))
     if jax.process_index() == 0:
         evaluator.plot(predicted, true, _plots_dir(workdir) / f"trajectories_{step}.png",
@@ -535,7 +309,7 @@ def main(argv: Sequence[str]) -> None:
               f"--config.<key>=<value>\n{config}")
         return
     workdir = FLAGS.workdir or default_workdir(config_file)
-    _say(f"config    {config_file}")
+    say(f"config    {config_file}")
     try:
         record = train_and_evaluate(config, workdir)
     except (ConfigurationError, finite_checkpoints.NonFiniteLossError, DataError,

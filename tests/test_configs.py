@@ -222,3 +222,19 @@ def test_a_config_path_from_any_folder_is_the_installed_config(tmp_path, monkeyp
     monkeypatch.chdir(tmp_path)
     resolved = console.installed_config("--config=configs/arm_focused.py:b1k")
     assert resolved == f"--config={console.configs_dir() / 'arm_focused.py'}:b1k"
+
+
+def test_the_demo_state_preset_is_named_once_and_is_what_the_world_writes_and_the_data_reads():
+    from pi0_armfix.data import selection as selection_lib
+    from pi0_armfix.sim import world as world_lib
+    from pi0_armfix.state_space import DEMO_STATE_PRESET, STATE_PRESETS
+
+    preset = STATE_PRESETS[DEMO_STATE_PRESET]
+    assert world_lib.STATE_DIM == preset.stored_width
+    assert selection_lib.state_preset({"root": ""}) == DEMO_STATE_PRESET
+    delta = base.get_config()
+    base.use_arm_delta_actions(delta)
+    assert delta.data.state_preset == DEMO_STATE_PRESET
+    sources = [p for p in (tf.REPO_ROOT / "pi0_armfix").rglob("*.py")
+               if f'"{DEMO_STATE_PRESET}"' in p.read_text()]
+    assert [p.name for p in sources] == ["state_space.py"]  # a literal in one module only

@@ -18,6 +18,7 @@ from pi0_armfix import train
 from pi0_armfix.policies import inference
 from pi0_armfix.training import finite_checkpoints
 from pi0_armfix.training import checkpoint, fingerprint, preemption, sharding
+from pi0_armfix.training import setup as setup_lib
 
 pytestmark = pytest.mark.slow  # the slow lane: fault injection into training runs
 
@@ -63,7 +64,7 @@ def test_a_state_with_non_finite_params_is_never_saved(tmp_path, demo_root):
 
     config = _config(**tf.tiny_overrides(demo_root, train__total_steps=3,
                                          train__checkpoint_every=1))
-    run = train.prepare(config, str(tmp_path / "run"))
+    run = setup_lib.prepare(config, str(tmp_path / "run"))
     step = run.train_step
 
     def poisoned(state, batch):  # step 2's update writes NaN params; its loss stays finite

@@ -31,7 +31,7 @@ from pi0_armfix.model import flow_model
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.policies import inference
 from pi0_armfix.serving import server as server_lib
-from pi0_armfix.sim import world as world_lib
+from pi0_armfix.sim import outcomes
 from pi0_armfix.sim.env import DemoWorldEnv
 
 # Delta arm actions and the baseline-order state reordered into the action order: the policy
@@ -286,7 +286,7 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
     assert saved["n_exec"] == 2  # half the tiny preset's horizon of 4
     assert 0.0 <= saved["success/manipulation"] <= 1.0
     for kind in ("navigation", "manipulation"):  # every failed phase has its reason
-        failed = sum(saved[f"failure/{kind}/{r}"] for r in world_lib.FAILURE_REASONS[kind])
+        failed = sum(saved[f"failure/{kind}/{r}"] for r in outcomes.FAILURE_REASONS[kind])
         assert failed == pytest.approx(1 - saved[f"phase_success/{kind}"])
     assert "phases failed:" in result.stdout
     assert all(p["reason"] or p["success"] for p in saved["episodes_detail"][0]["phases"])

@@ -1,4 +1,4 @@
-"""Why a phase of the demo world failed: each reason of `sim.world.FAILURE_REASONS`, produced by a
+"""Why a phase of the demo world failed: each reason of `sim.outcomes.FAILURE_REASONS`, produced by a
 scripted policy that fails exactly that way, and the gripper switches counted per phase."""
 
 import dataclasses
@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from pi0_armfix.sim import env as env_lib
+from pi0_armfix.sim import outcomes
 from pi0_armfix.sim import world as world_lib
 from pi0_armfix.sim.expert import ScriptedTeleoperator
 
@@ -26,7 +27,7 @@ def _drive(world, heading_offset=0.0, yaw_when_there=0.0):
         action[world_lib.BASE] = (0.0, 0.0, yaw_when_there)
         return action
     line = math.atan2(rel[1], rel[0]) + heading_offset
-    yaw = world_lib.wrap_angle(line)
+    yaw = outcomes.wrap_angle(line)
     if abs(yaw) > 0.05 and distance > 0.2:
         action[world_lib.BASE] = (0.0, 0.0, float(np.clip(yaw, -0.3, 0.3)))
     else:

@@ -22,6 +22,7 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint
+from pi0_armfix.training import setup as setup_lib
 from pi0_armfix.training import step as step_lib
 
 B1K = ActionLayout.preset("b1k_r1pro")
@@ -215,7 +216,7 @@ def test_pretrained_params_are_the_state_at_step_zero(tmp_path, demo_root):
     config.update_from_flattened_dict(tf.tiny_overrides(
         demo_root, model__pretrained=str(tmp_path / "pretrained"), model__tokenizer=str(spm)))
 
-    run = train.prepare(config, str(tmp_path / "run"))
+    run = setup_lib.prepare(config, str(tmp_path / "run"))
     run.train_iter.close()
     run.checkpoints.close()
     jax.tree.map(np.testing.assert_array_equal, jax.device_get(run.state.params), params)
@@ -236,7 +237,7 @@ def test_a_run_opens_its_dataset_once_and_builds_its_frame_store_once(tmp_path, 
     config = base.get_config()
     config.update_from_flattened_dict(tf.tiny_overrides(demo_root, eval__every=1))
 
-    run = train.prepare(config, str(tmp_path / "run"))
+    run = setup_lib.prepare(config, str(tmp_path / "run"))
     next(run.train_iter)
     run.train_iter.close()
     run.checkpoints.close()

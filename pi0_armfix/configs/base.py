@@ -18,6 +18,7 @@ import ml_collections
 from ml_collections import config_dict
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.state_space import DEMO_STATE_PRESET
 
 SCALES = ("", "b1k", "b1k2026")
 # The state preset of each B1K release (pi0_armfix.data.selection): its 23-D state in the action
@@ -45,12 +46,12 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
 def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Torso and arm joints as targets relative to the current state; base velocity and grippers
     stay absolute (B1K 2025's winners' representation). The state must be in the action order:
-    the release's preset at the b1k / b1k2026 scales; at the demo scale the demo's 23-D baseline-order
-    state reordered by `b1k_baseline23` (also for a demo written elsewhere by
+    the release's preset at the b1k / b1k2026 scales; at the demo scale the demo's
+    (`state_space.DEMO_STATE_PRESET`, also for a demo written elsewhere by
     `tools.make_demo_dataset`; another dataset names its own preset or `data.state_groups`)."""
     config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
     if not config.data.state_preset:
-        config.data.state_preset = "b1k_baseline23"
+        config.data.state_preset = DEMO_STATE_PRESET
     return config
 
 
@@ -123,7 +124,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # LeRobot: a named selection of the stored state into the action order (pi0_armfix.
     # state_space: 'b1k_r1pro' for B1K 2025's 256-D state, 'b1k2026_r1pro' for B1K 2026's 61-D,
     # 'b1k_baseline23' for the baseline's 23-D
-    # order); '' = data.state_indices, or on the embedded demo its 'b1k_baseline23'.
+    # order); '' = data.state_indices, or on the embedded demo state_space.DEMO_STATE_PRESET.
     config.data.state_preset = ""
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix.state_space import STATE_PRESETS, StatePreset
+from pi0_armfix.state_space import DEMO_STATE_PRESET, STATE_PRESETS, StatePreset
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,11 +128,6 @@ def make_selection(stored_width: int, *, indices: Sequence[int] | None = None,
 def presets_for(stored_width: int) -> list[str]:
     """Names of the state presets that read a stored state of this width."""
     return [name for name, p in STATE_PRESETS.items() if p.stored_width == stored_width]
-
-
-# The embedded demo stores the baseline's 23-D state (grippers last); read in the action order it
-# serves delta actions and the state-copy baseline with the same information.
-DEMO_STATE_PRESET = "b1k_baseline23"
 
 
 def state_preset(data_cfg: Mapping[str, Any]) -> str:

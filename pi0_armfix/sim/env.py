@@ -28,7 +28,8 @@ import numpy as np
 
 from pi0_armfix.sim import render
 from pi0_armfix.sim.expert import ScriptedTeleoperator
-from pi0_armfix.sim.world import ACTION_DIM, STATE_DIM, TASKS, DemoSpec, PhaseResult, World
+from pi0_armfix.sim.outcomes import PhaseResult
+from pi0_armfix.sim.world import ACTION_DIM, STATE_DIM, TASKS, DemoSpec, World
 
 HEAD, LEFT_WRIST, RIGHT_WRIST = ("observation/egocentric_camera", "observation/wrist_image_left",
                                  "observation/wrist_image_right")

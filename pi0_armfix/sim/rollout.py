@@ -28,8 +28,8 @@ from tqdm import tqdm  # noqa: E402
 
 from pi0_armfix.sim import env as env_lib  # noqa: E402
 from pi0_armfix.sim.expert import demonstration  # noqa: E402
-from pi0_armfix.sim.world import (ACTION_DIM, FAILURE_REASONS, STATE_ARM, DemoSpec,  # noqa: E402
-                                  PhaseResult, World, tolerances)
+from pi0_armfix.sim.outcomes import FAILURE_REASONS, PhaseResult  # noqa: E402
+from pi0_armfix.sim.world import ACTION_DIM, STATE_ARM, DemoSpec, World, tolerances  # noqa: E402
 
 KINDS = ("navigation", "manipulation", "task")
 
@@ -187,7 +187,7 @@ def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
     """Success rates over episodes (`success/<kind>`: every phase of that kind succeeded), over
     phases (`phase_success/<kind>`), the phases' mean progress (`progress/<kind>`, see
     `PhaseResult`), the fraction of phases that failed for each reason
-    (`failure/<kind>/<reason>`, `sim.world.FAILURE_REASONS`: they add up to 1 - phase success),
+    (`failure/<kind>/<reason>`, `sim.outcomes.FAILURE_REASONS`: they add up to 1 - phase success),
     the gripper switches per phase (`gripper_switches/<kind>`) and the mean seconds to a
     successful task."""
     summary: dict[str, Any] = {"episodes": len(records)}

@@ -72,7 +72,8 @@ from pathlib import Path
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.state_space import STATE_PRESETS
+from pi0_armfix.sim.outcomes import PhaseResult, phase_kind, wrap_angle
+from pi0_armfix.state_space import DEMO_STATE_PRESET, STATE_PRESETS
 
 # Where the world poses the torso (its first three joints; the fourth stays 0) and the arms:
 # around the published B1K 2025 action statistics, `[4, joints]` rows mean, std, q01, q99, rounded
@@ -98,9 +99,9 @@ _RIGHT_ARM = _PUBLISHED[:, slice(*_LAYOUT.groups["right_arm"])]
 TORSO_LOADING = np.array([1.0, -1.0, -1.0])
 
 ARMS = ("left", "right")
-# Action dims: the `b1k_r1pro` layout (docs/design.md §2). State dims: the official baseline's
-# 23-D order (grippers last), the state preset `b1k_baseline23` that reads it in the action order.
-_STATE = {part.group: part.dims for part in STATE_PRESETS["b1k_baseline23"].parts}
+# Action dims: the `b1k_r1pro` layout (docs/design.md §2). State dims: the demo's state preset's
+# stored order (`state_space.DEMO_STATE_PRESET`).
+_STATE = {part.group: part.dims for part in STATE_PRESETS[DEMO_STATE_PRESET].parts}
 BASE = slice(*_LAYOUT.groups["base"])
 TORSO = slice(_TORSO_START, _TORSO_START + 3)
 ARM = {arm: slice(*_LAYOUT.groups[f"{arm}_arm"]) for arm in ARMS}
@@ -108,7 +109,7 @@ GRIPPER = {arm: _LAYOUT.groups[f"{arm}_gripper"][0] for arm in ARMS}
 STATE_ARM = {arm: slice(_STATE[f"{arm}_arm"][0], _STATE[f"{arm}_arm"][-1] + 1) for arm in ARMS}
 STATE_GAP = {arm: _STATE[f"{arm}_gripper"][0] for arm in ARMS}
 ACTION_DIM = _LAYOUT.real_dim
-STATE_DIM = STATE_PRESETS["b1k_baseline23"].stored_width
+STATE_DIM = STATE_PRESETS[DEMO_STATE_PRESET].stored_width
 OPEN_GAP = 0.1  # m, the fingers' gap when open
 JOINT_LAG, GAP_LAG = 0.5, 0.35  # fraction of the error closed per frame
 OBJECT_AHEAD = 0.35  # m: where the object stands once the robot has arrived
@@ -176,11 +177,6 @@ TASKS = (
          (("nav",), ("reach", ("right",), "grasp"), ("reach", ("left",), "grasp"), ("nav",),
           ("reach", ("left", "right"), "release")), (60, 190, 210)),
 )
-
-
-def phase_kind(step: tuple) -> str:
-    """"navigation" or "manipulation" for a step of a task plan."""
-    return "navigation" if step[0] == "nav" else "manipulation"
 
 
 def _reach_maps() -> dict[str, np.ndarray]:
@@ -260,13 +256,6 @@ def draw_layout(spec: DemoSpec, index: int) -> EpisodeLayout:
     return EpisodeLayout(task, arm, torso, tuple(phases))
 
 
-FAILURE_REASONS = {
-    "navigation": ("never_within_radius", "heading_off", "not_stopped"),
-    "manipulation": ("not_holding", "never_reached", "dropped", "closed_away", "never_gripped",
-                     "not_home"),
-}
-
-
 def tolerances(spec: DemoSpec, factor: float) -> DemoSpec:
     """`spec` with every success tolerance (arrival radius, heading, stop speed, reach) times
     `factor`: the world of a success curve (at 2x a policy may miss by twice the world's
@@ -277,26 +266,6 @@ def tolerances(spec: DemoSpec, factor: float) -> DemoSpec:
         spec, arrive_radius=spec.arrive_radius * factor,
         heading_tolerance=spec.heading_tolerance * factor,
         stop_speed=spec.stop_speed * factor, reach_tolerance=spec.reach_tolerance * factor)
-
-
-def wrap_angle(angle: float) -> float:
-    """angle in (-pi, pi]."""
-    return math.atan2(math.sin(angle), math.cos(angle))
-
-
-@dataclasses.dataclass
-class PhaseResult:
-    """`progress`: how far the robot got, 1 - the closest approach over the start distance
-    (navigation: to the target; manipulation: the hand to its target offset, mean over the
-    phase's arms), in [0, 1]: a graded view of phases that mostly fail. `reason`: why it failed (`FAILURE_REASONS`; '' on success);
-    `gripper_switches`: the grippers' open/close commands during the phase (both arms)."""
-
-    kind: str  # "navigation" | "manipulation"
-    success: bool
-    frames: int  # frames the phase took (to success or to its time limit)
-    progress: float = 0.0
-    reason: str = ""
-    gripper_switches: int = 0
 
 
 class World:

@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pi0_armfix.evaluation import intervals
-from pi0_armfix.sim.world import FAILURE_REASONS  # noqa: E402
+from pi0_armfix.sim.outcomes import FAILURE_REASONS  # noqa: E402
 from pi0_armfix.study.aggregate import (  # noqa: E402
     CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, COMPARED_HEADINGS,
     PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number)
@@ -225,7 +225,7 @@ def closed_loop_targets(study: Mapping[str, Any]) -> list[str]:
 
 def failure_table(configs: Mapping[str, Any]) -> list[str]:
     """Why the phases failed: per config, the fraction of its phases that failed for each reason
-    (`sim.world.FAILURE_REASONS`, mean over seeds), and the gripper switches per phase."""
+    (`sim.outcomes.FAILURE_REASONS`, mean over seeds), and the gripper switches per phase."""
     reasons = [(kind, reason) for kind in PHASE_KINDS
                for reason in FAILURE_REASONS[kind]]
     if not any(f"{CLOSED_LOOP}failure/{k}/{r}" in c["mean"] for c in configs.values()

@@ -38,7 +38,8 @@ from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
-from pi0_armfix.sim.world import FAILURE_REASONS, DemoSpec
+from pi0_armfix.sim.outcomes import FAILURE_REASONS
+from pi0_armfix.sim.world import DemoSpec
 from pi0_armfix.training import metrics_log
 
 NOISY_EXPERT = "expert + policy error"
