@@ -113,6 +113,7 @@ def test_every_tool_runs_on_the_b1k_fixture(b1k, tmp_path, capsys):
     assert curriculum.data.state_preset == "b1k_r1pro"
 
 
+@pytest.mark.slow  # a run stopped and resumed, as tests/test_checkpoint_resume.py
 def test_a_streamed_run_resumed_from_its_checkpoint_ends_bitwise_where_an_uninterrupted_one_ends(
         b1k, tmp_path):
     root, _ = b1k
@@ -132,6 +133,7 @@ def test_a_streamed_run_resumed_from_its_checkpoint_ends_bitwise_where_an_uninte
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow  # a streamed training run per phase
 def test_a_curriculum_streams_only_the_episodes_of_its_phase(b1k, tmp_path, capsys,
                                                              monkeypatch):
     root, _ = b1k

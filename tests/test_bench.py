@@ -27,6 +27,7 @@ def test_memory_benchmark_reports_each_process_and_the_growth(tmp_path):
     assert not list((tmp_path / "cache" / "frames").glob("[0-9a-f]*"))  # stores deleted
 
 
+@pytest.mark.slow  # a whole benchmark run
 def test_video_benchmark_reads_the_original_reencodes_and_trains(tmp_path):
     # (PyAV 18.1's libx265 corrupts its heap encoding 48-px frames: sizes it handles.)
     out = _bench(tmp_path, "video", "--episodes=2", "--episode_frames=20", "--head=128",
@@ -42,6 +43,7 @@ def test_video_benchmark_reads_the_original_reencodes_and_trains(tmp_path):
     assert "one keyframe per episode" in out and "streamed (data.video_access = 'auto')" in out
 
 
+@pytest.mark.slow  # a whole benchmark run
 def test_video_benchmark_measures_both_access_modes_on_a_short_gop_original(tmp_path):
     out = _bench(tmp_path, "video", "--episodes=2", "--episode_frames=20", "--head=128",
                  "--wrist=96", "--size=32", "--samples=3", "--batch_size=2", "--steps=2",

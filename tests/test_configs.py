@@ -171,7 +171,13 @@ def test_b1k_scale_without_a_data_root_fails_before_any_work(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("name", TRAINED)
+# The fast lane trains one config per code path no other fast test trains (the main job, the
+# baseline, the balancer's state, a delta base); the other levers train in the slow lane.
+FAST_TRAINED = ("arm_focused", "uniform", "loss_balanced", "arm_focused_delta_base")
+
+
+@pytest.mark.parametrize("name", [n if n in FAST_TRAINED else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in TRAINED])
 def test_config_trains_at_tiny_scale(name, tmp_path, demo_root):
     arm_heavy = tmp_path / "arm_heavy.json"
     arm_heavy.write_text(json.dumps({"episodes": [1, 3]}))  # the tiny demo is too short to filter

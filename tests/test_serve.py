@@ -393,6 +393,7 @@ def test_an_unwritable_results_folder_is_named(tmp_path):
         outputs.writable_folder(blocker / "step_2")
 
 
+@pytest.mark.slow  # a server process on a copied run folder
 def test_a_run_folder_serves_without_its_data(tmp_path, cache_dir, demo_root):  # noqa: F811
     data = shutil.copytree(demo_root, tmp_path / "data")
     workdir = tmp_path / "run"

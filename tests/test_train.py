@@ -181,6 +181,7 @@ def test_config_and_data_errors_fail_before_the_first_step(overrides, message, t
     assert not (tmp_path / "run" / "checkpoints").exists()
 
 
+@pytest.mark.slow  # a whole training process
 def test_a_smoke_run_shorter_than_the_warmup_trains_and_says_so_once(tmp_path, cache_dir,
                                                                      demo_root):
     result = tf.run_train("configs/uniform.py", tmp_path / "run",

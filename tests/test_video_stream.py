@@ -192,6 +192,7 @@ def test_a_stream_draws_from_its_open_episodes_where_random_access_draws_from_al
     assert diversity["random access"]["same@1"] < 0.02
 
 
+@pytest.mark.slow  # a whole streamed pass per stride
 def test_a_stride_reads_k_times_the_episodes_for_the_same_samples():
     from pi0_armfix.bench.video import sample_diversity
 
