@@ -69,7 +69,8 @@ def cli() -> None:
     flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
                          "episodes (the demo dataset is seed 0)")
     flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
-                      "grippers' hysteresis (pi0_armfix.policies.hysteresis), in action units; unset: the "
+                      "grippers' hysteresis (pi0_armfix.policies.hysteresis), in action units; "
+                      "unset: the "
                       "run's eval.gripper_hysteresis; empty: none")
     console.define_lever_flags()
     flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "

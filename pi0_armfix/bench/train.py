@@ -7,7 +7,8 @@
    SAME batch in one process, interleaved round by round (`--rounds` x `--steps` steps each) so
    that machine noise hits both alike; the ratio of the median round times is printed
    (target <= 1.03: the weighting is a few elementwise ops next to the transformer).
-2. Throughput of the main job against its compute bound: `pi0_armfix/configs/arm_focused.py` (the `demo`
+2. Throughput of the main job against its compute bound: `pi0_armfix/configs/arm_focused.py` (the
+`demo`
    preset, K = 4 flow draws) and the same with K = 1, each trained for `--data_steps` steps in a
    temporary folder (evaluation off): samples/s over the logged windows but the first (which
    holds the compilation), and the logged `data_wait` (wall time the loop waited for the next
@@ -105,7 +106,8 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
 
 
 def main_job_throughput(steps: int, flow_samples: int) -> tuple[float, float]:
-    """(samples/s, data-wait fraction) of `pi0_armfix/configs/arm_focused.py` with K = `flow_samples`
+    """(samples/s, data-wait fraction) of `pi0_armfix/configs/arm_focused.py` with K =
+    `flow_samples`
     trained `steps` steps, the first logged window (the compilation) excluded."""
     config = arm_focused.get_config()
     config.update_from_flattened_dict({"train.total_steps": steps, "eval.every": 0,

@@ -1,6 +1,7 @@
 """The shared base of every experiment config: all keys, with the demo-scale defaults.
 
-An experiment file (`pi0_armfix/configs/arm_focused.py`, ...) calls `get_config(arg)` and changes only the
+An experiment file (`pi0_armfix/configs/arm_focused.py`, ...) calls `get_config(arg)` and changes
+only the
 `loss` (and, for a few, the `data`) section. `arg` picks the scale:
 
     ''    (no argument)  demo: the `demo` model on the embedded demo dataset, a CPU run of minutes.
@@ -129,7 +130,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
-    # How camera frames are read (pi0_armfix.data.pipeline.video_stream): 'random' = each sample's frame on
+    # How camera frames are read (pi0_armfix.data.pipeline.video_stream): 'random' = each sample's
+    # frame on
     # request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded front to
     # back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC has one
     # keyframe per episode; a curriculum's weights choose the episodes opened); 'auto' = 'stream'
@@ -210,7 +212,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role
     config.eval.switch_tolerance = 2  # steps by which a predicted gripper switch may miss
     # Closed loop and server: (open_above, close_below) of the grippers' hysteresis in action units
-    # (pi0_armfix.policies.hysteresis; B1K 2025's winners: about (0.9, -0.98)); () = commands pass as sampled.
+    # (pi0_armfix.policies.hysteresis; B1K 2025's winners: about (0.9, -0.98)); () = commands pass
+    # as sampled.
     config.eval.gripper_hysteresis = ()
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 

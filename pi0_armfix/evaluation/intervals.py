@@ -1,4 +1,5 @@
-"""The statistics of held-out evaluations and studies: intervals over seeds and held-out episodes whose coverage is tested (docs/evaluation.md).
+"""The statistics of held-out evaluations and studies: intervals over seeds and held-out episodes
+whose coverage is tested (docs/evaluation.md).
 
 Every run of a study is one seed of one config, scored on the same held-out chunks. A config's
 metric is a mean over its seeds; the difference of two configs' means gets a **Welch t interval**

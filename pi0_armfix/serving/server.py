@@ -77,7 +77,8 @@ def _unpack_array(obj: dict) -> Any:
 
 
 MAX_MESSAGE_MB = 64  # three 720p RGBA images and a state are ~11 MiB
-PROTOCOLS = ("openpi", "b1k")  # openpi's request/reply; B1K's evaluation harness (serving/harness.py)
+# openpi's request/reply; B1K's evaluation harness (serving/harness.py)
+PROTOCOLS = ("openpi", "b1k")
 pack = functools.partial(msgpack.packb, default=_pack_array)
 unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
 

@@ -6,7 +6,8 @@ its chunk, then asks again (receding horizon). Drivers here: the scripted expert
 with errors the size of a policy's (`NoisyExpertDriver`), holding the last action, zero actions
 and a replay of random recorded chunks (the calibration rows,
 `pi0_armfix.tools.closed_loop_calibration`); a trained run drives through
-`pi0_armfix.policies.inference.Replanner` around its `RunPolicy` (`pi0_armfix.evaluate --closed_loop`).
+`pi0_armfix.policies.inference.Replanner` around its `RunPolicy` (`pi0_armfix.evaluate
+--closed_loop`).
 
 Per episode the result of every phase (`sim.world`), whether navigation, manipulation and the task
 succeeded (every phase of that kind did), the time to success, and the traces of the base pose and

@@ -40,7 +40,8 @@ def run_folder(workdir: Path, config: str, seed: int) -> Path:
 
 
 def parse_config(config: str) -> tuple[str, str, list[str]]:
-    """A study's config name -> (file name of pi0_armfix/configs/, its argument ('' for none), overrides of
+    """A study's config name -> (file name of pi0_armfix/configs/, its argument ('' for none),
+    overrides of
     its own): `arm_focused`, `arm_focused:b1k`, `arm_focused@data.video_access=random` (every
     `@key=value` is passed to this config's runs only)."""
     head, *overrides = config.split("@")

@@ -245,7 +245,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """The `pi0-armfix-analyze-action-magnitudes` console script (also `python -m pi0_armfix.tools.analyze_action_magnitudes`)."""
+    """The `pi0-armfix-analyze-action-magnitudes` console script (also `python -m
+    pi0_armfix.tools.analyze_action_magnitudes`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "JSON report to write (the PNG goes beside it)",
                         required=True)

@@ -6,7 +6,8 @@
 One streaming pass over the training episodes (`--episodes=train`, the default: all but the
 `eval.episodes` held out, as training computes them) or every episode (`--episodes=all`); the
 tool prints which episodes and how many frames it reads. Exact
-float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.statistics.stats`), for actions
+float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.statistics.stats`), for
+actions
 (in the model's action space: the dims of `data.delta_action_mask` relative to the state, over
 every step of the model's chunks of `model.action_horizon`, see `dataset.block_norm_stats`) and
 state. These are plain statistics whatever `data.balanced_norm` says;
@@ -62,7 +63,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """The `pi0-armfix-compute-norm-stats` console script (also `python -m pi0_armfix.tools.compute_norm_stats`)."""
+    """The `pi0-armfix-compute-norm-stats` console script (also `python -m
+    pi0_armfix.tools.compute_norm_stats`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "norm_stats.json to write", required=True)
     flags.DEFINE_enum("episodes", "train", dataset_lib.EPISODE_CHOICES,

@@ -83,7 +83,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """The `pi0-armfix-filter-arm-heavy-episodes` console script (also `python -m pi0_armfix.tools.filter_arm_heavy_episodes`)."""
+    """The `pi0-armfix-filter-arm-heavy-episodes` console script (also `python -m
+    pi0_armfix.tools.filter_arm_heavy_episodes`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "JSON file to write", required=True)
     flags.DEFINE_float("arm_ratio_threshold", 1.5, "minimum arm-to-base relative motion ratio")

@@ -55,7 +55,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """The `pi0-armfix-make-demo-dataset` console script (also `python -m pi0_armfix.tools.make_demo_dataset`)."""
+    """The `pi0-armfix-make-demo-dataset` console script (also `python -m
+    pi0_armfix.tools.make_demo_dataset`)."""
     app.run(main, flags_parser=console.flags_parser("pi0_armfix.tools.make_demo_dataset"))
 
 

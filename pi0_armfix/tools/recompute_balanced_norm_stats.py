@@ -5,7 +5,8 @@
 
 Per-dim means stay; each group's spread is multiplied by one factor so that every group's RMS of
 frame-to-frame motion within episodes, in normalized units, equals the median over the groups,
-the factor capped to [1/max_scale, max_scale] (`pi0_armfix.data.statistics.motion.balanced_norm_stats`),
+the factor capped to [1/max_scale, max_scale]
+(`pi0_armfix.data.statistics.motion.balanced_norm_stats`),
 separately for z-score (std) and quantile (q01/q99) normalization, so the file serves either
 `data.norm`. Groups that move little next to their spread (the arms) get a smaller spread: their
 motion is amplified, not the imbalance (an earlier tool multiplied std by target/group_std, which
@@ -76,7 +77,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """The `pi0-armfix-recompute-balanced-norm-stats` console script (also `python -m pi0_armfix.tools.recompute_balanced_norm_stats`)."""
+    """The `pi0-armfix-recompute-balanced-norm-stats` console script (also `python -m
+    pi0_armfix.tools.recompute_balanced_norm_stats`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file", lock_config=True)
     flags.DEFINE_string("output", None, "norm_stats.json to write", required=True)
     flags.DEFINE_float("max_scale", None, "cap on each group's change of scale "

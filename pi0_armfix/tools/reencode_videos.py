@@ -18,7 +18,8 @@ systems), `meta/info.json` gets the new video shapes and codec, and video featur
 table of `pi0_armfix.data.cameras` — B1K's depth and segmentation videos are not needed; `all`;
 or a comma-separated list of feature names), from the videos and from every metadata file that
 names them (`info.json`, `stats.json`, `episodes_stats.jsonl`, v3.0's `meta/episodes` columns
-`videos/<feature>/...` and `stats/<feature>/...`), so LeRobot's tools find no feature half gone. Written into a staging folder renamed when
+`videos/<feature>/...` and `stats/<feature>/...`), so LeRobot's tools find no feature half gone.
+Written into a staging folder renamed when
 complete; `--workers` files are encoded at once (default: every core), with a progress bar.
 """
 
@@ -236,7 +237,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """The `pi0-armfix-reencode-videos` console script (also `python -m pi0_armfix.tools.reencode_videos`)."""
+    """The `pi0-armfix-reencode-videos` console script (also `python -m
+    pi0_armfix.tools.reencode_videos`)."""
     flags.DEFINE_string("input", None, "the LeRobot dataset root to read", required=True)
     flags.DEFINE_string("output", None, "the new dataset root to write (must not exist)",
                         required=True)

@@ -18,7 +18,8 @@ Calibration: arm and torso postures are drawn around the published B1K means wit
 `posture_spread` times the published standard deviations, inside the published 1%-99% quantiles,
 from a low-discrepancy sequence over episode numbers, so even a small demo matches the published
 statistics (`pi0_armfix/reference/b1k_2025_norm_stats.json`); the five tasks balance their arm use
-so that each gripper is closed about a third of the time, as in B1K. Cameras: the head shows the current target, the
+so that each gripper is closed about a third of the time, as in B1K. Cameras: the head shows the
+current target, the
 wrists the fingers, a held object and the remaining reach offset (`pi0_armfix.sim.world`). State
 (23-D, the official baseline STATE order): base velocity 0:3, torso 3:7, left arm 7:14, right arm
 14:21, finger gaps 21, 22 in [0, 0.1].

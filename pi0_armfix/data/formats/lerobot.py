@@ -12,7 +12,8 @@ and every column in `features`):
                `video_path.format(episode_chunk, video_key, episode_index)`.
   v3.0         many episodes per file at `data_path.format(chunk_index, file_index)`; episodes in
                `meta/episodes/chunk-*/file-*.parquet` (rows `dataset_from_index`..`dataset_to_index`
-               of data file `data/chunk_index`, `data/file_index`; for every video camera the segment
+               of data file `data/chunk_index`, `data/file_index`; for every video camera the
+               segment
                `videos/<key>/from_timestamp`..`to_timestamp` of the mp4 `videos/<key>/chunk_index`,
                `file_index`); task strings in `meta/tasks.parquet`.
 
@@ -29,9 +30,11 @@ nearest frame; 1 accepts data whose timestamps run one frame past the video, a k
 some converted sets). In v3.0 an episode owns only its segment `[from_timestamp, to_timestamp)`
 of a file that holds many: a row whose time falls past its segment's last frame is read at that
 frame when it overruns by at most `data.video_tolerance_frames`, and is an error naming the
-episode, the row and the file otherwise (it would read the next episode's frames). Decoders are per thread, so any number of Grain threads may read at once.
+episode, the row and the file otherwise (it would read the next episode's frames). Decoders are per
+thread, so any number of Grain threads may read at once.
 `LeRobotSource.probe` decodes the first and last frame of a sample of episodes before training.
-The metadata (versions, templates, episode records, prompts) is `data/formats/lerobot_meta.py`; the lazy
+The metadata (versions, templates, episode records, prompts) is `data/formats/lerobot_meta.py`; the
+lazy
 frame decoding `data/formats/lerobot_frames.py`; this module holds the source.
 
 Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
@@ -41,7 +44,8 @@ task). Where that is a task *name* rather than a prompt (B1K 2026 stores the sna
 `turning_on_radio`), `meta/tasks.jsonl` rows `{"task_name": name, "task": prompt}` give the prompt
 (B1K 2025 writes the same rows); a name without such a row is its own prompt.
 
-`pi0_armfix.data.formats.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource` reads
+`pi0_armfix.data.formats.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource`
+reads
 them: `iter_blocks` streams actions/state one parquet row group at a time without per-row Python
 (the statistics passes, and the one-time build of the on-disk `FrameStore`), `load_table`
 builds an `EpisodeTable` whose columns are read by row from that store and whose images are
@@ -70,9 +74,9 @@ from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 from pi0_armfix.data.formats.frame_store import FrameStore
 from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, segment_time
-from pi0_armfix.data.formats.lerobot_meta import (ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3,
-                                       major_version, matrix, open_parquet, task_prompts_of,
-                                       task_rows, vector, with_prompts)
+from pi0_armfix.data.formats.lerobot_meta import (
+    ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3, major_version, matrix, open_parquet,
+    task_prompts_of, task_rows, vector, with_prompts)
 from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
 
 # Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).

@@ -1,7 +1,8 @@
 """`LeRobotWriter`: writes LeRobot dataset roots (v2.0, v2.1, v3.0) one episode at a time.
 
 The demo dataset, the benchmarks, the re-encode tool and the tests write with it; what the three
-layouts hold is described in `pi0_armfix.data.formats.lerobot`, which reads them. The metadata is written
+layouts hold is described in `pi0_armfix.data.formats.lerobot`, which reads them. The metadata is
+written
 as LeRobot's own writer writes it, so that LeRobot's loader and tools take the root as their own:
   - every data parquet file declares its features in the schema metadata (`huggingface`:
     `{"info": {"features": ...}}` in Hugging Face `datasets`' form, cameras stored in the

@@ -43,7 +43,8 @@ class Source(Protocol):
 
     def iter_blocks(self, keys: Sequence[str] = ("actions", "state"),
                     episodes: Sequence[int] | None = None) -> Iterator[dict[str, np.ndarray]]:
-        """Bounded-memory stream of `{key: [n, ...], "episode_index": [n] int64}` in episode order."""
+        """Bounded-memory stream of `{key: [n, ...], "episode_index": [n] int64}` in episode
+        order."""
 
     def identity(self) -> dict[str, Any]:
         """What its frames depend on (JSON-able): the key of its `FrameStore`."""
@@ -69,7 +70,8 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         if not root:
             raise ValueError("data.root is '' (the built-in demo dataset, a LeRobot dataset) but "
                              "data.format is 'rlds'; set data.format='lerobot' or a data.root")
-        from pi0_armfix.data.formats.rlds import RldsSource  # TFDS is slow to import; only load it here
+        # TFDS is slow to import: only load it here
+        from pi0_armfix.data.formats.rlds import RldsSource
 
         return RldsSource(root, layout, split=data_cfg.get("split", "train"), cameras=cameras,
                           use_images=images)

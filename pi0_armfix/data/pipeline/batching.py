@@ -27,7 +27,8 @@ Tokenize = Callable[[str], tuple[np.ndarray, np.ndarray]]
 def action_normalizer(norm_stats: Mapping[str, stats_lib.NormStats], real_dim: int,
                       norm_mode: str, action_horizon: int) -> normalize.Normalizer:
     """The actions' normalizer: per chunk position (`[H, A]`) when the stats hold an
-    `actions_per_timestep` entry (`data.norm_per_timestep`, see `data.chunk_stats`), else per dim."""
+    `actions_per_timestep` entry (`data.norm_per_timestep`, see `data.chunk_stats`), else per
+    dim."""
     per_timestep = norm_stats.get("actions_per_timestep")
     if per_timestep is None:
         actions = stats_lib.fit_width(norm_stats["actions"], real_dim, "norm stats 'actions'")

@@ -63,7 +63,8 @@ from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.data.pipeline import video_stream
 from pi0_armfix.data.pipeline.batching import BatchTransform, Tokenize
 from pi0_armfix.data.pipeline.data_spec import DataSpec
-from pi0_armfix.data.pipeline.sampling import SampleSelector, source_episodes, source_frames, stream_seed
+from pi0_armfix.data.pipeline.sampling import (SampleSelector, source_episodes, source_frames,
+                                               stream_seed)
 from pi0_armfix.data.statistics import stats as stats_lib
 
 ConfigLike = Mapping[str, Any]
@@ -296,7 +297,8 @@ def make_train_iterator(spec: DataSpec, *, norm_stats: Mapping[str, stats_lib.No
                         actions_only: bool = False, source=None,
                         image_size: tuple[int, int] = (224, 224),
                         video_access: str = "random") -> TrainIterator:
-    """Training batches of a run's data `spec` (see the module docstring). This process reads its slice
+    """Training batches of a run's data `spec` (see the module docstring). This process reads its
+    slice
     `jax.process_index()` of `jax.process_count()` of every global batch. `source`: the run's
     opened source (None = open it); `image_size`: of the zero images of a dataset with no
     camera, and the size video frames are decoded to fit inside; `video_access`: the run's
