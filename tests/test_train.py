@@ -315,3 +315,11 @@ def test_help_exits_0(module, cache_dir):
     result = subprocess.run([sys.executable, "-m", module, "--help"], env=tf.env(cache_dir),
                             cwd=tf.REPO_ROOT, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0 and "--" in result.stdout
+
+
+def test_the_study_commands_help_is_the_studys_documentation(cache_dir):
+    result = subprocess.run([sys.executable, "-m", "pi0_armfix.study", "--help"],
+                            env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0
+    assert "Every config x every seed" in result.stdout and "--closed_loop_episodes" in result.stdout
