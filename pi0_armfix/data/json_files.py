@@ -1,5 +1,6 @@
 """JSON files written atomically: a reader (another process of the run, a resumed run, a study)
-never sees a partial file, and a crash leaves the previous file whole."""
+never sees a partial file, and a crash leaves the previous file whole; and a user's JSON file read
+with one-line errors that name it."""
 
 from __future__ import annotations
 
@@ -22,3 +23,15 @@ def write_json_atomic(path: str | Path, payload: Any) -> None:
     os.umask(umask)
     os.chmod(tmp.name, 0o666 & ~umask)
     os.replace(tmp.name, path)
+
+
+def read_json(path: str | Path, name: str) -> Any:
+    """The JSON in `path`; a missing or unreadable file, or one that is not JSON, is a ValueError
+    `"<name> does not exist"` / `"<name> is not valid JSON: ..."` (`name` names the file and what
+    asked for it, e.g. `f"norm stats file {path}"`)."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{name} does not exist") from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{name} is not valid JSON: {err}") from None

@@ -22,13 +22,14 @@ import bisect
 import dataclasses
 import functools
 import itertools
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from pi0_armfix.data import json_files
 
 SOURCES = ("full", "arm_heavy")
 _MASK64 = (1 << 64) - 1
@@ -147,12 +148,7 @@ class Curriculum:
 def load_episode_list(path: str | Path) -> np.ndarray:
     """Dataset episode indices from a `filter_arm_heavy_episodes` JSON (`{"episodes": [...]}`)."""
     path = Path(path)
-    try:
-        payload = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"data.arm_heavy_episodes: file {path} does not exist") from None
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"data.arm_heavy_episodes: {path} is not valid JSON: {err}") from None
+    payload = json_files.read_json(path, f"data.arm_heavy_episodes: file {path}")
     episodes = payload.get("episodes") if isinstance(payload, dict) else None
     if not isinstance(episodes, list) or not all(
             isinstance(e, int) and not isinstance(e, bool) for e in episodes):

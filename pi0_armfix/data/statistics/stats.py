@@ -28,7 +28,6 @@ and unpadded files alike (padding must be zeros), `save_norm_stats` writes the r
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -407,12 +406,7 @@ def load_norm_stats(path: str | Path, widths: Mapping[str, int] | None = None,
       fields of different lengths, non-finite values, a negative std, or a width mismatch.
     """
     path = Path(path)
-    try:
-        payload = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"norm stats file {path} does not exist") from None
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"norm stats file {path} is not valid JSON: {err}") from None
+    payload = json_files.read_json(path, f"norm stats file {path}")
     entries = payload.get("norm_stats") if isinstance(payload, dict) else None
     if not isinstance(entries, dict):
         raise ValueError(f"norm stats file {path} has no 'norm_stats' object (openpi format: "
