@@ -436,11 +436,25 @@ def test_the_learning_curve_table_has_a_row_per_config_and_evaluated_step():
                 **{f"mean_of_draws/skill/{g}": value + 0.5 for g in groups},
                 "gripper_switch/f1": 0.25}
 
-    curves = {"arm_focused": [[{"step": 10, "loss": 1.0}, record(500, -0.2), record(1000, 0.1)],
-                              [record(500, -0.4), record(1000, 0.3)]]}
+    def timing(step, steps_per_sec):
+        return {"step": step, "loss": 1.0, "steps_per_sec": steps_per_sec}
+
+    curves = {"arm_focused": [[timing(500, 5.0), record(500, -0.2), timing(1000, 10.0),
+                               record(1000, 0.1)],
+                              [timing(500, 2.5), record(500, -0.4), timing(1000, 5.0),
+                               record(1000, 0.3)]]}
     table = report.curve_table(curves, {"groups": groups,
                                               "arm_groups": ["left_arm", "right_arm"]})
     rows = [line for line in table if line.startswith("| arm_focused")]
     assert len(rows) == 2
-    assert rows[0].startswith("| arm_focused | 500 | 2 | -0.30 ± 0.10")
+    # 100 s and 200 s of training to step 500 -> 2.5 min; 150 s and 300 s to step 1000 -> 3.8
+    assert rows[0].startswith("| arm_focused | 500 | 2 | 2.5 | -0.30 ± 0.10")
+    assert rows[1].startswith("| arm_focused | 1000 | 2 | 3.8 |")
     assert "+0.70 ± 0.10" in rows[1] and rows[1].endswith("+0.25 ± 0.00 |")
+
+
+def test_training_seconds_sum_the_logged_windows_and_skip_evaluation_records():
+    records = [{"step": 25, "steps_per_sec": 0.5}, {"step": 50, "steps_per_sec": 5.0},
+               {"step": 50, "skill/base": 0.1}, {"step": 75, "steps_per_sec": 25.0}]
+    assert report.training_seconds(records) == {25: 50.0, 50: 55.0, 75: 56.0}
+    assert report.training_seconds([{"step": 50, "skill/base": 0.1}]) == {}

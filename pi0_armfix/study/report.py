@@ -360,10 +360,11 @@ def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
 
 def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
                 study: Mapping[str, Any]) -> list[str]:
-    """study.md's learning-curve table: per config and evaluated step, each group's held-out
-    skill over persistence (single draw; the arms also as the mean of the draws) and switch F1,
-    mean ± std over the seeds that logged that step (how many, per row). Nothing when no run
-    logged more than its final evaluation."""
+    """study.md's learning-curve table: per config and evaluated step, the training minutes it
+    took (`training_seconds`, mean over the seeds), each group's held-out skill over persistence
+    (single draw; the arms also as the mean of the draws) and switch F1, mean ± std over the seeds
+    that logged that step (how many, per row): skill against wall time, so that recipes of
+    different step costs compare. Nothing when no run logged more than its final evaluation."""
     groups, arms = study["groups"], study["arm_groups"]
     keys = ([(f"skill/{g}", g) for g in groups]
             + [(f"{MEAN_OF_DRAWS}/skill/{g}", f"{g} (mean of draws)") for g in arms]
@@ -376,7 +377,9 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
             at = [next((r for r in records if int(r["step"]) == step
                         and f"skill/{groups[0]}" in r), None) for records in runs]
             at = [r for r in at if r is not None]
-            cells = []
+            minutes = [training_seconds(records).get(step, math.nan) / 60 for records in runs]
+            minutes = [m for m in minutes if math.isfinite(m)]
+            cells = [f"{np.mean(minutes):.1f}" if minutes else "n/a"]
             for key, _ in keys:
                 values = np.asarray([as_number(r.get(key)) for r in at], np.float64)
                 values = values[np.isfinite(values)]
@@ -388,8 +391,21 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
     return ["", "## Learning curves (held-out skill over persistence at every evaluated step)",
             "", "Single draw unless said; mean ± std over the seeds that reached the step. "
             "Persistence (doing nothing) is 0 everywhere.", "",
-            "| config | step | seeds | " + " | ".join(label for _, label in keys) + " |",
-            "|---" * (len(keys) + 3) + "|", *rows]
+            "| config | step | seeds | training min | "
+            + " | ".join(label for _, label in keys) + " |",
+            "|---" * (len(keys) + 4) + "|", *rows]
+
+
+def training_seconds(records: Sequence[Mapping[str, Any]]) -> dict[int, float]:
+    """Wall seconds of training up to each logged step: the sum of the logged windows (`steps /
+    steps_per_sec`; a window holds the steps, the compilation and checkpoint saves, never an
+    evaluation). A run logged without timings has none."""
+    seconds, total, last = {}, 0.0, 0
+    for record in sorted((r for r in records if r.get("steps_per_sec")), key=lambda r: r["step"]):
+        total += (int(record["step"]) - last) / float(record["steps_per_sec"])
+        last = int(record["step"])
+        seconds[last] = total
+    return seconds
 
 
 def _curve_values(runs: Sequence[Sequence[Mapping[str, Any]]], key: str
