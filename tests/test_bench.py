@@ -83,3 +83,14 @@ def test_sim_benchmark_prints_the_expert_bound_and_the_step_rate(tmp_path):
     out = _bench(tmp_path, "sim", "--episodes=3", "--policies=expert")
     assert "== expert: 3 episodes" in out and "env steps/s" in out
     assert "task               1.000" in out
+
+
+@pytest.mark.slow  # the slow lane: four short demo trainings
+def test_train_benchmark_prints_throughput_against_the_bounds_and_the_batch_sweep(tmp_path):
+    out = _bench(tmp_path, "train", "--rounds=1", "--steps=1", "--data_steps=50",
+                 "--batch_sizes=16")
+    assert "ratio" in out
+    for k in (4, 1):
+        line = next(line for line in out.splitlines() if line.startswith(f"  K = {k}:"))
+        assert "samples/s" in line and "of the compute bound" in line and "FLOP/byte" in line
+    assert "  K = 4, batch 16:" in out

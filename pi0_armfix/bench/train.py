@@ -8,15 +8,16 @@
    that machine noise hits both alike; the ratio of the median round times is printed
    (target <= 1.03: the weighting is a few elementwise ops next to the transformer).
 2. Throughput of the main job against its compute bound: `pi0_armfix/configs/arm_focused.py` (the
-`demo`
-   preset, K = 4 flow draws) and the same with K = 1, each trained for `--data_steps` steps in a
-   temporary folder (evaluation off): samples/s over the logged windows but the first (which
-   holds the compilation), and the logged `data_wait` (wall time the loop waited for the next
-   batch while the device had no step left to run, see `pi0_armfix.train`; target < 5%). Beside
-   them the train step's FLOPs per sample (`Lowered.cost_analysis()`) and this machine's float32
-   matmul rate (a 1024^3 product), whose ratio is the samples/s a step of large matrix products
-   would reach: the compute bound, against which the achieved rate shows what limits the demo
-   (its matrices are 32-128 wide: per-op overheads, not FLOPs).
+   `demo` preset, K = 4 flow draws) and the same with K = 1, each trained for `--data_steps`
+   steps in a temporary folder (evaluation off): samples/s over the logged windows but the first
+   (which holds the compilation), and the logged `data_wait` (wall time the loop waited for the
+   next batch while the device had no step left to run, see `pi0_armfix.train`; target < 5%).
+   Beside them the compiled train step's FLOPs and bytes accessed per sample (its cost analysis)
+   and this machine's float32 matmul rate (a 1024^3 product), whose ratio is the samples/s a step
+   of large matrix products would reach: the compute bound. Then K = 4 at `--batch_sizes`: were
+   per-step overheads (dispatch, op launch) what holds the demo far below its bound, samples/s
+   would rise with the batch; if they stay flat or fall, the per-sample work itself runs slowly
+   (matrices 32-128 wide, a few FLOPs per byte moved).
 """
 
 from __future__ import annotations
@@ -105,14 +106,16 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     return (statistics.median(runs["uniform"][2]), statistics.median(runs["per_group+delta"][2]))
 
 
-def main_job_throughput(steps: int, flow_samples: int) -> tuple[float, float]:
+def main_job_throughput(steps: int, flow_samples: int, batch_size: int
+                        ) -> tuple[float, float]:
     """(samples/s, data-wait fraction) of `pi0_armfix/configs/arm_focused.py` with K =
-    `flow_samples`
-    trained `steps` steps, the first logged window (the compilation) excluded."""
+    `flow_samples` and global batch `batch_size`, trained `steps` steps, the first logged window
+    (the compilation) excluded."""
     config = arm_focused.get_config()
     config.update_from_flattened_dict({"train.total_steps": steps, "eval.every": 0,
                                        "train.checkpoint_every": steps,
-                                       "loss.flow_samples": flow_samples})
+                                       "loss.flow_samples": flow_samples,
+                                       "train.batch_size": batch_size})
     with tempfile.TemporaryDirectory() as workdir:
         train.train_and_evaluate(config, workdir)
         records = [r for r in metrics_log.read_metrics(f"{workdir}/{metrics_log.METRICS_FILE}")
@@ -124,13 +127,14 @@ def main_job_throughput(steps: int, flow_samples: int) -> tuple[float, float]:
     return steps_run * config.train.batch_size / sum(durations), sum(waits) / sum(durations)
 
 
-def flops_per_sample(flow_samples: int) -> float:
-    """FLOPs of the main job's train step per training sample (its K draws included)."""
+def cost_per_sample(flow_samples: int) -> tuple[float, float]:
+    """(FLOPs, bytes accessed) of the main job's compiled train step per training sample (its K
+    draws included; bytes as XLA counts them after fusion, whether or not a cache serves them)."""
     config = arm_focused.get_config()
     model_config = model_config_lib.from_model_config(config.model)
     batch = config.train.batch_size
-    lowered = bench_model.lower_train_step(model_config, batch, flow_samples)
-    return lowered.cost_analysis()["flops"] / batch
+    cost = bench_model.lower_train_step(model_config, batch, flow_samples).compile().cost_analysis()
+    return cost["flops"] / batch, cost["bytes accessed"] / batch
 
 
 def matmul_flops_per_second(size: int = 1024, repeats: int = 10) -> float:
@@ -152,6 +156,9 @@ def main(argv: Sequence[str]) -> None:
     parser.add_argument("--steps", type=int, default=10, help="train steps per timing round")
     parser.add_argument("--data_steps", type=int, default=300,
                         help="steps of the demo training measured for the data-wait fraction")
+    parser.add_argument("--batch_sizes", default="64,128",
+                        help="further global batch sizes trained at K = 4 ('' = none): samples/s "
+                             "that rise with the batch say per-step overheads bound the step")
     args = parser.parse_args(argv[1:])
     uniform, weighted = step_time_ratio(args.rounds, args.steps)
     print(f"demo train step, batch {base.get_config().train.batch_size}, "
@@ -164,12 +171,18 @@ def main(argv: Sequence[str]) -> None:
     print(f"main job (pi0_armfix/configs/arm_focused.py, demo preset, batch "
           f"{base.get_config().train.batch_size}), {args.data_steps} steps each; this machine's "
           f"float32 matmul rate {peak / 1e9:.1f} GFLOP/s:")
+    batch = base.get_config().train.batch_size
     for k in (4, 1):
-        rate, waiting = main_job_throughput(args.data_steps, k)
-        flops = flops_per_sample(k)
+        rate, waiting = main_job_throughput(args.data_steps, k, batch)
+        flops, bytes_accessed = cost_per_sample(k)
         print(f"  K = {k}: {rate:7.1f} samples/s, {flops / 1e6:6.1f} MFLOP/sample -> "
               f"{rate * flops / 1e9:5.2f} GFLOP/s, {rate * flops / peak:5.1%} of the compute "
-              f"bound ({peak / flops:7.0f} samples/s); data wait {waiting:.1%} (target < 5%)")
+              f"bound ({peak / flops:7.0f} samples/s); {bytes_accessed / 1e6:5.1f} MB accessed "
+              f"per sample ({flops / bytes_accessed:.1f} FLOP/byte); data wait {waiting:.1%} "
+              "(target < 5%)")
+    for size in (int(b) for b in args.batch_sizes.split(",") if b):
+        rate, _ = main_job_throughput(args.data_steps, 4, size)
+        print(f"  K = 4, batch {size}: {rate:7.1f} samples/s ({rate / size:.2f} steps/s)")
 
 
 if __name__ == "__main__":
