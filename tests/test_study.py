@@ -1,6 +1,7 @@
 """The study tool: configs x seeds -> tables with the spread over seeds, resumable."""
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -89,9 +90,10 @@ def test_reports_are_written_and_name_every_config(tmp_path):
     assert (tmp_path / "study.png").stat().st_size > 10_000
 
 
-def _write_metrics_log(folder, seed, evaluations=(5, 10)):
+def _write_metrics_log(folder, seed, evaluations=(5, 10), timed=False):
     folder.mkdir(parents=True)
-    records = [{"step": step, "loss": 2.0 / step + seed} for step in (2, 4, 6, 8, 10)]
+    records = [{"step": step, "loss": 2.0 / step + seed, **({"steps_per_sec": 4.0} if timed else {})}
+               for step in (2, 4, 6, 8, 10)]
     records += [{"step": step, "skill/left_arm": -1.0 / step, "motion_gain/left_arm": 0.1}
                 for step in evaluations]
     (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
@@ -103,6 +105,15 @@ def test_curves_are_drawn_from_the_runs_metrics_logs_only_where_they_are_kept(tm
     assert not (tmp_path / "study_curves.png").exists()  # result.json files only
     for r in results:
         _write_metrics_log(study_run.run_folder(tmp_path, r["config"], r["seed"]), r["seed"])
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    assert (tmp_path / "study_curves.png").stat().st_size > 10_000
+
+
+def test_curves_are_drawn_from_metrics_logs_with_timings(tmp_path):
+    results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
+    for r in results:
+        _write_metrics_log(study_run.run_folder(tmp_path, r["config"], r["seed"]), r["seed"],
+                           timed=True)
     study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
     assert (tmp_path / "study_curves.png").stat().st_size > 10_000
 
@@ -458,3 +469,10 @@ def test_training_seconds_sum_the_logged_windows_and_skip_evaluation_records():
                {"step": 50, "skill/base": 0.1}, {"step": 75, "steps_per_sec": 25.0}]
     assert report.training_seconds(records) == {25: 50.0, 50: 55.0, 75: 56.0}
     assert report.training_seconds([{"step": 50, "skill/base": 0.1}]) == {}
+
+
+def test_minutes_at_an_evaluation_between_log_records_are_interpolated():
+    seconds = {25: 60.0, 50: 120.0}
+    assert report.minutes_at(seconds, 40) == pytest.approx(1.6)
+    assert report.minutes_at(seconds, 50) == 2.0
+    assert math.isnan(report.minutes_at({}, 50))

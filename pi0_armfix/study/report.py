@@ -309,10 +309,12 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
 def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
                 groups: Sequence[str], path: Path) -> None:
     """`study_curves.png`: per config, the training loss and each group's held-out skill over
-    persistence against the step (the single draw solid, the mean of the draws dashed, where
-    logged), the mean over seeds as a line and the seeds' range shaded; doing nothing
-    (persistence) is the line at 0. Draws nothing when no run has a metrics log (a
-    study gathered from kept `result.json` files only).
+    persistence against the training minutes (the single draw solid, the mean of the draws
+    dashed, where logged), the mean over seeds as a line and the seeds' range shaded; doing
+    nothing (persistence) is the line at 0. Minutes (`training_seconds`, mean over the seeds)
+    compare recipes whose steps cost differently; where a run logged no timings the axis is the
+    step. Draws nothing when no run has a metrics log (a study gathered from kept `result.json`
+    files only).
 
     Args:
       curves: {config: one `metrics.jsonl` record list per seed}.
@@ -326,33 +328,43 @@ def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
     rows = math.ceil(len(panels) / columns)
     fig, axes = plt.subplots(rows, columns, squeeze=False, figsize=(4.2 * columns, 3.4 * rows))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    timings = {name: [training_seconds(records) for records in runs if records]
+               for name, runs in curves.items()}
+    timed = all(seconds for runs in timings.values() for seconds in runs)
+
+    def x_of(name: str, steps: Sequence[int]) -> np.ndarray:
+        if not timed:
+            return np.asarray(steps, float)
+        return np.asarray([np.mean([minutes_at(seconds, s) for seconds in timings[name]])
+                           for s in steps])
+
     for (key, title), ax in zip(panels, axes.flat):
         for i, (name, runs) in enumerate(curves.items()):
             steps, values = _curve_values(runs, key)
             if not steps:
                 continue
             color = colors[i % len(colors)]
-            ax.plot(steps, np.nanmean(values, axis=0), color=color, marker="." if
+            ax.plot(x_of(name, steps), np.nanmean(values, axis=0), color=color, marker="." if
                     key != "loss" else None, label=f"{name} ({len(values)} seeds)")
             if len(values) > 1:
-                ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
-                                color=color, alpha=0.2, lw=0)
+                ax.fill_between(x_of(name, steps), np.nanmin(values, axis=0),
+                                np.nanmax(values, axis=0), color=color, alpha=0.2, lw=0)
             if key != "loss":
                 steps, values = _curve_values(runs, f"{MEAN_OF_DRAWS}/{key}")
                 if steps:
-                    ax.plot(steps, np.nanmean(values, axis=0), color=color, ls="--",
+                    ax.plot(x_of(name, steps), np.nanmean(values, axis=0), color=color, ls="--",
                             label=f"{name}: mean of the draws")
         if key != "loss":
             ax.axhline(0.0, color="black", lw=0.8, ls="--", label="persistence (do nothing)")
             low = ax.get_ylim()[0]
             ax.set_ylim(max(low, -3.0), 1.05)
-        ax.set(title=title, xlabel="step")
+        ax.set(title=title, xlabel="training minutes" if timed else "step")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle("training and held-out evaluation over steps: mean over seeds, seeds' range "
-                 "shaded")
+    fig.suptitle(f"training and held-out evaluation over {'training time' if timed else 'steps'}"
+                 ": mean over seeds, seeds' range shaded")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -377,7 +389,7 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
             at = [next((r for r in records if int(r["step"]) == step
                         and f"skill/{groups[0]}" in r), None) for records in runs]
             at = [r for r in at if r is not None]
-            minutes = [training_seconds(records).get(step, math.nan) / 60 for records in runs]
+            minutes = [minutes_at(training_seconds(records), step) for records in runs]
             minutes = [m for m in minutes if math.isfinite(m)]
             cells = [f"{np.mean(minutes):.1f}" if minutes else "n/a"]
             for key, _ in keys:
@@ -406,6 +418,15 @@ def training_seconds(records: Sequence[Mapping[str, Any]]) -> dict[int, float]:
         last = int(record["step"])
         seconds[last] = total
     return seconds
+
+
+def minutes_at(seconds: Mapping[int, float], step: int) -> float:
+    """Training minutes to `step`, interpolated between the logged steps of `training_seconds`
+    (an evaluation between two log records); NaN for a run without timings."""
+    if not seconds:
+        return math.nan
+    steps = sorted(seconds)
+    return float(np.interp(step, steps, [seconds[s] for s in steps])) / 60
 
 
 def _curve_values(runs: Sequence[Sequence[Mapping[str, Any]]], key: str
