@@ -430,6 +430,20 @@ def test_a_config_with_overrides_of_its_own_passes_them_to_its_runs_only(tmp_pat
             == tmp_path / "arm_focused@data.root=_a_b" / "seed_0")
 
 
+def test_a_config_naming_its_own_total_steps_is_finished_at_those_steps(tmp_path):
+    config = "arm_focused@loss.flow_samples=1@train.total_steps=4000"
+    assert study_run.run_steps(config, 2000) == 4000
+    assert study_run.run_steps("arm_focused@loss.flow_samples=1", 2000) == 2000
+    folder = study_run.run_folder(tmp_path, config, 0)
+    folder.mkdir(parents=True)
+    (folder / study_run.RESULT_FILE).write_text(json.dumps(
+        {"config": config, "seed": 0, "steps": 4000, "layout": {}, "metrics": {}}))
+    with pytest.raises(ValueError, match="no finished run"):  # the 4000-step run is finished...
+        study_run.run_study(["arm_focused"], [0], 2000, tmp_path, train=False)
+    finished = study_run.run_study([config], [0], 2000, tmp_path, train=False)
+    assert [r["steps"] for r in finished] == [4000]  # ... and not refused as "not --steps"
+
+
 def test_the_closed_loop_is_proportionate_to_the_training_budget_and_announced():
     assert study_run.default_closed_loop_episodes(1500) == 12
     assert study_run.default_closed_loop_episodes(6000) == 50

@@ -49,6 +49,14 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
     return name, arg, overrides
 
 
+def run_steps(config: str, steps: int) -> int:
+    """The steps a config's runs train: its own `@train.total_steps=N` where it names one (a
+    recipe whose steps cost differently, compared at equal wall time), else the study's
+    `steps`."""
+    own = dict(o.partition("=")[::2] for o in parse_config(config)[2])
+    return int(own.get("train.total_steps", steps))
+
+
 def train_command(config: str, seed: int, steps: int, folder: Path,
                   overrides: Sequence[str], evaluations: int = 1) -> list[str]:
     """The `pi0_armfix.train` command line of one run (`overrides`: the study's, then the
@@ -192,11 +200,11 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
     _logged(train_command(config, seed, steps, folder, overrides, evaluations), folder,
             f"{config} seed {seed}")
     evaluation = final_evaluation(folder)
-    if evaluation["step"] != steps:
+    if evaluation["step"] != run_steps(config, steps):
         raise RuntimeError(f"{folder}: the last evaluation is of step {evaluation['step']}, "
-                           f"not {steps}")
+                           f"not {run_steps(config, steps)}")
     layout = json.loads((folder / "config.json").read_text())["layout"]
-    result = {"config": config, "seed": seed, "steps": steps, "layout": layout,
+    result = {"config": config, "seed": seed, "steps": run_steps(config, steps), "layout": layout,
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     result = add_episode_replicates(result, folder, evaluate_missing=True)
@@ -244,7 +252,7 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
         for config in configs:
             folder = run_folder(workdir, config, seed)
             result = load_result(folder)
-            if result is not None and result["steps"] == steps:
+            if result is not None and result["steps"] == run_steps(config, steps):
                 result = add_episode_replicates(result, folder, evaluate_missing=train)
                 results[config, seed] = result
                 if train and closed_loop_episodes > 0 and not run_has_closed_loop(
@@ -252,7 +260,7 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
                     unmeasured.append((config, seed))
             elif result is not None:
                 raise ValueError(f"{folder} finished {result['steps']} steps, not "
-                                 f"--steps={steps}: use another --workdir")
+                                 f"{run_steps(config, steps)}: use another --workdir")
             else:
                 todo.append((config, seed))
     if not train:
