@@ -43,7 +43,8 @@ and the world episodes (resampled like the held-out ones, from the per-episode o
 A config is a file name of `pi0_armfix/configs/` (`arm_focused`, optionally `arm_focused:b1k`),
 optionally
 with overrides of its own after `@` (`arm_focused@data.video_access=random`: two variants of one
-file compare); every `--override` is passed to every run as `--config.<key>=<value>`. Metrics are
+file compare; `@train.total_steps=N` trains that config's runs N steps instead of `--steps`, so
+that recipes whose steps cost differently compare at equal wall time); every `--override` is passed to every run as `--config.<key>=<value>`. Metrics are
 those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
 configs with other normalizations or delta actions compare).
