@@ -70,8 +70,7 @@ def cli() -> None:
                          "episodes (the demo dataset is seed 0)")
     flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
                       "grippers' hysteresis (pi0_armfix.policies.hysteresis), in action units; "
-                      "unset: the "
-                      "run's eval.gripper_hysteresis; empty: none")
+                      "unset: the run's eval.gripper_hysteresis; empty: none")
     console.define_lever_flags()
     flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "
                       "(e.g. 1,2,4: the same episodes with the world's tolerances doubled and "

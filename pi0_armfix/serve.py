@@ -7,15 +7,13 @@ Any openpi client works against it (`openpi_client.websocket_client_policy.Webso
 B1K's evaluation harness): on connect the server sends its metadata; then every binary message is
 an observation dict, answered by `{"actions": float32 [H, A], "server_timing": {"infer_ms"}}`,
 actions absolute and in the dataset's units (`pi0_armfix.policies.inference.RunPolicy`). Messages
-are
-msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
+are msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
 read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
 message naming the problem (openpi's client raises it as a RuntimeError); the connection and the
 server stay up. `GET /healthz` answers 200 (openpi's health check). With `--gripper_hysteresis`
 (or the run's `eval.gripper_hysteresis`), each connection's gripper commands pass the hysteresis
-of `pi0_armfix.policies.hysteresis`, held across its requests as if the client executed `--n_exec`
-actions
-of every chunk.
+of `pi0_armfix.policies.hysteresis`, held across its requests as if the client executed
+`--n_exec` actions of every chunk.
 """
 
 
@@ -89,8 +87,7 @@ def cli() -> None:
                         "'' = B1K's openpi keys")
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
                       "hysteresis (pi0_armfix.policies.hysteresis), in action units; "
-                      "unset: the run's "
-                      "eval.gripper_hysteresis; empty: none")
+                      "unset: the run's eval.gripper_hysteresis; empty: none")
     flags.DEFINE_enum("protocol", "openpi", PROTOCOLS, "openpi: a chunk per request "
                       "({'actions': [H, A]}); b1k: BEHAVIOR-1K's evaluation harness (one action "
                       "per request from a server-side queue, resets, its keys; "

@@ -17,8 +17,7 @@ d. A preset names that selection once, with its groups; `data.selection` applies
   | 7:14       | left_arm      | 158:165 arm_left_qpos                    |
   | 14         | left_gripper  | 193 + 194: width = sum of the two finger qpos (gripper_left_qpos) |
   | 15:22      | right_arm     | 197:204 arm_right_qpos                   |
-  | 22         | right_gripper | 232 + 233: width = sum of the two finger qpos (gripper_right_qpos)
-  |
+  | 22         | right_gripper | 232 + 233: width = sum of the two finger qpos (gripper_right_qpos) |
 
   The gripper width is the sum of the two finger joint positions, the quantity the official
   baseline's 23-D state carries (its published stats put both widths in [0, 0.1]).

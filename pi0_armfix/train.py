@@ -339,9 +339,9 @@ def define_flags() -> None:
     defines no absl flags)."""
     config_flags.DEFINE_config_file(
         "config", None, "experiment config: pi0_armfix/configs/<name>.py[:b1k] (or an "
-        "installed config's "
-        "name). Any key is set with --config.<key>=<value>: all keys, with comments, are in "
-        "pi0_armfix/configs/base.py; --print_config prints the resolved tree", lock_config=True)
+        "installed config's name). Any key is set with --config.<key>=<value>: all keys, with "
+        "comments, are in pi0_armfix/configs/base.py; --print_config prints the resolved tree",
+        lock_config=True)
     flags.DEFINE_bool("print_config", False, "print the config (file and overrides applied) and "
                       "exit")
     flags.DEFINE_string("workdir", None, "run folder (default runs/<config name>); resumed when "

@@ -2,10 +2,9 @@
 
     python -m pi0_armfix.bench faults [--kills=20] [--steps=40] [--seed=0]
 
-1. A reference run: `pi0_armfix/configs/loss_balanced.py` (loss-balancer state) with EMA params and
-a
-   curriculum switch, on the `tiny` preset and a small demo dataset, `--steps` steps uninterrupted,
-   a checkpoint after every step and a record of every step.
+1. A reference run: `pi0_armfix/configs/loss_balanced.py` (loss-balancer state) with EMA params
+   and a curriculum switch, on the `tiny` preset and a small demo dataset, `--steps` steps
+   uninterrupted, a checkpoint after every step and a record of every step.
 2. The same command in another folder, interrupted and restarted until `--kills` faults are in
    (a run that finishes first is followed by another), then run to its end. The faults cycle
    through

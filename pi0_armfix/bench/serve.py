@@ -5,11 +5,10 @@
 
 The server runs in its own process on RUN's latest checkpoint (no --workdir: a 2-step run of
 `pi0_armfix/configs/uniform.py` on the demo preset is trained into a temporary folder first; latency
-does not
-depend on the weights). The client is `openpi_client.WebsocketClientPolicy`, sending observations
-of the demo world (`pi0_armfix.sim.env`, episode 0, one frame each); it prints the round trip per
-`infer` (p50, p95, mean, max) and the server's own `infer_ms`, after `--warmup` untimed requests
-(the first compiles the sampler).
+does not depend on the weights). The client is `openpi_client.WebsocketClientPolicy`, sending
+observations of the demo world (`pi0_armfix.sim.env`, episode 0, one frame each); it prints the
+round trip per `infer` (p50, p95, mean, max) and the server's own `infer_ms`, after `--warmup`
+untimed requests (the first compiles the sampler).
 
 `--protocol=b1k` measures what B1K's evaluation harness meets (`pi0_armfix/serving/harness.py`): the
 seconds from the server's start until `/healthz` answers 200, the first step's latency right

@@ -1,8 +1,7 @@
 """The shared base of every experiment config: all keys, with the demo-scale defaults.
 
 An experiment file (`pi0_armfix/configs/arm_focused.py`, ...) calls `get_config(arg)` and changes
-only the
-`loss` (and, for a few, the `data`) section. `arg` picks the scale:
+only the `loss` (and, for a few, the `data`) section. `arg` picks the scale:
 
     ''    (no argument)  demo: the `demo` model on the embedded demo dataset, a CPU run of minutes.
     'b1k'                full pi0 on BEHAVIOR-1K 2025 as published (LeRobot v2.1, the 256-D state)
@@ -131,11 +130,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
     # How camera frames are read (pi0_armfix.data.pipeline.video_stream): 'random' = each sample's
-    # frame on
-    # request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded front to
-    # back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC has one
-    # keyframe per episode; a curriculum's weights choose the episodes opened); 'auto' = 'stream'
-    # when keyframes lie more than 32 frames apart, else 'random'. The banner says which and why.
+    # frame on request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded
+    # front to back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC
+    # has one keyframe per episode; a curriculum's weights choose the episodes opened); 'auto' =
+    # 'stream' when keyframes lie more than 32 frames apart, else 'random'. The banner says which
+    # and why.
     config.data.video_access = "auto"
     config.data.stream_episodes = 16  # 'stream': episodes open (decoding) at once
     config.data.stream_shuffle = 256  # 'stream': samples mixed by the window shuffle
@@ -212,8 +211,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role
     config.eval.switch_tolerance = 2  # steps by which a predicted gripper switch may miss
     # Closed loop and server: (open_above, close_below) of the grippers' hysteresis in action units
-    # (pi0_armfix.policies.hysteresis; B1K 2025's winners: about (0.9, -0.98)); () = commands pass
-    # as sampled.
+    # (pi0_armfix.policies.hysteresis; B1K 2025's winners: about (0.9, -0.98)); () = commands
+    # pass as sampled.
     config.eval.gripper_hysteresis = ()
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 

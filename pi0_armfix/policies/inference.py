@@ -111,8 +111,8 @@ def run_noise_factor(workdir: epath.Path, config: ml_collections.ConfigDict,
 
 def with_current_keys(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """A run's saved config with every `eval` key it predates at its default
-    (`pi0_armfix/configs/base.py`):
-    how a policy is sampled and scored, which training never read."""
+    (`pi0_armfix/configs/base.py`): how a policy is sampled and scored, which training never
+    read."""
     defaults = base_config.get_config().eval
     config = ml_collections.ConfigDict(config.to_dict())
     with config.unlocked():
@@ -165,8 +165,8 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
     "ema" (the EMA params when the run kept them, else the params) or "params"; `levers`: `eval`
     keys of the inference levers (`average_draws`, `temperature`) that replace the run's, checked
     before any checkpoint is read. Only the params are read. A damaged latest checkpoint falls back
-    to the newest older one that reads (said on
-    stderr); a damaged `step` asked for is a ValueError naming the steps that read."""
+    to the newest older one that reads (said on stderr); a damaged `step` asked for is a ValueError
+    naming the steps that read."""
     workdir = epath.Path(workdir)
     levers = dict(levers or {})
     check_levers(levers)

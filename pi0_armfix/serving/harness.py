@@ -20,9 +20,8 @@ one and replans (one model call for every env that needs it) when the queue is e
 `n_exec` actions of each chunk (receding horizon, as the closed-loop evaluation); with `rtc`,
 each new chunk softly follows the previous chunk's unexecuted tail (real-time chunking, as
 `evaluate --closed_loop --follow_tail`), and with a gripper latch the grippers commit
-(`pi0_armfix.policies.hysteresis`, per env). Each connection samples from its own noise stream: a
-reset
-empties the queues and tails and restarts the stream from the server's seed plus the episode
+(`pi0_armfix.policies.hysteresis`, per env). Each connection samples from its own noise stream:
+a reset empties the queues and tails and restarts the stream from the server's seed plus the episode
 count, so an evaluation rerun with the same seed gets the same actions whatever other
 connections do. The prompt is the run's own for `task_id` (`meta/tasks.jsonl` of its dataset,
 kept in the run folder; a task the run never trained on is served with one warning line); an id

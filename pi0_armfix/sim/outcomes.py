@@ -28,10 +28,10 @@ def wrap_angle(angle: float) -> float:
 @dataclasses.dataclass
 class PhaseResult:
     """`progress`: how far the robot got, 1 - the closest approach over the start distance
-    (navigation: to the target; manipulation: the hand to its target offset, mean over the
-    phase's arms), in [0, 1]: a graded view of phases that mostly fail. `reason`: why it failed
-    (`FAILURE_REASONS`; '' on success);
-    `gripper_switches`: the grippers' open/close commands during the phase (both arms)."""
+    (navigation: to the target; manipulation: the hand to its target offset, mean over the phase's
+    arms), in [0, 1]: a graded view of phases that mostly fail. `reason`: why it failed
+    (`FAILURE_REASONS`; '' on success); `gripper_switches`: the grippers' open/close commands during
+    the phase (both arms)."""
 
     kind: str  # "navigation" | "manipulation"
     success: bool

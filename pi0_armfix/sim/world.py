@@ -1,8 +1,7 @@
 """The demo world: one B1K-like mobile manipulator, its physics, its task plan and its cameras.
 
 The single source of truth of the demo: the dataset generator (`pi0_armfix.data.formats.demo`)
-records the
-scripted teleoperator (`sim.expert`) acting in this world, and the Gymnasium environment
+records the scripted teleoperator (`sim.expert`) acting in this world, and the Gymnasium environment
 (`sim.env`) lets any policy act in it instead. World parameters live in `DemoSpec`.
 
 Episode `index` of a spec runs task `TASKS[index % 5]`: a plan of navigation and manipulation

@@ -1,7 +1,6 @@
 """A study's numbers: per config, mean and spread over seeds of every metric, each config's
-difference to the baseline with intervals over seeds and held-out episodes (`evaluation.intervals`),
-the
-do-nothing rows, and the targets a config meets (docs/evaluation.md).
+difference to the baseline with intervals over seeds and held-out episodes
+(`evaluation.intervals`), the do-nothing rows, and the targets a config meets (docs/evaluation.md).
 
 Pure functions of the runs' `result.json` contents; `pi0_armfix.study` runs the study,
 `pi0_armfix.study.report` writes what this module computes.

@@ -30,9 +30,8 @@ Every held-out number is the single draw's (what a robot executes), with the mea
 `eval.num_draws` draws and the energy skill beside it (docs/evaluation.md).
 
 Closed loop (`--closed_loop_episodes=N`; the default, -1, is one episode per 120 training steps
-within [10, 50], announced at start with its estimated time; 0 = off): every run's final checkpoint
-also
-drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N
+within [10, 50], announced at start with its estimated time; 0 = off): every run's final
+checkpoint also drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N
 --tolerances=1,2,4`, the same N episodes for every run), and study.md / study.png add, mean ± std
 over seeds: the share of navigation and manipulation phases that succeeded, the episodes whose
 every phase of a kind succeeded (and the whole task), why the phases failed, the success curve at
@@ -41,11 +40,10 @@ and the world episodes (resampled like the held-out ones, from the per-episode o
 `result.json`). A finished run without them gets them on the next call.
 
 A config is a file name of `pi0_armfix/configs/` (`arm_focused`, optionally `arm_focused:b1k`),
-optionally
-with overrides of its own after `@` (`arm_focused@data.video_access=random`: two variants of one
-file compare; `@train.total_steps=N` trains that config's runs N steps instead of `--steps`, so
-that recipes whose steps cost differently compare at equal wall time); every `--override` is passed to every run as `--config.<key>=<value>`. Metrics are
-those of
+optionally with overrides of its own after `@` (`arm_focused@data.video_access=random`: two
+variants of one file compare; `@train.total_steps=N` trains that config's runs N steps instead of
+`--steps`, so that recipes whose steps cost differently compare at equal wall time); every
+`--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
 configs with other normalizations or delta actions compare).
 

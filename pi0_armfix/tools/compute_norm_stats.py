@@ -4,15 +4,13 @@
         [--config.data.root=DIR] --output=norm_stats.json [--episodes=train|all]
 
 One streaming pass over the training episodes (`--episodes=train`, the default: all but the
-`eval.episodes` held out, as training computes them) or every episode (`--episodes=all`); the
-tool prints which episodes and how many frames it reads. Exact
-float64 mean/std, q01/q99 within 5e-4 of each dim's range (`pi0_armfix.data.statistics.stats`), for
-actions
-(in the model's action space: the dims of `data.delta_action_mask` relative to the state, over
-every step of the model's chunks of `model.action_horizon`, see `dataset.block_norm_stats`) and
-state. These are plain statistics whatever `data.balanced_norm` says;
-`recompute_balanced_norm_stats` writes balanced ones. Point `--config.data.norm_stats` at the
-output to train with them.
+`eval.episodes` held out, as training computes them) or every episode (`--episodes=all`); the tool
+prints which episodes and how many frames it reads. Exact float64 mean/std, q01/q99 within 5e-4 of
+each dim's range (`pi0_armfix.data.statistics.stats`), for actions (in the model's action space: the
+dims of `data.delta_action_mask` relative to the state, over every step of the model's chunks of
+`model.action_horizon`, see `dataset.block_norm_stats`) and state. These are plain statistics
+whatever `data.balanced_norm` says; `recompute_balanced_norm_stats` writes balanced ones. Point
+`--config.data.norm_stats` at the output to train with them.
 """
 
 from __future__ import annotations

@@ -151,8 +151,7 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
         lines.append(
             f"magnitude: {magnitude} carry less than {MAGNITUDE_RATIO:.0%} of their dims' share "
             "of the uniform loss. Try per-group weights (pi0_armfix/configs/arm_weights_3x.py) "
-            "or balanced "
-            "normalization (pi0_armfix/configs/arm_focused_balanced.py).")
+            "or balanced normalization (pi0_armfix/configs/arm_focused_balanced.py).")
     if not lines:
         lines.append("neither mechanism in the data: the groups carry their share of the loss "
                      "and the state does not explain their targets; if they still stagnate, look "

@@ -4,14 +4,13 @@
         [--config.data.root=DIR] --output=balanced_norm_stats.json [--max_scale=10]
 
 Per-dim means stay; each group's spread is multiplied by one factor so that every group's RMS of
-frame-to-frame motion within episodes, in normalized units, equals the median over the groups,
-the factor capped to [1/max_scale, max_scale]
-(`pi0_armfix.data.statistics.motion.balanced_norm_stats`),
+frame-to-frame motion within episodes, in normalized units, equals the median over the groups, the
+factor capped to [1/max_scale, max_scale] (`pi0_armfix.data.statistics.motion.balanced_norm_stats`),
 separately for z-score (std) and quantile (q01/q99) normalization, so the file serves either
 `data.norm`. Groups that move little next to their spread (the arms) get a smaller spread: their
 motion is amplified, not the imbalance (an earlier tool multiplied std by target/group_std, which
-does the opposite). Prints each group's motion RMS before and after. Two streaming passes over
-the training episodes.
+does the opposite). Prints each group's motion RMS before and after. Two streaming passes over the
+training episodes.
 """
 
 from __future__ import annotations

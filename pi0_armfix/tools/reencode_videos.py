@@ -19,8 +19,8 @@ table of `pi0_armfix.data.cameras` — B1K's depth and segmentation videos are n
 or a comma-separated list of feature names), from the videos and from every metadata file that
 names them (`info.json`, `stats.json`, `episodes_stats.jsonl`, v3.0's `meta/episodes` columns
 `videos/<feature>/...` and `stats/<feature>/...`), so LeRobot's tools find no feature half gone.
-Written into a staging folder renamed when
-complete; `--workers` files are encoded at once (default: every core), with a progress bar.
+Written into a staging folder renamed when complete; `--workers` files are encoded at once (default:
+every core), with a progress bar.
 """
 
 from __future__ import annotations

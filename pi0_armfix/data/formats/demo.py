@@ -14,13 +14,12 @@ recorded frame by frame: the cameras and the state before each action, and the a
 are `DemoSpec`'s; the defaults give 120 episodes of 200-1000 frames, ~66k frames in all, at 30 fps
 (~20 s to generate on 2 cores, 27 MiB).
 
-Calibration: arm and torso postures are drawn around the published B1K means with
-`posture_spread` times the published standard deviations, inside the published 1%-99% quantiles,
-from a low-discrepancy sequence over episode numbers, so even a small demo matches the published
-statistics (`pi0_armfix/reference/b1k_2025_norm_stats.json`); the five tasks balance their arm use
-so that each gripper is closed about a third of the time, as in B1K. Cameras: the head shows the
-current target, the
-wrists the fingers, a held object and the remaining reach offset (`pi0_armfix.sim.world`). State
+Calibration: arm and torso postures are drawn around the published B1K means with `posture_spread`
+times the published standard deviations, inside the published 1%-99% quantiles, from a
+low-discrepancy sequence over episode numbers, so even a small demo matches the published statistics
+(`pi0_armfix/reference/b1k_2025_norm_stats.json`); the five tasks balance their arm use so that each
+gripper is closed about a third of the time, as in B1K. Cameras: the head shows the current target,
+the wrists the fingers, a held object and the remaining reach offset (`pi0_armfix.sim.world`). State
 (23-D, the official baseline STATE order): base velocity 0:3, torso 3:7, left arm 7:14, right arm
 14:21, finger gaps 21, 22 in [0, 0.1].
 

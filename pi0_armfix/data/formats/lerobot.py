@@ -13,9 +13,8 @@ and every column in `features`):
   v3.0         many episodes per file at `data_path.format(chunk_index, file_index)`; episodes in
                `meta/episodes/chunk-*/file-*.parquet` (rows `dataset_from_index`..`dataset_to_index`
                of data file `data/chunk_index`, `data/file_index`; for every video camera the
-               segment
-               `videos/<key>/from_timestamp`..`to_timestamp` of the mp4 `videos/<key>/chunk_index`,
-               `file_index`); task strings in `meta/tasks.parquet`.
+               segment `videos/<key>/from_timestamp`..`to_timestamp` of the mp4
+               `videos/<key>/chunk_index`, `file_index`); task strings in `meta/tasks.parquet`.
 
 Frame columns: the action and state features (`action` / `observation.state` by default;
 `data.action_key` / `data.state_key` name others, e.g. `actions` / `state`), float32 or float64
@@ -33,9 +32,8 @@ frame when it overruns by at most `data.video_tolerance_frames`, and is an error
 episode, the row and the file otherwise (it would read the next episode's frames). Decoders are per
 thread, so any number of Grain threads may read at once.
 `LeRobotSource.probe` decodes the first and last frame of a sample of episodes before training.
-The metadata (versions, templates, episode records, prompts) is `data/formats/lerobot_meta.py`; the
-lazy
-frame decoding `data/formats/lerobot_frames.py`; this module holds the source.
+The metadata (versions, templates, episode records, prompts) is `data/formats/lerobot_meta.py`;
+the lazy frame decoding `data/formats/lerobot_frames.py`; this module holds the source.
 
 Files fetched without git-LFS are pointer files of ~130 bytes; they are named as such.
 
@@ -45,11 +43,10 @@ task). Where that is a task *name* rather than a prompt (B1K 2026 stores the sna
 (B1K 2025 writes the same rows); a name without such a row is its own prompt.
 
 `pi0_armfix.data.formats.lerobot_writer.LeRobotWriter` writes all three layouts; `LeRobotSource`
-reads
-them: `iter_blocks` streams actions/state one parquet row group at a time without per-row Python
-(the statistics passes, and the one-time build of the on-disk `FrameStore`), `load_table`
-builds an `EpisodeTable` whose columns are read by row from that store and whose images are
-decoded lazily by `LeRobotFrameImages`.
+reads them: `iter_blocks` streams actions/state one parquet row group at a time without per-row
+Python (the statistics passes, and the one-time build of the on-disk `FrameStore`), `load_table`
+builds an `EpisodeTable` whose columns are read by row from that store and whose images are decoded
+lazily by `LeRobotFrameImages`.
 """
 
 from __future__ import annotations

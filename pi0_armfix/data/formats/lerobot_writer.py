@@ -2,8 +2,8 @@
 
 The demo dataset, the benchmarks, the re-encode tool and the tests write with it; what the three
 layouts hold is described in `pi0_armfix.data.formats.lerobot`, which reads them. The metadata is
-written
-as LeRobot's own writer writes it, so that LeRobot's loader and tools take the root as their own:
+written as LeRobot's own writer writes it, so that LeRobot's loader and tools take the root as their
+own:
   - every data parquet file declares its features in the schema metadata (`huggingface`:
     `{"info": {"features": ...}}` in Hugging Face `datasets`' form, cameras stored in the
     parquet as `Image`), without which LeRobot 0.3 reads an image column as `{bytes, path}` dicts;

@@ -41,8 +41,7 @@ from pi0_armfix.data.statistics import motion as motion_lib
 from pi0_armfix.data.statistics import stats as stats_lib
 # The per-frame statistics of the absolute actions, kept beside openpi's two entries: the
 # evaluation's units (`pi0_armfix.evaluation.heldout.evaluation_scale`) whatever the normalization
-# (balanced
-# stats rescale "actions") or representation (delta dims hold chunk deltas in "actions").
+# (balanced stats rescale "actions") or representation (delta dims hold chunk deltas in "actions").
 ABSOLUTE_ACTIONS = "actions_absolute"
 EPISODE_CHOICES = ("train", "all")
 

@@ -298,8 +298,7 @@ def make_train_iterator(spec: DataSpec, *, norm_stats: Mapping[str, stats_lib.No
                         image_size: tuple[int, int] = (224, 224),
                         video_access: str = "random") -> TrainIterator:
     """Training batches of a run's data `spec` (see the module docstring). This process reads its
-    slice
-    `jax.process_index()` of `jax.process_count()` of every global batch. `source`: the run's
+    slice `jax.process_index()` of `jax.process_count()` of every global batch. `source`: the run's
     opened source (None = open it); `image_size`: of the zero images of a dataset with no
     camera, and the size video frames are decoded to fit inside; `video_access`: the run's
     resolved `video_stream.choose_access` mode."""

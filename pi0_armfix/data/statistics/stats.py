@@ -311,9 +311,8 @@ def checked_blocks(blocks: Iterable[Block], locate: Callable[[int], str],
 
 def table_blocks(table: EpisodeTable, keys: Sequence[str] = ("actions", "state"),
                  block_frames: int = 65536) -> Iterator[dict[str, np.ndarray]]:
-    """Blocks of a table (in memory or on disk) in the format of `Source.iter_blocks`: `{key: [n,
-    ...],
-    "episode_index": [n] int64 (dataset episode index of each frame)}`."""
+    """Blocks of a table (in memory or on disk) in the format of `Source.iter_blocks`:
+    `{key: [n, ...], "episode_index": [n] int64 (dataset episode index of each frame)}`."""
     for start in range(0, table.num_frames, block_frames):
         stop = min(start + block_frames, table.num_frames)
         block = {key: np.asarray(getattr(table, key)[start:stop]) for key in keys}
