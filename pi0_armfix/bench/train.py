@@ -160,18 +160,18 @@ def main(argv: Sequence[str]) -> None:
                         help="further global batch sizes trained at K = 4 ('' = none): samples/s "
                              "that rise with the batch say per-step overheads bound the step")
     args = parser.parse_args(argv[1:])
+    batch = base.get_config().train.batch_size
     uniform, weighted = step_time_ratio(args.rounds, args.steps)
-    print(f"demo train step, batch {base.get_config().train.batch_size}, "
+    print(f"demo train step, batch {batch}, "
           f"{jax.device_count()} {jax.default_backend()} device(s), median of {args.rounds} "
           f"rounds of {args.steps} steps:")
     print(f"  uniform                 {uniform * 1e3:8.1f} ms")
     print(f"  per_group + delta       {weighted * 1e3:8.1f} ms")
     print(f"  ratio                   {weighted / uniform:8.3f}   (target <= 1.03)")
     peak = matmul_flops_per_second()
-    print(f"main job (pi0_armfix/configs/arm_focused.py, demo preset, batch "
-          f"{base.get_config().train.batch_size}), {args.data_steps} steps each; this machine's "
-          f"float32 matmul rate {peak / 1e9:.1f} GFLOP/s:")
-    batch = base.get_config().train.batch_size
+    print(f"main job (pi0_armfix/configs/arm_focused.py, demo preset, batch {batch}), "
+          f"{args.data_steps} steps each; this machine's float32 matmul rate "
+          f"{peak / 1e9:.1f} GFLOP/s:")
     for k in (4, 1):
         rate, waiting = main_job_throughput(args.data_steps, k, batch)
         flops, bytes_accessed = cost_per_sample(k)

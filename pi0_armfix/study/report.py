@@ -385,11 +385,12 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
     for name, runs in curves.items():
         steps = sorted({int(r["step"]) for records in runs for r in records
                         if f"skill/{groups[0]}" in r})
+        timings = [training_seconds(records) for records in runs]
         for step in steps:
             at = [next((r for r in records if int(r["step"]) == step
                         and f"skill/{groups[0]}" in r), None) for records in runs]
             at = [r for r in at if r is not None]
-            minutes = [minutes_at(training_seconds(records), step) for records in runs]
+            minutes = [minutes_at(seconds, step) for seconds in timings]
             minutes = [m for m in minutes if math.isfinite(m)]
             cells = [f"{np.mean(minutes):.1f}" if minutes else "n/a"]
             for key, _ in keys:

@@ -199,12 +199,12 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
     folder.mkdir(parents=True, exist_ok=True)
     _logged(train_command(config, seed, steps, folder, overrides, evaluations), folder,
             f"{config} seed {seed}")
-    evaluation = final_evaluation(folder)
-    if evaluation["step"] != run_steps(config, steps):
+    evaluation, trained = final_evaluation(folder), run_steps(config, steps)
+    if evaluation["step"] != trained:
         raise RuntimeError(f"{folder}: the last evaluation is of step {evaluation['step']}, "
-                           f"not {run_steps(config, steps)}")
+                           f"not {trained}")
     layout = json.loads((folder / "config.json").read_text())["layout"]
-    result = {"config": config, "seed": seed, "steps": run_steps(config, steps), "layout": layout,
+    result = {"config": config, "seed": seed, "steps": trained, "layout": layout,
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     result = add_episode_replicates(result, folder, evaluate_missing=True)
