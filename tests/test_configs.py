@@ -119,6 +119,32 @@ def test_demo_augmentation_is_colour_only_and_b1k_uses_openpis():
     assert (b1k.crop_scale, b1k.rotate_degrees) == (0.95, 5.0)
 
 
+def test_model_sizes_at_zero_are_the_presets():
+    config = base.get_config()
+    assert model_config_lib.from_model_config(config.model) == model_config_lib.get_preset(
+        "demo", augment=model_config_lib.from_model_config(config.model).augment)
+
+
+def test_model_sizes_change_a_tower_and_attention_changes_both_experts():
+    config = base.get_config()
+    config.model.sizes.siglip.patch_size = 4
+    config.model.sizes.paligemma.width = 256
+    config.model.sizes.attention.num_kv_heads = 2
+    model = model_config_lib.from_model_config(config.model)
+    demo = model_config_lib.get_preset("demo")
+    assert (model.siglip.patch_size, model.siglip.width) == (4, demo.siglip.width)
+    assert model.num_image_tokens == 64  # (32 / 4) ** 2
+    assert (model.paligemma.width, model.action_expert.width) == (256, demo.action_expert.width)
+    assert model.paligemma.num_kv_heads == model.action_expert.num_kv_heads == 2
+
+
+def test_a_negative_model_size_is_named():
+    config = base.get_config()
+    config.model.sizes.siglip.width = -8
+    with pytest.raises(ValueError, match=r"model.sizes.siglip.width = -8 must be >= 0"):
+        model_config_lib.from_model_config(config.model)
+
+
 def test_openpi_augment_config_is_the_main_job_with_openpis_crop_and_rotation():
     config, main = load("arm_focused_openpi_augment"), load("arm_focused")
     assert (config.model.augment.crop_scale, config.model.augment.rotate_degrees) == (0.95, 5.0)

@@ -75,6 +75,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Padded action/state width of the model; 0 = the preset's (32, pi0's). Must equal
     # layout.action_dim; only for actions wider than 32 (pretrained pi0 params need 32).
     config.model.action_dim = 0
+    # The towers' sizes in place of the preset's, 0 = the preset's: the learning-efficiency
+    # variants of the demo preset (RESULTS.md). `attention` sets both experts (they share every
+    # attention layer); pretrained params need the preset's sizes.
+    config.model.sizes = ml_collections.ConfigDict(dict(
+        siglip=dict(width=0, depth=0, mlp_dim=0, num_heads=0, patch_size=0),
+        paligemma=dict(width=0, mlp_dim=0),
+        action_expert=dict(width=0, mlp_dim=0),
+        attention=dict(depth=0, num_heads=0, num_kv_heads=0, head_dim=0)))
     # Levers against copying the state (pi0 only; pi0.5 writes the state into its prompt):
     config.model.use_state = True  # False: the no-state ablation (a zero state, train and sample)
     config.model.state_dropout = 0.0  # P(a training sample's state is zeroed)

@@ -296,7 +296,7 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
 
     Reads `preset`; `dtype`, `action_horizon` and `action_dim` override the preset when set
     (non-empty / > 0); `augment` (its fields), `use_state`, `state_dropout` and `state_noise`
-    when present.
+    when present; `sizes` changes the towers (`_resized`).
     """
     changes = {}
     if model_cfg.get("augment"):
@@ -310,7 +310,34 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
         changes["dtype"] = model_cfg["dtype"]
     if model_cfg.get("action_horizon"):
         changes["action_horizon"] = int(model_cfg["action_horizon"])
-    return get_preset(model_cfg["preset"], **changes)
+    preset = get_preset(model_cfg["preset"])
+    changes.update(_resized(preset, model_cfg.get("sizes") or {}))
+    return preset.replace(**changes)
+
+
+def _resized(preset: Pi0Config, sizes: Mapping[str, Mapping[str, int]]
+             ) -> dict[str, GemmaConfig | SiglipConfig]:
+    """The towers of `preset` with the non-zero fields of the config's `model.sizes` in place of
+    the preset's: `siglip.*`, `paligemma.*` / `action_expert.*` (width, mlp_dim) and
+    `attention.*` (depth, num_heads, num_kv_heads, head_dim: both experts, which share every
+    attention layer)."""
+    changed = {}
+    for section, fields in dict(sizes).items():
+        for field, value in dict(fields).items():
+            if value < 0:
+                raise ValueError(f"model.sizes.{section}.{field} = {value} must be >= 0 (0 = "
+                                 "the preset's)")
+            if value:
+                changed.setdefault(section, {})[field] = int(value)
+    shared = changed.pop("attention", {})
+    towers = {}
+    for name in ("paligemma", "action_expert"):
+        if name in changed or shared:
+            towers[name] = dataclasses.replace(getattr(preset, name),
+                                               **changed.pop(name, {}), **shared)
+    if "siglip" in changed:
+        towers["siglip"] = dataclasses.replace(preset.siglip, **changed.pop("siglip"))
+    return towers
 
 
 def norm_mode(config: Any) -> str:

@@ -312,16 +312,17 @@ def run(config: ml_collections.ConfigDict, output: str | Path, *, network: str, 
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     data = _Data(config, output / "norm_stats.json")
+    gripper_groups = evaluator_lib.eval_groups(config.eval, data.layout)["gripper_groups"]
     result = {"command": command, "code": code, "network": network, "lr": lr,
               "batch_size": int(config.train.batch_size), "seeds": {}}
     for seed in range(int(config.seed), int(config.seed) + seeds):
         result["seeds"][str(seed)] = train_seed(
             data, seed, network=network, steps=steps, evaluations=evaluations,
             batch_size=int(config.train.batch_size), lr=lr)
+        # After every seed, so that a stopped run keeps the seeds it finished.
         (output / RESULT_FILE).write_text(json.dumps(
             strict_json(result), indent=2, allow_nan=False) + "\n")
-    groups = evaluator_lib.eval_groups(config.eval, data.layout)
-    (output / TABLE_FILE).write_text(report(result, data.layout, groups["gripper_groups"]))
+        (output / TABLE_FILE).write_text(report(result, data.layout, gripper_groups))
     return result
 
 
