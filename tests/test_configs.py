@@ -17,6 +17,7 @@ from pi0_armfix.data import selection
 from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
+from pi0_armfix.model import flow_model
 from pi0_armfix.training import checkpoint, sharding
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -136,6 +137,23 @@ def test_model_sizes_change_a_tower_and_attention_changes_both_experts():
     assert model.num_image_tokens == 64  # (32 / 4) ** 2
     assert (model.paligemma.width, model.action_expert.width) == (256, demo.action_expert.width)
     assert model.paligemma.num_kv_heads == model.action_expert.num_kv_heads == 2
+
+
+def test_a_conv_stem_keeps_one_token_per_patch():
+    config = base.get_config()
+    config.model.sizes.siglip.conv_stem = 3
+    model = model_config_lib.from_model_config(config.model)
+    img = flow_model.param_shapes(model)["PaliGemma"]["img"]
+    assert model.num_image_tokens == model_config_lib.get_preset("demo").num_image_tokens
+    assert [img[f"stem_{i}"]["kernel"].shape[-1] for i in range(3)] == [16, 32, 64]
+    assert img["embedding"]["kernel"].shape == (1, 1, 64, 64)  # 8 px = 3 halvings, then 1 px
+
+
+def test_a_conv_stem_that_does_not_divide_the_patch_is_named():
+    config = base.get_config()
+    config.model.sizes.siglip.conv_stem = 4  # 2**4 does not divide the demo's 8 px patches
+    with pytest.raises(ValueError, match=r"siglip.conv_stem=4 must be >= 0 with 2\*\*conv_stem"):
+        model_config_lib.from_model_config(config.model)
 
 
 def test_a_negative_model_size_is_named():

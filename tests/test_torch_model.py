@@ -7,6 +7,7 @@ embedding, whose float32 sines at periods down to 4e-3 move by ~1e-6 between any
 (JAX jitted vs op-by-op differ by as much).
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -31,9 +32,17 @@ BATCH = 3
 REFERENCE_TREE = Path(__file__).resolve().parent / "reference" / "openpi_param_tree.json"
 
 
-@pytest.fixture(scope="module", params=["tiny", "pi05_tiny"])
+def _preset(name):
+    """A preset, or `tiny_conv_stem`: `tiny` with a ViT of early convolutions (siglip.conv_stem)."""
+    if name == "tiny_conv_stem":
+        tiny = get_preset("tiny")
+        return tiny.replace(siglip=dataclasses.replace(tiny.siglip, conv_stem=2))
+    return get_preset(name)
+
+
+@pytest.fixture(scope="module", params=["tiny", "pi05_tiny", "tiny_conv_stem"])
 def config(request):
-    return get_preset(request.param)
+    return _preset(request.param)
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +85,8 @@ def _noise_and_time(seed):
 
 
 def test_param_shapes_equal_the_flax_tree_for_every_small_preset():
-    for name in ("tiny", "demo", "pi05_tiny", "pi05_demo"):
-        config = get_preset(name)
+    for name in ("tiny", "demo", "pi05_tiny", "pi05_demo", "tiny_conv_stem"):
+        config = _preset(name)
         flax_shapes = {k: v.shape for k, v in flatten_tree(flow_model.param_shapes(config)).items()}
         assert param_shapes(config) == flax_shapes, name
 

@@ -79,7 +79,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # variants of the demo preset (RESULTS.md). `attention` sets both experts (they share every
     # attention layer); pretrained params need the preset's sizes.
     config.model.sizes = ml_collections.ConfigDict(dict(
-        siglip=dict(width=0, depth=0, mlp_dim=0, num_heads=0, patch_size=0),
+        siglip=dict(width=0, depth=0, mlp_dim=0, num_heads=0, patch_size=0, conv_stem=0),
         paligemma=dict(width=0, mlp_dim=0),
         action_expert=dict(width=0, mlp_dim=0),
         attention=dict(depth=0, num_heads=0, num_kv_heads=0, head_dim=0)))

@@ -38,13 +38,19 @@ class GemmaConfig:
 
 @dataclasses.dataclass(frozen=True)
 class SiglipConfig:
-    """The SigLIP ViT image encoder (no pooling; a linear head maps to the prefix width)."""
+    """The SigLIP ViT image encoder (no pooling; a linear head maps to the prefix width).
+
+    `conv_stem` = n > 0 puts n stride-2 3x3 convolutions (ReLU) before the patch embedding, which
+    then covers `patch_size / 2**n` of their pixels, so the tokens stay one per patch: a ViT with
+    early convolutions (Xiao et al. 2021), which optimizes faster than a patchify stem. 0 is
+    SigLIP's own stem (every pi0 / pi0.5 preset: openpi's parameter tree)."""
 
     width: int
     depth: int
     mlp_dim: int
     num_heads: int
     patch_size: int
+    conv_stem: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,6 +154,10 @@ class Pi0Config:
             raise ValueError(f"head_dim={p.head_dim} must be even (RoPE rotates pairs)")
         if a.width % 2:
             raise ValueError(f"action_expert.width={a.width} must be even (sin-cos time embedding)")
+        if s.conv_stem < 0 or s.patch_size % 2 ** s.conv_stem:
+            raise ValueError(f"siglip.conv_stem={s.conv_stem} must be >= 0 with 2**conv_stem "
+                             f"dividing siglip.patch_size={s.patch_size} (each convolution halves "
+                             "the image)")
         if s.width % s.num_heads:
             raise ValueError(
                 f"siglip.width={s.width} must be a multiple of siglip.num_heads={s.num_heads}")

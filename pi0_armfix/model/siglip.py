@@ -92,9 +92,14 @@ class SigLIP(nn.Module):
 
     @nn.compact
     def __call__(self, image):
-        patch = self.config.patch_size
+        x = jnp.asarray(image, jnp.float32)
+        stem = self.config.conv_stem
+        for i in range(stem):  # channels doubling up to the width: width / 2**(stem-1), ...
+            x = nn.relu(nn.Conv(self.config.width // 2 ** (stem - 1 - i), (3, 3), strides=2,
+                                name=f"stem_{i}", dtype=jnp.float32)(x))
+        patch = self.config.patch_size // 2 ** stem
         x = nn.Conv(self.config.width, (patch, patch), strides=(patch, patch), padding="VALID",
-                    name="embedding", dtype=jnp.float32)(jnp.asarray(image, jnp.float32))
+                    name="embedding", dtype=jnp.float32)(x)
         batch, h, w, width = x.shape
         x = x.reshape(batch, h * w, width)
         x = x + self.param("pos_embedding", nn.initializers.normal(stddev=1 / np.sqrt(width)),

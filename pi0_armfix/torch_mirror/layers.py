@@ -99,13 +99,21 @@ def siglip(params: Params, image: torch.Tensor, *, config: SiglipConfig, dtype: 
            ) -> torch.Tensor:
     """The `PaliGemma/img` tower: image [B, h, w, 3] in [-1, 1] -> tokens [B, n, out_width] in dtype.
 
-    The patch stem (conv with kernel = stride = patch, VALID) and the position embedding run in
-    float32; tokens are row-major over the (h / p, w / p) patch grid.
+    The stem (`conv_stem` stride-2 3x3 convolutions with ReLU, then a conv with kernel = stride =
+    the remaining patch, VALID) and the position embedding run in float32; tokens are row-major
+    over the (h / p, w / p) patch grid.
     """
-    patch = config.patch_size
-    batch, height, width, channels = image.shape
+    x = image.to(torch.float32)
+    for i in range(config.conv_stem):
+        conv = params[f"stem_{i}"]
+        # flax's SAME at stride 2 on an even side pads one pixel after, none before.
+        y = F.pad(x.permute(0, 3, 1, 2), (0, 1, 0, 1))
+        y = F.conv2d(y, conv["kernel"].permute(3, 2, 0, 1), conv["bias"], stride=2)
+        x = torch.relu(y).permute(0, 2, 3, 1)
+    patch = config.patch_size >> config.conv_stem
+    batch, height, width, channels = x.shape
     grid_h, grid_w = height // patch, width // patch
-    patches = image.to(torch.float32).reshape(batch, grid_h, patch, grid_w, patch, channels)
+    patches = x.reshape(batch, grid_h, patch, grid_w, patch, channels)
     stem = params["embedding"]
     x = torch.einsum("biyjxc,yxcd->bijd", patches, stem["kernel"]) + stem["bias"]
     x = x.reshape(batch, grid_h * grid_w, -1) + params["pos_embedding"]

@@ -81,12 +81,18 @@ def _siglip_shapes(config: Pi0Config) -> dict[str, tuple[int, ...]]:
     shapes.update({
         "Transformer/encoder_norm/scale": (s.width,),
         "Transformer/encoder_norm/bias": (s.width,),
-        "embedding/kernel": (s.patch_size, s.patch_size, 3, s.width),
+        "embedding/kernel": (s.patch_size >> s.conv_stem, s.patch_size >> s.conv_stem,
+                             s.width if s.conv_stem else 3, s.width),
         "embedding/bias": (s.width,),
         "pos_embedding": (1, config.num_image_tokens, s.width),
         "head/kernel": (s.width, config.paligemma.width),
         "head/bias": (config.paligemma.width,),
     })
+    channels = 3
+    for i in range(s.conv_stem):
+        out = s.width // 2 ** (s.conv_stem - 1 - i)
+        shapes.update({f"stem_{i}/kernel": (3, 3, channels, out), f"stem_{i}/bias": (out,)})
+        channels = out
     return {f"PaliGemma/img/{name}": shape for name, shape in shapes.items()}
 
 
