@@ -42,8 +42,8 @@ class SiglipConfig:
 
     `conv_stem` = n > 0 puts n stride-2 3x3 convolutions (ReLU) before the patch embedding, which
     then covers `patch_size / 2**n` of their pixels, so the tokens stay one per patch: a ViT with
-    early convolutions (Xiao et al. 2021), which optimizes faster than a patchify stem. 0 is
-    SigLIP's own stem (every pi0 / pi0.5 preset: openpi's parameter tree)."""
+    early convolutions, the demo's learning-efficiency variant (RESULTS.md). 0 is SigLIP's own
+    stem (every pi0 / pi0.5 preset: openpi's parameter tree)."""
 
     width: int
     depth: int
