@@ -30,8 +30,8 @@ def test_chunk_loss_counts_only_the_valid_steps_of_the_trained_dims():
 @pytest.mark.parametrize("network", [
     "cnn", pytest.param("pi0", marks=pytest.mark.slow)])  # the slow lane compiles pi0
 def test_each_network_maps_an_observation_batch_to_a_chunk(network, demo_root):
-    data = regressor._Data(tiny_config(demo_root), demo_root.parent / f"stats_{network}.json")
-    batch = regressor._observation(data.chunks.batches[0])
+    data = regressor.ConfigData(tiny_config(demo_root), demo_root.parent / f"stats_{network}.json")
+    batch = regressor.observation_of(data.chunks.batches[0])
     net = regressor.make_network(network, data.model, data.layout.action_dim)
     params = net.init(jax.random.key(0), batch)
     chunk = net.apply(params, batch, None, False)

@@ -100,11 +100,12 @@ def chunk_loss(predicted: jax.Array, actions: jax.Array, is_pad: jax.Array,
     return jnp.sum(weight * (predicted - actions) ** 2) / jnp.maximum(jnp.sum(weight), 1.0)
 
 
-def _observation(batch: Mapping[str, Any]) -> dict[str, Any]:
+def observation_of(batch: Mapping[str, Any]) -> dict[str, Any]:
+    """A model batch without its actions (what a policy sees)."""
     return {k: batch[k] for k in OBSERVATION_KEYS}
 
 
-class _Data:
+class ConfigData:
     """A config's data, opened once for every seed: its held-out chunks and what its training
     batches are made of."""
 
@@ -157,7 +158,7 @@ class _Data:
         chunk: the single draw, the mean of draws and the energy score coincide)."""
         chunks, predicted = self.chunks, []
         for batch, rows in zip(chunks.batches, chunks.batch_rows):
-            predicted.append(np.asarray(predict(params, _observation(batch)))[:rows])
+            predicted.append(np.asarray(predict(params, observation_of(batch)))[:rows])
         normalized = np.concatenate(predicted)
         absolute = chunks.transform.absolute_actions(normalized, chunks.frames) / chunks.scale
         metrics, _ = chunks.score(absolute[None])
@@ -196,7 +197,7 @@ def make_network(name: str, model_config: model_config_lib.Pi0Config, action_dim
                    apply=apply)
 
 
-def train_seed(data: _Data, seed: int, *, network: str, steps: int, evaluations: int,
+def train_seed(data: ConfigData, seed: int, *, network: str, steps: int, evaluations: int,
                batch_size: int, lr: float, progress: bool = True) -> list[dict[str, Any]]:
     """Trains one regressor (`make_network(network)`); returns its evaluations `[{"step",
     "train_seconds", "loss", "metrics"}]`, one every `steps / evaluations` steps (the last at
@@ -211,7 +212,7 @@ def train_seed(data: _Data, seed: int, *, network: str, steps: int, evaluations:
     @jax.jit
     def step(params, opt_state, batch, rng):
         def loss_fn(p):
-            return chunk_loss(net.apply(p, _observation(batch), rng, True), batch["actions"],
+            return chunk_loss(net.apply(p, observation_of(batch), rng, True), batch["actions"],
                               batch["action_is_pad"], dim_mask)
         loss, grads = jax.value_and_grad(loss_fn)(params)
         updates, opt_state = tx.update(grads, opt_state, params)
@@ -223,7 +224,7 @@ def train_seed(data: _Data, seed: int, *, network: str, steps: int, evaluations:
         with jax.set_mesh(mesh):
             batch = next(train_iter)
             init_rng, rng = jax.random.split(jax.random.key(seed))
-            params = net.init(init_rng, _observation(batch))
+            params = net.init(init_rng, observation_of(batch))
             opt_state = tx.init(params)
             bar = tqdm(total=steps, desc=f"regressor seed {seed}", disable=not progress,
                        leave=False)
@@ -311,7 +312,7 @@ def run(config: ml_collections.ConfigDict, output: str | Path, *, network: str, 
         raise ValueError(f"--lr = {lr} must be positive")
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
-    data = _Data(config, output / "norm_stats.json")
+    data = ConfigData(config, output / "norm_stats.json")
     gripper_groups = evaluator_lib.eval_groups(config.eval, data.layout)["gripper_groups"]
     result = {"command": command, "code": code, "network": network, "lr": lr,
               "batch_size": int(config.train.batch_size), "seeds": {}}
@@ -330,10 +331,11 @@ def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     f = flags.FLAGS
-    with console.user_errors("pi0_armfix.tools.regressor_baseline"):
-        run(f.config, f.output, network=f.network, seeds=f.seeds, steps=f.steps, evaluations=f.evaluations, lr=f.lr,
-            command=" ".join(["python -m pi0_armfix.tools.regressor_baseline", *sys.argv[1:]]),
-            code=code_version())
+    program = "pi0_armfix.tools.regressor_baseline"
+    with console.user_errors(program):
+        run(f.config, f.output, network=f.network, seeds=f.seeds, steps=f.steps,
+            evaluations=f.evaluations, lr=f.lr,
+            command=" ".join([f"python -m {program}", *sys.argv[1:]]), code=code_version())
     print((Path(f.output) / TABLE_FILE).read_text())
     print(f"wrote {Path(f.output) / RESULT_FILE} and {TABLE_FILE}")
 
