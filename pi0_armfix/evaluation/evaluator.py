@@ -95,6 +95,21 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
                          "predicted gripper switch may miss the true one)")
 
 
+def heldout_chunks(spec: DataSpec, eval_cfg: Mapping[str, Any],
+                   model_config: model_config_lib.Pi0Config,
+                   norm_stats: Mapping[str, stats_lib.NormStats], tokenize, source=None
+                   ) -> heldout_lib.HeldOutChunks:
+    """A run's held-out chunks (model batches at its image size) with the per-chunk sums of
+    its metrics (`metrics.chunk_sums` over its `eval_groups` and `eval.switch_tolerance`)."""
+    layout = spec.layout
+    return heldout_lib.HeldOutChunks(
+        spec, eval_cfg, norm_stats, horizon=model_config.action_horizon,
+        sums=functools.partial(eval_metrics.chunk_sums, layout=layout,
+                               gripper_groups=eval_groups(eval_cfg, layout)["gripper_groups"],
+                               switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
+        tokenize=tokenize, image_size=model_config.image_resolution, source=source)
+
+
 # ---------------------------------------------------------------------- the evaluator
 
 class Evaluation(NamedTuple):
@@ -136,12 +151,7 @@ class Evaluator:
         self.layout = layout
         self.eval_cfg = eval_cfg
         self.groups = eval_groups(eval_cfg, layout)
-        self.chunks = heldout_lib.HeldOutChunks(
-            spec, eval_cfg, norm_stats, horizon=model_config.action_horizon,
-            sums=functools.partial(eval_metrics.chunk_sums, layout=layout,
-                                      gripper_groups=self.groups["gripper_groups"],
-                                      switch_tolerance=eval_cfg.get("switch_tolerance", 2)),
-            tokenize=tokenize, image_size=model_config.image_resolution, source=source)
+        self.chunks = heldout_chunks(spec, eval_cfg, model_config, norm_stats, tokenize, source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
         self.draws, self.average = eval_cfg["num_draws"], eval_cfg["average_draws"]
         # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on

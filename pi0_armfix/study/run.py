@@ -251,8 +251,8 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
     for seed in seeds:  # seed-major: an interrupted study has every config's first seeds
         for config in configs:
             folder = run_folder(workdir, config, seed)
-            result = load_result(folder)
-            if result is not None and result["steps"] == run_steps(config, steps):
+            result, trained = load_result(folder), run_steps(config, steps)
+            if result is not None and result["steps"] == trained:
                 result = add_episode_replicates(result, folder, evaluate_missing=train)
                 results[config, seed] = result
                 if train and closed_loop_episodes > 0 and not run_has_closed_loop(
@@ -260,7 +260,7 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
                     unmeasured.append((config, seed))
             elif result is not None:
                 raise ValueError(f"{folder} finished {result['steps']} steps, not "
-                                 f"{run_steps(config, steps)}: use another --workdir")
+                                 f"{trained}: use another --workdir")
             else:
                 todo.append((config, seed))
     if not train:

@@ -20,7 +20,6 @@ and `regressor.md` (mean +- std over the seeds) into `--output`.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import sys
@@ -46,8 +45,6 @@ from pi0_armfix.data.pipeline import batching, pipeline, video_stream
 from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model, pi0
@@ -116,8 +113,7 @@ class ConfigData:
                              "per-dim statistics only; set it to False")
         self.layout = ActionLayout.from_config(config.layout)
         self.model = model_config_lib.from_model_config(config.model)
-        config.data.norm = config.data.norm or self.model.default_norm
-        self.spec = DataSpec.from_config(config, self.layout, norm=config.data.norm)
+        self.spec = DataSpec.from_config(config, self.layout)
         self.source = sources.open_source(self.spec.options, self.layout)
         dataset_lib.check_data(self.spec, self.source)
         self.tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=self.source.tasks)
@@ -127,21 +123,9 @@ class ConfigData:
         dim_mask = batching.loss_mask(self.norm_stats, self.layout, self.spec.norm, horizon)
         dim_mask[..., self.layout.real_dim:] = 0.0  # padding carries no loss here
         self.dim_mask = dim_mask
-        groups = evaluator_lib.eval_groups(config.eval, self.layout)
-        self.chunks = heldout_lib.HeldOutChunks(
-            self.spec, config.eval, self.norm_stats, horizon=horizon,
-            sums=functools.partial(eval_metrics.chunk_sums, layout=self.layout,
-                                   gripper_groups=groups["gripper_groups"],
-                                   switch_tolerance=config.eval.switch_tolerance),
-            tokenize=self.tokenize, image_size=self.model.image_resolution, source=self.source)
-        keyframes = (self.source.video_keyframes()
-                     if self.spec.get("images") and hasattr(self.source, "video_keyframes")
-                     else None)
-        self.video_access, _ = video_stream.choose_access(
-            self.spec.get("video_access"), keyframes,
-            open_episodes=int(self.spec.get("stream_episodes")),
-            shuffle_window=int(self.spec.get("stream_shuffle")),
-            stride=int(self.spec.get("stream_stride")))
+        self.chunks = evaluator_lib.heldout_chunks(self.spec, config.eval, self.model,
+                                                   self.norm_stats, self.tokenize, self.source)
+        self.video_access, _ = video_stream.run_access(self.spec, self.source)
 
     def train_iterator(self, seed: int, batch_size: int, sharding) -> pipeline.TrainIterator:
         config = ml_collections.ConfigDict(self.config.to_dict())

@@ -100,13 +100,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     source = sources.open_source(data.options, layout)
     for warning in dataset_lib.check_data(data, source):
         say(f"warning: {warning}")
-    keyframes = (source.video_keyframes()
-                 if data.get("images") and hasattr(source, "video_keyframes") else None)
-    video_access, video_why = video_stream.choose_access(
-        data.get("video_access"), keyframes, open_episodes=int(data.get("stream_episodes")),
-        shuffle_window=int(data.get("stream_shuffle")), stride=int(data.get("stream_stride")))
+    video_access, video_why = video_stream.run_access(data, source)
     tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
-    for line in banner(spec, workdir, mesh, source, video_why if keyframes is not None else ""):
+    for line in banner(spec, workdir, mesh, source, video_why):
         say(line)
 
     workdir.mkdir(parents=True, exist_ok=True)

@@ -65,6 +65,17 @@ STREAM_ABOVE_GOP = 32
 _FIRST_FRAME_SEED_SLOT = 255
 
 
+def run_access(spec: Any, source: Any) -> tuple[str, str]:
+    """`choose_access` for a run's data `spec` (its `data.*` keys) on its opened `source`:
+    `(mode, why)`, `why` empty when the run reads no video (the banner then says nothing)."""
+    keyframes = (source.video_keyframes()
+                 if spec.get("images") and hasattr(source, "video_keyframes") else None)
+    mode, why = choose_access(
+        spec.get("video_access"), keyframes, open_episodes=int(spec.get("stream_episodes")),
+        shuffle_window=int(spec.get("stream_shuffle")), stride=int(spec.get("stream_stride")))
+    return mode, why if keyframes is not None else ""
+
+
 def choose_access(requested: str, keyframes: tuple[str, int | None] | None, *,
                   open_episodes: int, shuffle_window: int, stride: int = 1) -> tuple[str, str]:
     """`(mode, why)`: how a run reads its camera frames, 'stream' or 'random', and the banner's
