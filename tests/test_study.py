@@ -473,9 +473,10 @@ def test_the_learning_curve_table_has_a_row_per_config_and_evaluated_step():
     rows = [line for line in table if line.startswith("| arm_focused")]
     assert len(rows) == 2
     # 100 s and 200 s of training to step 500 -> 2.5 min; 150 s and 300 s to step 1000 -> 3.8
-    assert rows[0].startswith("| arm_focused | 500 | 2 | 2.5 | -0.30 ± 0.10")
+    # the sample std (ddof 1) as in every study table: |-0.2 - -0.4| / sqrt(2)
+    assert rows[0].startswith("| arm_focused | 500 | 2 | 2.5 | -0.30 ± 0.14")
     assert rows[1].startswith("| arm_focused | 1000 | 2 | 3.8 |")
-    assert "+0.70 ± 0.10" in rows[1] and rows[1].endswith("+0.25 ± 0.00 |")
+    assert "+0.70 ± 0.14" in rows[1] and rows[1].endswith("+0.25 ± 0.00 |")
 
 
 def test_training_seconds_sum_the_logged_windows_and_skip_evaluation_records():

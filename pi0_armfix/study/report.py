@@ -374,9 +374,10 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
                 study: Mapping[str, Any]) -> list[str]:
     """study.md's learning-curve table: per config and evaluated step, the training minutes it
     took (`training_seconds`, mean over the seeds), each group's held-out skill over persistence
-    (single draw; the arms also as the mean of the draws) and switch F1, mean ± std over the seeds
-    that logged that step (how many, per row): skill against wall time, so that recipes of
-    different step costs compare. Nothing when no run logged more than its final evaluation."""
+    (single draw; the arms also as the mean of the draws) and switch F1, mean ± sample std over the
+    seeds that logged that step (how many, per row), as every study table: skill against wall
+    time, so that recipes of different step costs compare. Nothing when no run logged more than its
+    final evaluation."""
     groups, arms = study["groups"], study["arm_groups"]
     keys = ([(f"skill/{g}", g) for g in groups]
             + [(f"{MEAN_OF_DRAWS}/skill/{g}", f"{g} (mean of draws)") for g in arms]
@@ -397,7 +398,7 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
                 values = np.asarray([as_number(r.get(key)) for r in at], np.float64)
                 values = values[np.isfinite(values)]
                 cells.append("n/a" if not len(values) else f"{values.mean():+.2f}" + (
-                    f" ± {values.std():.2f}" if len(values) > 1 else ""))
+                    f" ± {values.std(ddof=1):.2f}" if len(values) > 1 else ""))
             rows.append(f"| {name} | {step} | {len(at)} | " + " | ".join(cells) + " |")
     if len({row.split(" | ")[1] for row in rows}) < 2:
         return []
