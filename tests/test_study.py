@@ -219,7 +219,8 @@ def test_the_world_episodes_widen_the_closed_loop_interval():
 def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir, demo_root):
     overrides = {k: v for k, v in tf.tiny_overrides(demo_root).items()
                  if not k.startswith("train.total_steps") and k != "eval.every"}
-    command = [sys.executable, "-m", "pi0_armfix.study", "--configs=uniform", "--seeds=2",
+    command = [sys.executable, "-m", "pi0_armfix.study",
+               "--configs=uniform,uniform@eval.average_draws=2", "--seeds=2",
                "--steps=2", f"--workdir={tmp_path}", "--closed_loop_episodes=1",
                *[f"--override={k}={v}" for k, v in overrides.items()]]
     first = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
@@ -227,9 +228,17 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     assert first.returncode == 0, first.stderr[-3000:]
     assert "| uniform |" in first.stdout
     results = json.loads((tmp_path / "study.json").read_text())["runs"]
-    assert [r["seed"] for r in results] == [0, 1]
+    assert [r["seed"] for r in results] == [0, 1, 0, 1]
     assert results[0]["metrics"] != results[1]["metrics"]  # the seed reaches the run
-    assert results[0]["metrics"]["closed_loop/episodes"] == 1
+    assert all(r["metrics"]["closed_loop/episodes"] == 1 for r in results)
+    # the lever variant: its trained config's checkpoints sampled as the mean of 2 draws
+    trained = study_run.run_folder(tmp_path, "uniform", 0)
+    assert not (study_run.run_folder(tmp_path, "uniform@eval.average_draws=2", 0)
+                / "checkpoints").exists()
+    assert (trained / "eval" / "step_2" / "metrics_avg2.json").exists()
+    assert (trained / "eval" / "step_2" / "closed_loop_1ep_avg2.json").exists()
+    assert results[2]["trained"] == "uniform" and "episode_replicates" in results[2]
+    assert results[2]["metrics"]["skill/base"] != results[0]["metrics"]["skill/base"]
     assert "## Closed loop in the demo world" in first.stdout
     again = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
                            cwd=tf.REPO_ROOT)
@@ -255,8 +264,8 @@ def test_finished_runs_without_the_closed_loop_get_it_once_in_the_pool(tmp_path,
         (folder / study_run.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
     measured = []
 
-    def fake(folder, steps, episodes):
-        measured.append(folder.name)
+    def fake(workdir, config, seed, steps, episodes):
+        measured.append(f"seed_{seed}")
         return {"closed_loop/episodes": episodes}, {"success/task": [1] * episodes}
     monkeypatch.setattr(study_run, "closed_loop_metrics", fake)
     for _ in range(2):
@@ -491,3 +500,55 @@ def test_minutes_at_an_evaluation_between_log_records_are_interpolated():
     assert report.minutes_at(seconds, 40) == pytest.approx(1.6)
     assert report.minutes_at(seconds, 50) == 2.0
     assert math.isnan(report.minutes_at({}, 50))
+
+
+def test_a_lever_variant_is_its_config_less_the_inference_levers():
+    config = "arm_focused@eval.average_draws=4@model.augment.jitter_p=0@eval.temperature=0.5"
+    assert study_run.trained_config(config) == "arm_focused@model.augment.jitter_p=0"
+    assert study_run.inference_levers(config) == {"average_draws": "4", "temperature": "0.5"}
+    assert study_run.lever_args(config) == ["--average_draws=4", "--temperature=0.5"]
+    assert study_run.trained_config("arm_focused@eval.every=100") == "arm_focused@eval.every=100"
+    assert study_run.lever_args("arm_focused") == []
+
+
+def test_a_lever_variant_is_measured_after_its_trained_runs_and_trains_nothing(
+        tmp_path, monkeypatch):
+    variant = "uniform@eval.average_draws=4"
+    calls = []
+
+    def fake_run_one(config, seed, steps, workdir, *_):
+        trained = study_run.trained_config(config)
+        if trained != config:  # the checkpoints it needs exist when it is measured
+            assert study_run.load_result(study_run.run_folder(workdir, trained, seed))
+        calls.append((config, seed))
+        result = _result(config, seed, 0.1)
+        folder = study_run.run_folder(workdir, config, seed)
+        folder.mkdir(parents=True)
+        (folder / study_run.RESULT_FILE).write_text(json.dumps(result))
+        return result
+    monkeypatch.setattr(study_run, "run_one", fake_run_one)
+    results = study_run.run_study([variant, "uniform"], [0, 1], 10, tmp_path, parallel=2)
+    assert sorted(calls[:2]) == [("uniform", 0), ("uniform", 1)]
+    assert sorted(calls[2:]) == [(variant, 0), (variant, 1)]
+    assert [r["config"] for r in results] == [variant, variant, "uniform", "uniform"]
+
+
+def test_a_lever_variant_without_its_trained_config_is_named_before_any_run(tmp_path):
+    with pytest.raises(ValueError, match=r"checkpoints of \['arm_focused'\]: add them"):
+        study_run.run_study(["uniform", "arm_focused@eval.temperature=0.5"], [0], 10, tmp_path)
+    assert not any(tmp_path.iterdir())
+
+
+def test_the_learning_curves_leave_lever_variants_out(tmp_path):
+    for config in ("uniform", "uniform@eval.average_draws=4"):
+        folder = study_run.run_folder(tmp_path, config, 0)
+        folder.mkdir(parents=True)
+        (folder / "metrics.jsonl").write_text(
+            json.dumps({"step": 5, "loss": 1.0, "steps_per_sec": 1.0}) + "\n"
+            + json.dumps({"step": 5, "skill/base": 0.1}) + "\n"
+            + json.dumps({"step": 10, "skill/base": 0.2}) + "\n")
+    results = [_result(c, 0, 0.1) for c in ("uniform", "uniform@eval.average_draws=4")]
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    rows = [line for line in (tmp_path / "study.md").read_text().splitlines()
+            if line.startswith(("| uniform | 5 |", "| uniform@eval.average_draws=4 | 5 |"))]
+    assert [row.split(" | ")[0] for row in rows] == ["| uniform"]

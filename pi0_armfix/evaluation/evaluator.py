@@ -280,10 +280,8 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                               source=source, noise_factor=inference.run_noise_factor(
                                   workdir, config, layout, model_config))
         metrics, predicted, true, sums = evaluator(params)
-    chunk_sums_file = epath.Path(heldout_lib.CHUNK_SUMS_FILE)
-    heldout_lib.save_chunk_sums(out / f"{chunk_sums_file.stem}{tag}{chunk_sums_file.suffix}",
-                                sums)
-    metrics_path = out / f"{epath.Path(METRICS_FILE).stem}{tag}.json"
+    metrics_path, chunk_sums_path = heldout_paths(workdir, step, tag)
+    heldout_lib.save_chunk_sums(chunk_sums_path, sums)
     # Strict JSON: a metric with nothing to measure (NaN) is null.
     metrics_path.write_text(json.dumps(
         {"step": step, "params": run.params_name,
@@ -296,6 +294,17 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                             out / "group_losses.png")
     plots.plot_stagnation(offline_records(workdir), layout, workdir / "eval" / STAGNATION_FILE)
     return step, metrics, layout, metrics_path
+
+
+def heldout_paths(workdir: epath.PathLike, step: int, levers: str = ""
+                  ) -> tuple[epath.Path, epath.Path]:
+    """An offline evaluation's `eval/step_<N>/metrics[levers].json` and its per-chunk sums
+    (`heldout.CHUNK_SUMS_FILE`, tagged the same): `levers` is `inference.lever_tag` of the
+    sampler, so that another setting never replaces the plain sampler's files."""
+    out = epath.Path(workdir) / "eval" / f"step_{step}"
+    sums = epath.Path(heldout_lib.CHUNK_SUMS_FILE)
+    return (out / f"{epath.Path(METRICS_FILE).stem}{levers}.json",
+            out / f"{sums.stem}{levers}{sums.suffix}")
 
 
 def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:

@@ -42,7 +42,11 @@ and the world episodes (resampled like the held-out ones, from the per-episode o
 A config is a file name of `pi0_armfix/configs/` (`arm_focused`, optionally `arm_focused:b1k`),
 optionally with overrides of its own after `@` (`arm_focused@data.video_access=random`: two
 variants of one file compare; `@train.total_steps=N` trains that config's runs N steps instead of
-`--steps`, so that recipes whose steps cost differently compare at equal wall time); every
+`--steps`, so that recipes whose steps cost differently compare at equal wall time; the inference
+levers `@eval.average_draws=k` and `@eval.temperature=t` make a lever variant, which trains
+nothing: after the trained runs, it evaluates its trained config's checkpoints, seed for seed,
+with those levers, open and closed loop, so `--configs=uniform,arm_focused,arm_focused@eval.
+average_draws=4` adds the mean of 4 draws as executed for the cost of its evaluations); every
 `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
 configs with other normalizations or delta actions compare).
@@ -79,7 +83,7 @@ from pi0_armfix.study.aggregate import aggregate
 from pi0_armfix.study.report import curve_table, markdown, plot_curves, plot_study
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,
                                   closed_loop_plan, default_closed_loop_episodes, parse_config,
-                                  run_folder, run_study)
+                                  run_folder, run_study, trained_config)
 from pi0_armfix.training import metrics_log
 
 def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
@@ -122,6 +126,8 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
     plot_study(study, workdir / "study.png")
     curves: dict[str, list[list[dict]]] = {}
     for result in results:
+        if trained_config(result["config"]) != result["config"]:
+            continue  # a lever variant trains nothing: its curve is its trained config's
         folder = run_folder(workdir, result["config"], result["seed"])
         curves.setdefault(result["config"], []).append(
             metrics_log.read_metrics(folder / metrics_log.METRICS_FILE))

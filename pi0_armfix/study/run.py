@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import functools
 import json
 import os
 import signal
@@ -21,10 +22,12 @@ from tqdm import tqdm
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import json_files
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         closed_loop_outcomes, episode_replicates)
+from pi0_armfix.policies import inference
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -47,6 +50,37 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
     head, *overrides = config.split("@")
     name, _, arg = head.partition(":")
     return name, arg, overrides
+
+
+def inference_levers(config: str) -> dict[str, str]:
+    """A study config's own inference levers: its `@eval.<lever>=<value>` overrides of
+    `inference.LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
+    own = (o.partition("=")[::2] for o in parse_config(config)[2])
+    return {key.removeprefix("eval."): value for key, value in own
+            if key.startswith("eval.") and key.removeprefix("eval.") in inference.LEVERS}
+
+
+def trained_config(config: str) -> str:
+    """The config whose runs train `config`'s checkpoints: `config` less its inference levers.
+    A lever changes how a checkpoint is sampled, not what is trained, so a lever variant
+    (`arm_focused@eval.average_draws=4`) trains nothing: it is measured on its trained config's
+    checkpoints, seed for seed, and what differs between the two is the lever alone."""
+    levers = {f"eval.{k}={v}" for k, v in inference_levers(config).items()}
+    return "@".join(part for part in config.split("@") if part not in levers)
+
+
+def lever_args(config: str) -> list[str]:
+    """`pi0_armfix.evaluate`'s flags for a config's inference levers (none for a trained
+    config)."""
+    return [f"--{key}={value}" for key, value in inference_levers(config).items()]
+
+
+def lever_tag(config: str, checkpoints: Path) -> str:
+    """`inference.lever_tag` of a config's sampler on its trained run (that run's `eval` with the
+    config's levers in place): the tag of the evaluation files its levers write."""
+    saved = json.loads((checkpoints / "config.json").read_text())["eval"]
+    return inference.lever_tag({**saved, **{k: float(v) for k, v in
+                                            inference_levers(config).items()}})
 
 
 def run_steps(config: str, steps: int) -> int:
@@ -150,17 +184,22 @@ def _logged(command: list[str], folder: Path, what: str) -> None:
                            f"{folder / 'train.log'}:\n" + "\n".join(tail))
 
 
-def closed_loop_metrics(folder: Path, steps: int, episodes: int
+def closed_loop_metrics(workdir: Path, config: str, seed: int, steps: int, episodes: int
                         ) -> tuple[dict[str, float], dict[str, list[int]]]:
     """Runs the closed-loop evaluation of a run's step `steps` (`pi0_armfix.evaluate
-    --closed_loop`, with the success curve at `CLOSED_LOOP_TOLERANCES`) and returns its rates as
-    `closed_loop/<name>` metrics (the curve's as `closed_loop/curve/<f>x/<name>`) and the
-    per-episode outcomes (`aggregate.closed_loop_outcomes`)."""
+    --closed_loop` on its trained run's checkpoint with the config's inference levers, with the
+    success curve at `CLOSED_LOOP_TOLERANCES`) and returns its rates as `closed_loop/<name>`
+    metrics (the curve's as `closed_loop/curve/<f>x/<name>`) and the per-episode outcomes
+    (`aggregate.closed_loop_outcomes`)."""
+    folder = run_folder(workdir, config, seed)
+    checkpoints = run_folder(workdir, trained_config(config), seed)
     factors = ",".join(f"{f:g}" for f in CLOSED_LOOP_TOLERANCES)
-    _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
+    _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={checkpoints}",
              f"--step={steps}", "--closed_loop", f"--episodes={episodes}",
-             f"--tolerances={factors}"], folder, f"the closed-loop evaluation of {folder}")
-    path, _ = closed_loop_lib.closed_loop_paths(folder, steps, episodes=episodes)
+             f"--tolerances={factors}", *lever_args(config)], folder,
+            f"the closed-loop evaluation of {folder}")
+    path, _ = closed_loop_lib.closed_loop_paths(checkpoints, steps, episodes=episodes,
+                                                levers=lever_tag(config, checkpoints))
     saved = json.loads(path.read_text())
     metrics = {CLOSED_LOOP + k: v for k, v in saved.items()
                if k.startswith(("success/", "phase_success/", "progress/", "failure/",
@@ -178,7 +217,7 @@ def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missin
     `evaluate_missing`, else (or without a checkpoint) returned as it is."""
     if EPISODE_REPLICATES in result:
         return result
-    path = folder / "eval" / f"step_{result['steps']}" / heldout_lib.CHUNK_SUMS_FILE
+    path = evaluator_lib.heldout_paths(folder, result["steps"])[1]
     if not path.exists():
         if not evaluate_missing or not (folder / "checkpoints").is_dir():
             return result
@@ -194,9 +233,12 @@ def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missin
 def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequence[str],
             closed_loop_episodes: int = 0, evaluations: int = 1) -> dict[str, Any]:
     """Trains (or resumes) one run, evaluates it in closed loop when asked, and writes its
-    `result.json`; returns the result."""
+    `result.json`; returns the result. A lever variant trains nothing (`measure_levers`)."""
     folder = run_folder(workdir, config, seed)
     folder.mkdir(parents=True, exist_ok=True)
+    if trained_config(config) != config:
+        return add_closed_loop(measure_levers(config, seed, workdir), workdir,
+                               closed_loop_episodes)
     _logged(train_command(config, seed, steps, folder, overrides, evaluations), folder,
             f"{config} seed {seed}")
     evaluation, trained = final_evaluation(folder), run_steps(config, steps)
@@ -208,19 +250,50 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     result = add_episode_replicates(result, folder, evaluate_missing=True)
-    return add_closed_loop(result, folder, closed_loop_episodes)
+    return add_closed_loop(result, workdir, closed_loop_episodes)
 
 
-def add_closed_loop(result: dict[str, Any], folder: Path, episodes: int) -> dict[str, Any]:
+def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
+    """A lever variant's result: the final checkpoint of its trained config's run of the same
+    seed (finished) evaluated on the held-out chunks with the variant's levers
+    (`pi0_armfix.evaluate --average_draws=...`, files tagged by the levers in that run's
+    `eval/step_<N>/`), with its episode replicates; `result.json` written in the variant's own
+    folder, which holds the evaluations' log."""
+    folder, trained = run_folder(workdir, config, seed), trained_config(config)
+    checkpoints = run_folder(workdir, trained, seed)
+    base = load_result(checkpoints)
+    if base is None:
+        raise RuntimeError(f"{config} seed {seed} is measured on the checkpoints of {trained} "
+                           f"seed {seed}, which has not finished ({checkpoints})")
+    _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={checkpoints}",
+             f"--step={base['steps']}", *lever_args(config)], folder,
+            f"the held-out evaluation of {config} seed {seed}")
+    metrics_path, sums_path = evaluator_lib.heldout_paths(checkpoints, base["steps"],
+                                                          lever_tag(config, checkpoints))
+    saved = json.loads(metrics_path.read_text())
+    layout = ActionLayout.from_config(base["layout"])
+    result = {"config": config, "seed": seed, "steps": base["steps"], "layout": base["layout"],
+              "trained": trained, "metrics": {
+                  k: v for k, v in saved.items()
+                  if k not in ("step", "params", *inference.LEVERS)},
+              EPISODE_REPLICATES: episode_replicates(heldout_lib.load_chunk_sums(sums_path),
+                                                     layout)}
+    json_files.write_json_atomic(folder / RESULT_FILE, result)
+    return result
+
+
+def add_closed_loop(result: dict[str, Any], workdir: Path, episodes: int) -> dict[str, Any]:
     """The result with the closed-loop metrics and per-episode outcomes of `episodes` episodes
     (measured now when it has none of that many; `result.json` rewritten)."""
     if episodes <= 0 or run_has_closed_loop(result, episodes):
         return result
-    metrics, outcomes = closed_loop_metrics(folder, result["steps"], episodes)
+    metrics, outcomes = closed_loop_metrics(workdir, result["config"], result["seed"],
+                                            result["steps"], episodes)
     result = {**result, CLOSED_LOOP_EPISODES: outcomes, "metrics": {
         **{k: v for k, v in result["metrics"].items() if not k.startswith(CLOSED_LOOP)},
         **metrics}}
-    json_files.write_json_atomic(folder / RESULT_FILE, result)
+    json_files.write_json_atomic(run_folder(workdir, result["config"], result["seed"])
+                                 / RESULT_FILE, result)
     return result
 
 
@@ -246,7 +319,13 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
               train: bool = True, evaluations: int = 1) -> list[dict[str, Any]]:
     """Every (config, seed) run, the finished ones read back (and evaluated in closed loop when
     they were not), the others trained; with `train=False`, only the finished ones (a partial
-    study's tables, labelled by their seed counts)."""
+    study's tables, labelled by their seed counts). Lever variants (`trained_config`) are measured
+    after every trained run, on the checkpoints of their trained config, which the study must
+    hold."""
+    missing = sorted({trained_config(c) for c in configs} - set(configs))
+    if train and missing:
+        raise ValueError(f"--configs {[c for c in configs if trained_config(c) in missing]} "
+                         f"are measured on the checkpoints of {missing}: add them to --configs")
     results, todo, unmeasured = {}, [], []
     for seed in seeds:  # seed-major: an interrupted study has every config's first seeds
         for config in configs:
@@ -270,18 +349,26 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
               flush=True)
         return [results[c, s] for c in configs for s in seeds if (c, s) in results]
     if todo or unmeasured:
+        variants = sum(trained_config(c) != c for c, _ in todo)
         print(f"study: {len(results)} of {len(results) + len(todo)} runs finished; training "
-              f"{len(todo)}, closed loop for {len(unmeasured)} finished ({parallel} at a time), "
-              f"logs in {workdir}/<config>/seed_<s>/train.log", flush=True)
-    with concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool:
-        futures = {pool.submit(add_closed_loop, results[c, s], run_folder(workdir, c, s),
-                               closed_loop_episodes): (c, s) for c, s in unmeasured}
-        futures |= {pool.submit(run_one, c, s, steps, workdir, overrides, closed_loop_episodes,
-                                evaluations): (c, s) for c, s in todo}
+              f"{len(todo) - variants}, lever variants measured on their checkpoints {variants}, "
+              f"closed loop for {len(unmeasured)} finished ({parallel} at a time), logs in "
+              f"{workdir}/<config>/seed_<s>/train.log", flush=True)
+    jobs = {**{(c, s): functools.partial(add_closed_loop, results[c, s], workdir,
+                                         closed_loop_episodes) for c, s in unmeasured},
+            **{(c, s): functools.partial(run_one, c, s, steps, workdir, overrides,
+                                         closed_loop_episodes, evaluations) for c, s in todo}}
+    # Lever variants second: they are measured on checkpoints the first phase trains.
+    phases = [[key for key in jobs if (trained_config(key[0]) == key[0]) == first]
+              for first in (True, False)]
+    with (concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool,
+          tqdm(total=len(jobs), desc="study runs", unit="run") as bar):
         try:
-            for future in tqdm(concurrent.futures.as_completed(futures), total=len(futures),
-                               desc="study runs", unit="run"):
-                results[futures[future]] = future.result()
+            for phase in phases:
+                futures = {pool.submit(jobs[key]): key for key in phase}
+                for future in concurrent.futures.as_completed(futures):
+                    results[futures[future]] = future.result()
+                    bar.update()
         except StudyInterrupted:
             pool.shutdown(wait=True, cancel_futures=True)
             finished = sum(load_result(run_folder(workdir, c, s)) is not None
