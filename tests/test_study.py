@@ -552,3 +552,55 @@ def test_the_learning_curves_leave_lever_variants_out(tmp_path):
     rows = [line for line in (tmp_path / "study.md").read_text().splitlines()
             if line.startswith(("| uniform | 5 |", "| uniform@eval.average_draws=4 | 5 |"))]
     assert [row.split(" | ")[0] for row in rows] == ["| uniform"]
+
+
+def _lever_pair(seed, arm_skill, shift, noise=None):
+    """A trained run and its lever variant on the same checkpoint: the variant's arms' skill
+    `shift` higher; `noise` `[B]`: held-out replicates' deviations, shared by both."""
+    trained = _result("arm_focused", seed, 0.5, arm_skill=arm_skill)
+    variant = {**_result("arm_focused@eval.average_draws=4", seed, 0.5,
+                         arm_skill=arm_skill + shift), "trained": "arm_focused"}
+    if noise is not None:
+        for run in (trained, variant):
+            summary = aggregate.run_summary(run["metrics"], ActionLayout.from_config(LAYOUT))
+            run["episode_replicates"] = {"episodes": 20, **{
+                k: list(summary[k] + noise) for k in aggregate.COMPARED}}
+    return trained, variant
+
+
+def test_a_lever_variant_is_compared_with_its_trained_config_seed_for_seed():
+    # seeds far apart, the lever +0.1 on every one: Welch cannot tell, the paired interval can
+    runs = [run for seed, skill in enumerate((-0.5, 0.0, 0.4, 0.9, 1.3))
+            for run in _lever_pair(seed, skill, 0.1)]
+    agg = aggregate.aggregate([_result("uniform", s, 0.1) for s in range(5)] + runs)
+    variant = agg["configs"]["arm_focused@eval.average_draws=4"]
+    assert variant["trained"] == "arm_focused"
+    assert variant["vs_trained"]["arm_skill"] == pytest.approx((0.1, 0.1, 0.1))
+    assert "vs_trained" not in agg["configs"]["arm_focused"]
+    welch = intervals.welch_interval(
+        variant["headline"]["arm_skill"], agg["configs"]["arm_focused"]["headline"]["arm_skill"])
+    assert welch[1] < 0 < welch[2]
+
+
+def test_held_out_episode_noise_shared_by_a_lever_pair_cancels_and_its_own_widens():
+    rng = np.random.default_rng(0)
+    shared = rng.normal(0, 0.2, 200)
+    runs = [run for seed in range(5) for run in _lever_pair(seed, 0.1 * seed, 0.1, shared)]
+    paired = aggregate.lever_comparisons(runs[1::2], runs[::2], ActionLayout.from_config(LAYOUT))
+    assert paired["arm_skill"] == pytest.approx((0.1, 0.1, 0.1))
+    for variant in runs[1::2]:  # the variant's replicates now noisy on their own
+        variant["episode_replicates"]["arm_skill"] = list(
+            np.asarray(variant["episode_replicates"]["arm_skill"]) + rng.normal(0, 0.2, 200))
+    wide = aggregate.lever_comparisons(runs[1::2], runs[::2], ActionLayout.from_config(LAYOUT))
+    assert wide["arm_skill"][0] == pytest.approx(0.1)
+    assert wide["arm_skill"][1] < 0.1 - 0.05 and wide["arm_skill"][2] > 0.1 + 0.05
+
+
+def test_the_report_tables_lever_variants_against_their_trained_config(tmp_path):
+    runs = [run for seed in range(2) for run in _lever_pair(seed, 0.2 * seed, 0.1)]
+    study_main.write_reports(runs, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    text = (tmp_path / "study.md").read_text()
+    assert "## Inference levers against the trained config they sample (paired)" in text
+    row = next(line for line in text.splitlines()
+               if line.startswith("| arm_focused@eval.average_draws=4 | arm_focused |"))
+    assert "+0.100 [+0.100, +0.100]" in row

@@ -193,6 +193,11 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         runs = [r for r in results if r["config"] == config]
         entry["vs_baseline"].update(closed_loop_comparisons(runs, base_runs, confidence))
         entry["targets"] = meets_targets(entry, per_config[baseline], layout, targets, ceiling)
+        trained = next((r["trained"] for r in runs if r.get("trained")), None)
+        if trained in per_config:
+            entry["trained"] = trained
+            entry["vs_trained"] = lever_comparisons(
+                runs, [r for r in results if r["config"] == trained], layout)
     reference = results[0]["metrics"]
     do_nothing = {name: {k[len(name) + 1:]: v for k, v in reference.items()
                          if k.startswith(name + "/")} for name in baselines_lib.BASELINES}
@@ -230,6 +235,60 @@ def closed_loop_comparisons(runs: Sequence[Mapping[str, Any]],
             [r["metrics"][CLOSED_LOOP + key] for r in base_runs], confidence,
             episodes=episodes, episode_variance=variance)
     return out
+
+
+def lever_comparisons(runs: Sequence[Mapping[str, Any]],
+                      trained_runs: Sequence[Mapping[str, Any]], layout: ActionLayout,
+                      confidence: float = intervals.CONFIDENCE
+                      ) -> dict[str, tuple[float, float, float]]:
+    """A lever variant minus its trained config, paired seed for seed (the same checkpoints,
+    sampled two ways): the t interval of the mean per-seed difference of each headline number
+    (`COMPARED`) and closed-loop rate (`CLOSED_LOOP_COMPARED`), widened by the held-out (world)
+    episodes' sampling error of that difference where both sides kept their per-episode
+    numbers (the same resamples on both sides, so what the two share cancels)."""
+    by_seed = {r["seed"]: r for r in trained_runs}
+    pairs = [(r, by_seed[r["seed"]]) for r in runs if r["seed"] in by_seed]
+    out = {}
+    for key in COMPARED:
+        out[key] = _paired(pairs, lambda r: run_summary(r["metrics"], layout)[key],
+                           lambda r: _held_out_replicates(r, key), confidence)
+    for key in CLOSED_LOOP_COMPARED:
+        if all(CLOSED_LOOP + key in r["metrics"] for pair in pairs for r in pair):
+            out[CLOSED_LOOP + key] = _paired(
+                pairs, lambda r: as_number(r["metrics"][CLOSED_LOOP + key]),
+                lambda r: _world_replicates(r, key), confidence)
+    return out
+
+
+def _held_out_replicates(run: Mapping[str, Any], key: str) -> tuple[np.ndarray, int] | None:
+    """`([B] values, episodes)`: a run's headline number `key` on the held-out resamples."""
+    kept = run.get(EPISODE_REPLICATES)
+    if not kept:
+        return None
+    return np.asarray([as_number(v) for v in kept[key]]), int(kept["episodes"])
+
+
+def _world_replicates(run: Mapping[str, Any], key: str) -> tuple[np.ndarray, int] | None:
+    """`([B] values, episodes)`: a run's closed-loop rate `key` on the world's resamples."""
+    kept = run.get(CLOSED_LOOP_EPISODES)
+    if not kept:
+        return None
+    return closed_loop_replicates(kept, key), len(kept["success/task"])
+
+
+def _paired(pairs, value, replicates, confidence: float) -> tuple[float, float, float]:
+    """The interval of the mean per-seed difference `value(a) - value(b)` over `pairs`, widened
+    by the episodes' sampling variance of the difference when every run has `replicates`
+    on the same number of episodes."""
+    diffs = [value(a) - value(b) for a, b in pairs]
+    kept = [(replicates(a), replicates(b)) for a, b in pairs]
+    if not kept or any(a is None or b is None or a[1] != b[1] or a[1] != kept[0][0][1]
+                       for a, b in kept):
+        return intervals.mean_interval(diffs, confidence)
+    episodes = kept[0][0][1]
+    variance = intervals.episode_variance([a[0] - b[0] for a, b in kept], episodes)
+    return intervals.mean_interval(diffs, confidence, episodes=episodes,
+                                   episode_variance=variance)
 
 
 def _episode_resamples(results: Sequence[Mapping[str, Any]]) -> dict[str, int] | None:

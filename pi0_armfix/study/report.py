@@ -145,7 +145,31 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
                                   ("arm_skill", "arm_gain", "base_skill", "switch_f1")) + " |")
     if any_config_has_closed_loop(configs):
         lines += closed_loop_table(study)
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + lever_table(configs)) + "\n"
+
+
+def lever_table(configs: Mapping[str, Any]) -> list[str]:
+    """study.md's lever variants against their trained configs (`aggregate.lever_comparisons`:
+    paired seed for seed); nothing when the study has none."""
+    levers = {name: c for name, c in configs.items() if "vs_trained" in c}
+    if not levers:
+        return []
+    loop = [*(f"{CLOSED_LOOP}phase_success/{k}" for k in PHASE_KINDS),
+            f"{CLOSED_LOOP}success/task"]
+    headings = [*COMPARED_HEADINGS, "navigation phases", "manipulation phases", "task"]
+    lines = ["", "## Inference levers against the trained config they sample (paired)", "",
+             "Each lever variant samples its trained config's checkpoints, seed for seed: the "
+             "difference of the two, mean over seeds with the 95 % t interval of the per-seed "
+             "differences, widened by the held-out (world) episodes' sampling error of the "
+             "difference. The executed chunk is the variant's (the single draw of its sampler); "
+             "the closed-loop columns are phase and task success in the demo world.", "",
+             "| lever variant | against | " + " | ".join(headings) + " |",
+             "|---" * (len(headings) + 2) + "|"]
+    for name, c in levers.items():
+        vs = c["vs_trained"]
+        lines.append(f"| {name} | {c['trained']} | " + " | ".join(
+            _interval(vs[k]) if k in vs else "n/a" for k in [*COMPARED, *loop]) + " |")
+    return lines
 
 
 def any_config_has_closed_loop(configs: Mapping[str, Any]) -> bool:
