@@ -96,3 +96,45 @@ def test_episode_resamples_are_the_same_for_every_run_and_draw_e_episodes_each()
     np.testing.assert_array_equal(counts, intervals.episode_counts(EPISODES))
     assert counts.shape == (intervals.EPISODE_REPLICATES, EPISODES)
     assert (counts.sum(axis=1) == EPISODES).all()
+
+
+def _paired_study_miss_rate(effect: float, interaction: float, with_episodes: bool = True,
+                            seed: int = 0) -> float:
+    """Share of simulated lever studies (`aggregate.lever_comparisons`) whose paired interval
+    excludes 0. Each of 5 seeds' checkpoints (seed effect + shared episode effect) is sampled
+    twice on the same episodes, each sampling with its own draw noise (sd 0.3 per episode); the
+    lever adds `effect` and a lever x episode effect (sd `interaction`: on other episodes the
+    difference changes)."""
+    rng = np.random.default_rng(seed)
+    counts = intervals.episode_counts(EPISODES)
+    misses = 0
+    for _ in range(RESAMPLED_STUDIES):
+        checkpoints = rng.normal(0.0, 1.0, (5, 1)) + rng.normal(0.0, 1.0, EPISODES)
+        trained = checkpoints + rng.normal(0.0, 0.3, (5, EPISODES))
+        lever = (checkpoints + effect + rng.normal(0.0, interaction, EPISODES)
+                 + rng.normal(0.0, 0.3, (5, EPISODES)))
+        replicates = (lever - trained) @ counts.T / EPISODES  # [5, B]
+        variance = intervals.episode_variance(replicates, EPISODES) if with_episodes else 0.0
+        interval = intervals.mean_interval(lever.mean(axis=1) - trained.mean(axis=1),
+                                           episode_variance=variance, episodes=EPISODES)
+        misses += intervals.excludes_zero(interval)
+    return misses / RESAMPLED_STUDIES
+
+
+@pytest.mark.parametrize("interaction", [0.5, 1.0])
+def test_the_paired_lever_interval_excludes_zero_in_about_5_percent_of_no_effect_studies(
+        interaction):
+    assert 0.03 <= _paired_study_miss_rate(0.0, interaction) <= 0.07
+
+
+def test_the_paired_lever_interval_is_conservative_when_the_lever_is_the_same_on_every_episode():
+    # the draws' noise is counted by the seeds and by the episodes both: wider, never narrower
+    assert _paired_study_miss_rate(0.0, 0.0) <= 0.03
+
+
+def test_seeds_alone_overstate_a_lever_that_differs_by_episode():
+    assert _paired_study_miss_rate(0.0, 1.0, with_episodes=False) > 0.2
+
+
+def test_the_paired_lever_interval_finds_a_real_effect():
+    assert _paired_study_miss_rate(0.5, 0.5) > 0.7
