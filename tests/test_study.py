@@ -604,3 +604,12 @@ def test_the_report_tables_lever_variants_against_their_trained_config(tmp_path)
     row = next(line for line in text.splitlines()
                if line.startswith("| arm_focused@eval.average_draws=4 | arm_focused |"))
     assert "+0.100 [+0.100, +0.100]" in row
+
+
+def test_the_report_names_the_configs_with_fewer_seeds_than_a_result_needs(tmp_path):
+    results = ([_result("uniform", s, 0.1 * s) for s in range(5)]
+               + [_result("arm_focused", 0, 0.5)])
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    text = (tmp_path / "study.md").read_text()
+    assert text.startswith("# Study: 2 configs x 1-5 seeds, 10 steps")
+    assert "Fewer than 5 seeds for arm_focused (1): their intervals" in text

@@ -79,10 +79,14 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
     targets = study["targets"]
     header = "| config | " + " | ".join(groups) + " |"
     rule = "|---" * (len(groups) + 1) + "|"
-    lines = [f"# Study: {len(configs)} configs x {seeds} seeds, {steps} steps", "",
+    counts = {name: len(c["seeds"]) for name, c in configs.items()}
+    most = max(counts.values())
+    per_config = f"{most}" if seeds == most else f"{seeds}-{most}"
+    lines = [f"# Study: {len(configs)} configs x {per_config} seeds, {steps} steps", "",
              f"`{command}`", ""]
     if study["anecdotal"]:
-        lines += [f"**{seeds} seed(s) per config, fewer than {intervals.MIN_SEEDS}: the "
+        few = [f"{name} ({n})" for name, n in counts.items() if n < intervals.MIN_SEEDS]
+        lines += [f"**Fewer than {intervals.MIN_SEEDS} seeds for {', '.join(few)}: their "
                   "intervals below are anecdotes, not results.**", ""]
     lines += ["Held-out chunks sampled by the policy, mean ± std over seeds, every seed on the "
               "same chunks (evaluation units: absolute actions over each dim's training std). "
