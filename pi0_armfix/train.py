@@ -258,8 +258,7 @@ def _evaluate(evaluator: evaluator_lib.Evaluator, state: state_lib.TrainState, s
     metrics, predicted, true, sums = evaluator(params)
     writer.write(step, metrics)
     if jax.process_index() == 0:
-        heldout_lib.save_chunk_sums(
-            workdir / "eval" / f"step_{step}" / heldout_lib.CHUNK_SUMS_FILE, sums)
+        heldout_lib.save_chunk_sums(evaluator_lib.heldout_paths(workdir, step)[1], sums)
     if jax.process_index() == 0:
         plots.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
