@@ -167,8 +167,8 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         headline = {k: np.asarray([s[k] for s in summary]) for k in summary[0]}
         per_config[config] = {
             "seeds": [r["seed"] for r in runs],
-            "mean": {k: _nanmean(v) for k, v in {**values, **headline}.items()},
-            "std": {k: _nanstd(v) for k, v in {**values, **headline}.items()},
+            "mean": {k: nanmean(v) for k, v in {**values, **headline}.items()},
+            "std": {k: nanstd(v) for k, v in {**values, **headline}.items()},
             "headline": {k: v.tolist() for k, v in headline.items()},
             "arm_skill_interval": intervals.mean_interval(
                 headline["arm_skill"], episodes=episodes, episode_variance=(
@@ -248,9 +248,10 @@ def lever_comparisons(runs: Sequence[Mapping[str, Any]],
     numbers (the same resamples on both sides, so what the two share cancels)."""
     by_seed = {r["seed"]: r for r in trained_runs}
     pairs = [(r, by_seed[r["seed"]]) for r in runs if r["seed"] in by_seed]
+    summaries = {id(r): run_summary(r["metrics"], layout) for pair in pairs for r in pair}
     out = {}
     for key in COMPARED:
-        out[key] = _paired(pairs, lambda r: run_summary(r["metrics"], layout)[key],
+        out[key] = _paired(pairs, lambda r: summaries[id(r)][key],
                            lambda r: _held_out_replicates(r, key), confidence)
     for key in CLOSED_LOOP_COMPARED:
         if all(CLOSED_LOOP + key in r["metrics"] for pair in pairs for r in pair):
@@ -337,11 +338,14 @@ def meets_targets(entry: Mapping[str, Any], baseline: Mapping[str, Any], layout:
     return met
 
 
-def _nanmean(v: np.ndarray) -> float | None:
+def nanmean(v: np.ndarray) -> float | None:
+    """The mean of `[N]` values' finite entries; None when none is finite."""
     v = v[np.isfinite(v)]
     return float(v.mean()) if len(v) else None
 
 
-def _nanstd(v: np.ndarray) -> float | None:
+def nanstd(v: np.ndarray) -> float | None:
+    """The sample std (ddof 1) of `[N]` values' finite entries, as every study table gives it; 0
+    for one finite value, None for none."""
     v = v[np.isfinite(v)]
     return float(v.std(ddof=1)) if len(v) > 1 else (0.0 if len(v) else None)

@@ -18,7 +18,7 @@ from pi0_armfix.evaluation import intervals
 from pi0_armfix.sim.outcomes import FAILURE_REASONS  # noqa: E402
 from pi0_armfix.study.aggregate import (  # noqa: E402
     CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, COMPARED_HEADINGS,
-    PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number)
+    PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number, nanmean, nanstd)
 from pi0_armfix.evaluation.heldout import MEAN_OF_DRAWS  # noqa: E402
 
 GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
@@ -424,9 +424,9 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
             cells = [f"{np.mean(minutes):.1f}" if minutes else "n/a"]
             for key, _ in keys:
                 values = np.asarray([as_number(r.get(key)) for r in at], np.float64)
-                values = values[np.isfinite(values)]
-                cells.append("n/a" if not len(values) else f"{values.mean():+.2f}" + (
-                    f" ± {values.std(ddof=1):.2f}" if len(values) > 1 else ""))
+                mean, std = nanmean(values), nanstd(values)
+                cells.append("n/a" if mean is None else f"{mean:+.2f}" + (
+                    f" ± {std:.2f}" if np.isfinite(values).sum() > 1 else ""))
             rows.append(f"| {name} | {step} | {len(at)} | " + " | ".join(cells) + " |")
     if len({row.split(" | ")[1] for row in rows}) < 2:
         return []
