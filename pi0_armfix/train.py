@@ -258,8 +258,8 @@ def _evaluate(evaluator: evaluator_lib.Evaluator, state: state_lib.TrainState, s
     metrics, predicted, true, sums = evaluator(params)
     writer.write(step, metrics)
     if jax.process_index() == 0:
-        heldout_lib.save_chunk_sums(evaluator_lib.heldout_paths(workdir, step)[1], sums)
-    if jax.process_index() == 0:
+        _, sums_path = evaluator_lib.heldout_paths(workdir, step)
+        heldout_lib.save_chunk_sums(sums_path, sums)
         plots.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
     say(f"step {step} held-out evaluation (sampled actions):\n"
