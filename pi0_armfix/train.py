@@ -66,7 +66,7 @@ from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.training import checkpoint, finite_checkpoints, plots, preemption
 from pi0_armfix.training import metrics_log
 from pi0_armfix.training import state as state_lib
-from pi0_armfix.training.setup import ConfigurationError, Run, prepare, say
+from pi0_armfix.train_setup import ConfigurationError, Run, prepare, say
 
 
 # Dispatched steps the loop may run ahead of the device. JAX dispatches asynchronously: unbounded,

@@ -22,7 +22,7 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint
-from pi0_armfix.training import setup as setup_lib
+from pi0_armfix import train_setup as setup_lib
 from pi0_armfix.training import step as step_lib
 
 B1K = ActionLayout.preset("b1k_r1pro")
