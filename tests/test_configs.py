@@ -104,6 +104,12 @@ def test_the_main_job_is_the_delta_recipe_and_the_seeds_3x_keeps_its_own_name():
     assert load("arm_weights_3x").data == base.get_config().data
 
 
+@pytest.mark.parametrize("scale, conv_stem", [(None, 3), ("b1k", 0), ("b1k2026", 0)])
+def test_the_main_job_has_a_conv_stem_at_the_demo_scale_only(scale, conv_stem):
+    model = model_config_lib.from_model_config(load("arm_focused", scale).model)
+    assert model.siglip.conv_stem == conv_stem
+
+
 @pytest.mark.parametrize("name", sorted(STATE_LEVERS))
 def test_state_lever_configs_change_one_model_key_of_uniform(name):
     key, value = STATE_LEVERS[name]
