@@ -19,7 +19,8 @@ def get_config(arg=None):
     config.loss.flow_samples = 4
     if config.model.preset == "demo":
         # Three stride-2 convolutions before the 8 px patches, one token per patch as before:
-        # the demo's arms learn in the main job's 4500 steps (RESULTS.md, "The main job with a conv stem in the vision tower"). The
-        # pi0 presets keep SigLIP's own stem, whose parameters openpi's checkpoints hold.
+        # the demo's arms learn in the main job's 4500 steps (RESULTS.md, "The main job with a
+        # conv stem in the vision tower"). The pi0 presets keep SigLIP's own stem, whose
+        # parameters openpi's checkpoints hold.
         config.model.sizes.siglip.conv_stem = 3
     return config
