@@ -157,7 +157,8 @@ class Pi0Config:
         if s.conv_stem < 0 or s.patch_size % 2 ** s.conv_stem:
             raise ValueError(f"siglip.conv_stem={s.conv_stem} must be >= 0 with 2**conv_stem "
                              f"dividing siglip.patch_size={s.patch_size} (each convolution halves "
-                             "the image)")
+                             "the image); conv_stem=0 is SigLIP's own stem, the one the pi0 / "
+                             "pi0.5 presets and their checkpoints have")
         if s.width % s.num_heads:
             raise ValueError(
                 f"siglip.width={s.width} must be a multiple of siglip.num_heads={s.num_heads}")
