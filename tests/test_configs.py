@@ -110,6 +110,12 @@ def test_the_main_job_has_a_conv_stem_at_the_demo_scale_only(scale, conv_stem):
     assert model.siglip.conv_stem == conv_stem
 
 
+@pytest.mark.parametrize("scale, jitter_p", [(None, 0.0), ("b1k", 0.5), ("b1k2026", 0.5)])
+def test_the_main_job_has_no_colour_jitter_at_the_demo_scale_only(scale, jitter_p):
+    model = model_config_lib.from_model_config(load("arm_focused", scale).model)
+    assert model.augment.jitter_p == jitter_p
+
+
 @pytest.mark.parametrize("name", sorted(STATE_LEVERS))
 def test_state_lever_configs_change_one_model_key_of_uniform(name):
     key, value = STATE_LEVERS[name]
