@@ -90,7 +90,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Train-time image augmentation (openpi's semantics; crop and rotate touch the head camera
     # only). The demo's 32 px cameras carry metric cues in pixel positions (1 px of the head
     # camera is ~5 cm of target distance), so the demo default is colour-only (the main job
-    # turns the colour off too: arm_focused.py); b1k uses openpi's.
+    # turns the colour jitter off too: arm_focused.py); b1k uses openpi's.
     config.model.augment = ml_collections.ConfigDict(dict(
         crop_scale=1.0, rotate_degrees=0.0, brightness=0.3, contrast=0.4, saturation=0.5,
         hue=0.1, jitter_p=0.5))
