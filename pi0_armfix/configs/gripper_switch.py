@@ -1,5 +1,6 @@
-"""`arm_focused` with gripper-switch emphasis: the steps within 3 of a gripper open/close switch
-weigh 3x (for "the gripper never closes").
+"""The seed's 3x weights (`arm_weights_3x`, absolute actions) with gripper-switch emphasis: the
+steps within 3 of a gripper open/close switch weigh 3x (for "the gripper never closes"). The same
+emphasis on the main job is `arm_focused` with `--config.loss.switch_weight=3`.
 
   python -m pi0_armfix.train --config=configs/gripper_switch.py
 """
