@@ -405,6 +405,20 @@ def test_a_trained_runs_output_on_a_constant_dim_is_the_constant(trained):
     assert np.ptp(actions[..., 5]) > 0  # its neighbour does
 
 
+def test_the_switch_timing_tool_times_the_evaluations_own_draws(trained):
+    from pi0_armfix.tools import switch_timing
+    _, metrics, _, _ = evaluator_lib.evaluate_checkpoint(trained)
+    step, result = switch_timing.run_switch_timing(str(trained), None, tolerances=(0, 2))
+    single = result["single_draw"]
+    assert (single["predicted"], single["true"]) == (
+        metrics["gripper_switch/tp"] + metrics["gripper_switch/fp"],
+        metrics["gripper_switch/tp"] + metrics["gripper_switch/fn"])
+    assert single["by_tolerance"][2]["f1"] == pytest.approx(metrics["gripper_switch/f1"],
+                                                            nan_ok=True)
+    saved = json.loads((trained / "eval" / f"step_{step}" / switch_timing.RESULT_FILE).read_text())
+    assert set(saved["mean_of_draws"]["recall"]) == {"executed", "ahead", "opens", "closes"}
+
+
 # ---------------------------------------------------------------------- the ceiling (demo)
 
 

@@ -30,6 +30,12 @@ CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_lo
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
 
+def default_n_exec(horizon: int) -> int:
+    """The actions executed per sampled chunk before replanning when `--n_exec` is 0: half the
+    horizon, so that each chunk's second half only shapes the next plan."""
+    return max(horizon // 2, 1)
+
+
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
                 episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
                 sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
@@ -66,7 +72,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     if run.layout.real_dim != 23:
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
                          "takes the 23-D B1K action (layout b1k_r1pro)")
-    n_exec = n_exec or max(policy_.horizon // 2, 1)
+    n_exec = n_exec or default_n_exec(policy_.horizon)
     if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
         raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
                          "with --rtc: the tail to follow)")

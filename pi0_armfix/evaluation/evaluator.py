@@ -193,13 +193,18 @@ class Evaluator:
         draws = np.concatenate(predicted, axis=1)
         return draws.reshape(self.draws, self.average, *draws.shape[1:]).mean(axis=1)
 
+    def absolute_draws(self, params: Any) -> np.ndarray:
+        """The policy's absolute chunks `[M, N, H, A]` of all held-out chunks in evaluation units
+        (`sample`'s draws, comparable with `chunks.true`)."""
+        chunks = self.chunks
+        return np.stack([chunks.transform.absolute_actions(d, chunks.frames)
+                         for d in self.sample(params)]) / chunks.scale
+
     def __call__(self, params: Any) -> Evaluation:
         """Samples the held-out chunks with `params` and scores them (`Evaluation`)."""
-        chunks = self.chunks
-        draws = np.stack([chunks.transform.absolute_actions(d, chunks.frames)
-                          for d in self.sample(params)]) / chunks.scale
-        metrics, sums = chunks.score(draws)
-        return Evaluation(metrics, draws[0], chunks.true, sums)
+        draws = self.absolute_draws(params)
+        metrics, sums = self.chunks.score(draws)
+        return Evaluation(metrics, draws[0], self.chunks.true, sums)
 
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
@@ -255,6 +260,22 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
 
 # ---------------------------------------------------------------------- offline entrypoint
 
+def run_evaluator(run: inference.RestoredRun) -> tuple[Evaluator, jax.sharding.Mesh]:
+    """The `Evaluator` of a restored run (its own config, norm stats and data) on one device,
+    and the mesh to call it under."""
+    config, layout, model_config = run.config, run.layout, run.model_config
+    mesh = sharding_lib.make_mesh(1)
+    spec = DataSpec.from_config(config, layout)
+    source = sources.open_source(spec.options, layout)
+    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
+    with jax.set_mesh(mesh):
+        evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
+                              params_sharding=sharding_lib.tree_shardings(run.params, mesh),
+                              source=source, noise_factor=inference.run_noise_factor(
+                                  run.workdir, config, layout, model_config))
+    return evaluator, mesh
+
+
 def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
                         params_name: str = "ema", levers: Mapping[str, float] | None = None
                         ) -> tuple[int, dict[str, float], ActionLayout, epath.Path]:
@@ -269,17 +290,9 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
     out = workdir / "eval" / f"step_{step}"
     writable_folder(out)  # before the sampling, not after
-    model_config, params = run.model_config, run.params
-    mesh = sharding_lib.make_mesh(1)
-    spec = DataSpec.from_config(config, layout)
-    source = sources.open_source(spec.options, layout)
-    tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
+    evaluator, mesh = run_evaluator(run)
     with jax.set_mesh(mesh):
-        evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
-                              params_sharding=sharding_lib.tree_shardings(params, mesh),
-                              source=source, noise_factor=inference.run_noise_factor(
-                                  workdir, config, layout, model_config))
-        metrics, predicted, true, sums = evaluator(params)
+        metrics, predicted, true, sums = evaluator(run.params)
     metrics_path, chunk_sums_path = heldout_paths(workdir, step, tag)
     heldout_lib.save_chunk_sums(chunk_sums_path, sums)
     # Strict JSON: a metric with nothing to measure (NaN) is null.

@@ -150,7 +150,8 @@ def main(argv: Sequence[str]) -> None:
 
 
 def cli() -> None:
-    """`python -m pi0_armfix.tools.closed_loop_calibration`."""
+    """The `pi0-armfix-closed-loop-calibration` console script (also `python -m
+    pi0_armfix.tools.closed_loop_calibration`)."""
     flags.DEFINE_integer("episodes", 50, "episodes of the closed-loop evaluation's world")
     flags.DEFINE_list("tolerances", ["1", "2", "4"], "tolerance factors of the success curve")
     flags.DEFINE_string("noise_run", "", "a trained run whose held-out error the noisy expert "

@@ -201,7 +201,8 @@ def main(argv: Sequence[str]) -> None:
 
 
 def cli() -> None:
-    """`python -m pi0_armfix.tools.learnability_probe`."""
+    """The `pi0-armfix-learnability-probe` console script (also `python -m
+    pi0_armfix.tools.learnability_probe`)."""
     flags.DEFINE_list("sizes", ["32", "64", "96"], "image sizes to probe (px)")
     flags.DEFINE_integer("train", 6000, "rendered training scenes per camera and size")
     flags.DEFINE_integer("test", 2000, "rendered held-out scenes per camera and size")

@@ -325,7 +325,8 @@ def main(argv: list[str]) -> None:
 
 
 def cli() -> None:
-    """`python -m pi0_armfix.tools.regressor_baseline`."""
+    """The `pi0-armfix-regressor-baseline` console script (also `python -m
+    pi0_armfix.tools.regressor_baseline`)."""
     config_flags.DEFINE_config_file("config", None, "experiment config file (its data, split, "
                                     "representation and batch size)", lock_config=True)
     flags.DEFINE_string("output", "results/regressor", "folder of regressor.json / regressor.md")
