@@ -66,31 +66,28 @@ def switch_timing(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
       `true` and `predicted`, and `predicted_without_true` (predicted switches in chunks that
       have no true one). A ratio with nothing to count is NaN.
     """
-    pred_events, true_events = _events(predicted, valid, threshold), _events(true, valid,
-                                                                                 threshold)
-    num_pred, num_true = int(pred_events.sum()), int(true_events.sum())
-
-    def ratio(num, den):
-        return num / den if den else float("nan")
-
     by_tolerance = {}
     for tol in tolerances:
-        tp = _matched(pred_events, true_events, tol)
-        by_tolerance[int(tol)] = {"precision": ratio(tp, num_pred), "recall": ratio(tp, num_true),
-                                  "f1": ratio(2 * tp, num_pred + num_true)}
-    steps = np.arange(true_events.shape[-1])
-    parts = {"executed": steps < executed, "ahead": steps >= executed}
-    direction = np.zeros((1, 2, 1, 1), bool)
-    parts |= {"opens": direction.copy(), "closes": direction.copy()}
-    parts["opens"][:, 0], parts["closes"][:, 1] = True, True
+        sums = eval_metrics.switch_sums(predicted, true, valid, threshold, tol)
+        scores = eval_metrics.switch_scores({k: float(v.sum()) for k, v in sums.items()})
+        by_tolerance[int(tol)] = {k: scores[f"gripper_switch/{k}"]
+                                  for k in ("precision", "recall", "f1")}
+    pred_events, true_events = _events(predicted, valid, threshold), _events(true, valid,
+                                                                                 threshold)
+    steps = np.arange(true_events.shape[-1])  # broadcasts over [N, 2, D, H]'s last axis
+    kind = np.arange(2)[:, None, None]  # ... and over its (opens, closes) axis
+    parts = {"executed": steps < executed, "ahead": steps >= executed,
+             "opens": kind == 0, "closes": kind == 1}
     recall = {}
     for name, mask in parts.items():
         subset = true_events & mask
-        recall[name] = {"true": int(subset.sum()),
-                        "recall": ratio(_matched(pred_events, subset, tolerance), subset.sum())}
+        num_true = int(subset.sum())
+        matched = _matched(pred_events, subset, tolerance)
+        recall[name] = {"true": num_true,
+                        "recall": matched / num_true if num_true else float("nan")}
     no_true = true_events.reshape(len(true_events), -1).sum(axis=1) == 0
-    return {"by_tolerance": by_tolerance, "recall": recall, "true": num_true,
-            "predicted": num_pred,
+    return {"by_tolerance": by_tolerance, "recall": recall, "true": int(true_events.sum()),
+            "predicted": int(pred_events.sum()),
             "predicted_without_true": int(pred_events.reshape(len(pred_events), -1)[no_true].sum())}
 
 
