@@ -4,8 +4,10 @@
 import numpy as np
 import pytest
 
+from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.episodes import EpisodeTable
-from pi0_armfix.data.pipeline import chunk_stats, transforms
+from pi0_armfix.data.pipeline import batching, chunk_stats, transforms
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import noise as noise_lib
 
 H = 4
@@ -111,3 +113,72 @@ def test_to_delta_matches_the_slow_chunks():  # guards the helper above
     fast = transforms.to_delta(table.actions[index].astype(np.float64),
                                table.state.astype(np.float64), mask)
     np.testing.assert_allclose(fast, _chunks(table, mask)[0], atol=1e-6)
+
+
+def _slow_joint_table(horizon=32, episodes=40, length=60, speed=1e-4, seed=0):
+    """A joint commanded one frame ahead of its measured position at a speed (per frame) drawn per
+    episode, ~N(0, speed): a real robot's slow joint at 30 fps. Its delta action `a[t + h] - s[t]`
+    spreads ~speed * (h + 1): below `CONSTANT_SPREAD` at the first steps, well above it pooled."""
+    rng = np.random.default_rng(seed)
+    velocity = np.repeat(rng.normal(scale=speed, size=episodes), length)
+    position = np.cumsum(velocity) + np.repeat(rng.normal(size=episodes), length)
+    state = position[:, None].astype(np.float32)
+    actions = (position + velocity)[:, None].astype(np.float32)
+    starts = np.arange(episodes + 1, dtype=np.int64) * length
+    return EpisodeTable(actions=actions, state=state, episode_starts=starts,
+                        episode_index=np.arange(episodes), tasks=["t"] * episodes)
+
+
+def _pooled(table, horizon, mask):
+    chunks, pads = [], []
+    for e in range(table.num_episodes):
+        start, stop = table.episode_starts[e], table.episode_starts[e + 1]
+        for t in range(start, stop):
+            rows = [min(t + h, stop - 1) for h in range(horizon)]
+            chunks.append(table.actions[rows, 0].astype(np.float64) - table.state[t, 0] * mask[0])
+            pads.append([t + h >= stop for h in range(horizon)])
+    steps = np.asarray(chunks)[~np.asarray(pads)][:, None]
+    return stats_lib.NormStats(mean=steps.mean(0), std=steps.std(0),
+                               q01=np.quantile(steps, 0.01, axis=0),
+                               q99=np.quantile(steps, 0.99, axis=0))
+
+
+@pytest.mark.parametrize("mode", ["zscore", "quantile"])
+def test_a_slow_joint_at_30_fps_keeps_its_first_chunk_steps_under_per_timestep_normalization(mode):
+    horizon, mask = 32, np.array([True])
+    table = _slow_joint_table(horizon)
+    stats = chunk_stats.compute_chunk_stats(table, action_horizon=horizon, delta_mask=mask,
+                                            max_chunks=100_000)
+    assert stats.per_timestep.spread(mode)[0, 0] < stats_lib.CONSTANT_SPREAD  # the trap
+    norm_stats = {"actions": _pooled(table, horizon, mask),
+                  "actions_per_timestep": stats.per_timestep}
+    layout = ActionLayout(groups={"joint": (0, 1)}, real_dim=1, action_dim=2)
+    live = batching.loss_mask(norm_stats, layout, mode, horizon)
+    assert live[:, 0].all()
+    normalizer = batching.action_normalizer(norm_stats, 1, mode, horizon)
+    assert not normalizer.constant.any()
+    chunks = stats.per_timestep.mean + stats.per_timestep.std  # one sigma above at every step
+    np.testing.assert_allclose(normalizer.inverse(normalizer(chunks)), chunks, atol=1e-6)
+
+
+def test_a_slow_joints_first_chunk_steps_are_in_the_chunk_correlation():
+    horizon = 32
+    stats = chunk_stats.compute_chunk_stats(_slow_joint_table(horizon), action_horizon=horizon,
+                                            delta_mask=np.array([True]), max_chunks=100_000)
+    # the deltas of one episode grow linearly with h: every pair of steps is correlated
+    assert stats.correlation[0, 1] > 0.9 and stats.correlation[0, horizon - 1] > 0.9
+
+
+def test_a_constant_dim_stays_constant_under_per_timestep_normalization():
+    table = _table()
+    table.actions[:, 1] = 2.0
+    stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
+                                            max_chunks=1000)
+    flat = table.actions.astype(np.float64)
+    pooled = stats_lib.NormStats(mean=flat.mean(0), std=flat.std(0),
+                                 q01=np.quantile(flat, 0.01, axis=0),
+                                 q99=np.quantile(flat, 0.99, axis=0))
+    layout = ActionLayout(groups={"a": (0, 3)}, real_dim=3, action_dim=4)
+    live = batching.loss_mask({"actions": pooled, "actions_per_timestep": stats.per_timestep},
+                              layout, "zscore", H)
+    np.testing.assert_array_equal(live[:, :3], np.tile([1.0, 0.0, 1.0], (H, 1)))

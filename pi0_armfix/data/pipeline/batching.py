@@ -28,15 +28,17 @@ def action_normalizer(norm_stats: Mapping[str, stats_lib.NormStats], real_dim: i
                       norm_mode: str, action_horizon: int) -> normalize.Normalizer:
     """The actions' normalizer: per chunk position (`[H, A]`) when the stats hold an
     `actions_per_timestep` entry (`data.norm_per_timestep`, see `data.chunk_stats`), else per
-    dim."""
+    dim. Either way the constant dims are those of the pooled `actions` stats (one decision per
+    dim, `normalize`)."""
+    actions = stats_lib.fit_width(norm_stats["actions"], real_dim, "norm stats 'actions'")
     per_timestep = norm_stats.get("actions_per_timestep")
     if per_timestep is None:
-        actions = stats_lib.fit_width(norm_stats["actions"], real_dim, "norm stats 'actions'")
         return normalize.Normalizer.from_stats(actions, norm_mode)
     if per_timestep.mean.shape != (action_horizon, real_dim):
         raise ValueError(f"per-timestep norm stats have shape {per_timestep.mean.shape}; the run "
                          f"needs [action_horizon={action_horizon}, real_dim={real_dim}]")
-    return normalize.Normalizer.from_stats(per_timestep, norm_mode)
+    return normalize.Normalizer.from_stats(per_timestep, norm_mode,
+                                           constant=actions.constant(norm_mode))
 
 
 def normalized_midpoints(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,

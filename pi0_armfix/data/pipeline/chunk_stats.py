@@ -15,7 +15,8 @@ frames (every frame when there are fewer): a sample, because Σ is `[H A, H A]` 
 frames. Per-timestep statistics skip the padded steps of a chunk at an episode end (position h of
 a chunk that ran out of episode is not an observation of position h); Σ uses the chunks without
 padding. A correlation is unchanged by any per-entry affine map, so Σ of the raw chunks is Σ of
-the normalized ones whatever the normalization; an entry of (near) zero spread is uncorrelated.
+the normalized ones whatever the normalization; the entries of a constant dim (its pooled spread
+below `stats.CONSTANT_SPREAD`, decided per dim as the normalization does) are uncorrelated.
 
 Files, beside the run's `norm_stats.json`: `norm_stats_per_timestep.json` (openpi's format with
 `[H][A]` lists per field) and `action_chunk_correlation.npy`, each keyed (`*.key.json`) to what it
@@ -91,7 +92,10 @@ def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
                          "correlation of loss.noise_beta")
     flat = whole.reshape(len(whole), -1)
     std = flat.std(0)
-    live = std > stats_lib.CONSTANT_SPREAD
+    # Constancy per dim, from its pooled spread (`normalize`): a slow joint's first steps move
+    # less than the threshold and still belong to the chunk's correlation.
+    moving = chunks[valid].std(0) >= stats_lib.CONSTANT_SPREAD
+    live = np.tile(moving, action_horizon) & (std > 0)
     correlation = np.eye(flat.shape[1])
     centred = (flat[:, live] - flat[:, live].mean(0)) / std[live]
     correlation[np.ix_(live, live)] = centred.T @ centred / len(flat)

@@ -5,7 +5,10 @@
 A constant dim (`NormStats.constant`: its spread below `stats.CONSTANT_SPREAD`, e.g. B1K's torso
 dim 6) has scale 0: it normalizes to 0, never blown up by 1/eps, and `inverse` returns its stored
 mean whatever the model put there, so a policy's leftover noise never lands on a joint the data
-never moves. Works on any number of leading batch dims.
+never moves. Constancy is a property of a dim, never of a chunk position: per-timestep statistics
+take it from the dim's pooled statistics, because the first steps of a slow joint's delta actions
+(a real robot at 30 fps moves a joint ~1e-4 per frame) have a spread below the threshold and would
+otherwise be pinned to their mean with no loss. Works on any number of leading batch dims.
 """
 
 from __future__ import annotations
@@ -30,8 +33,13 @@ class Normalizer:
     shift: np.ndarray
 
     @classmethod
-    def from_stats(cls, stats: NormStats, mode: str) -> "Normalizer":
-        spread, constant = stats.spread(mode), stats.constant(mode)
+    def from_stats(cls, stats: NormStats, mode: str,
+                   constant: np.ndarray | None = None) -> "Normalizer":
+        """`constant`: bool `[D]`, the constant dims (of the pooled statistics when `stats` are
+        per chunk position `[H, D]`); None = `stats.constant(mode)`."""
+        spread = stats.spread(mode)
+        constant = np.broadcast_to(stats.constant(mode) if constant is None else constant,
+                                   spread.shape)
         if mode == "zscore":
             offset, shift = stats.mean, 0.0
         else:
