@@ -8,10 +8,12 @@ error names the field and the offending value.
 Groups listed in `velocity_groups` hold velocity commands (the B1K base) rather than positions:
 their motion is the command itself, not its change from frame to frame.
 
-Every group has a *role* (`ROLES`: base, torso, arm, gripper, other), declared with the layout
-rather than guessed from its name: the arm-heavy filter and curriculum compare the manipulation
-groups (arm, gripper) with the rest, and evaluation measures gripper switches on the gripper
-groups and plots the manipulation groups. A group without a declared role is "other".
+Every group has a *role* (`ROLES`: base, torso, arm, hand, gripper, other), declared with the
+layout rather than guessed from its name: the arm-heavy filter and curriculum compare the
+manipulation groups (arm, hand, gripper) with the rest, and evaluation measures gripper switches
+on the gripper groups and plots the manipulation groups. A *gripper* is one binary open/close
+command; a *hand* is several continuous finger joints (a G1's Inspire hand), a joint group like an
+arm that never switches. A group without a declared role is "other".
 
 Dimensions `[real_dim, action_dim)` are padding: zeros, never trained (pi0 works in a fixed
 32-D action space). Real dims that belong to no group are allowed (a researcher may leave a
@@ -46,11 +48,22 @@ _PRESETS: dict[str, dict[str, Any]] = {
         roles={"base": "base", "torso": "torso", "left_arm": "arm", "left_gripper": "gripper",
                "right_arm": "arm", "right_gripper": "gripper"},
     ),
+    # A Unitree G1 with Inspire hands, as LeRobot sets record it (joint positions, 30 fps): each
+    # arm's 7 joints from the shoulder to the wrist, then each hand's 6 finger joints.
+    "g1_inspire": dict(
+        groups={"left_arm": (0, 7), "right_arm": (7, 14), "left_hand": (14, 20),
+                "right_hand": (20, 26)},
+        real_dim=26,
+        action_dim=32,
+        velocity_groups=(),
+        roles={"left_arm": "arm", "right_arm": "arm", "left_hand": "hand",
+               "right_hand": "hand"},
+    ),
 }
 
-# What a group is for. "arm" and "gripper" groups are the manipulation groups.
-ROLES = ("base", "torso", "arm", "gripper", "other")
-MANIPULATION_ROLES = ("arm", "gripper")
+# What a group is for. "arm", "hand" and "gripper" groups are the manipulation groups.
+ROLES = ("base", "torso", "arm", "hand", "gripper", "other")
+MANIPULATION_ROLES = ("arm", "hand", "gripper")
 
 
 def gripper_boundary(q01: np.ndarray, q99: np.ndarray) -> np.ndarray:

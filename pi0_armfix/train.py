@@ -58,7 +58,7 @@ from ml_collections import config_flags
 from tqdm import tqdm
 
 from pi0_armfix import console
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data import background
 from pi0_armfix.data.pipeline import pipeline
 from pi0_armfix.evaluation import evaluator as evaluator_lib
@@ -210,7 +210,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
 def _postfix(record: Mapping[str, float], layout: ActionLayout, phase: int) -> str:
     """The bar's summary of a record: the weighted loss, then each group's unweighted loss, the
     arms and grippers first (a narrow terminal cuts the line's end)."""
-    first = layout.groups_with_role("arm", "gripper")
+    first = layout.groups_with_role(*MANIPULATION_ROLES)
     ordered = [*first, *(g for g in layout.group_names if g not in first)]
     groups = " ".join(f"{g} {record[f'loss/{g}']:.3f}" for g in ordered)
     return f"loss {record['loss']:.4f} | {groups} | phase {phase}"

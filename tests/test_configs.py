@@ -11,7 +11,7 @@ import pytest
 import train_fixtures as tf
 from train_fixtures import demo_root  # noqa: F401  (a pytest fixture)
 from pi0_armfix import console, train
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.configs import base
 from pi0_armfix.data import selection
 from pi0_armfix.data.pipeline import dataset as dataset_lib
@@ -80,7 +80,7 @@ def test_config_selects_its_strategy_and_arm_weight(name, strategy, arm_weight):
     if arm_weight is not None:
         weights = dict(config.loss.group_weights)
         B1K.check_group_weights(weights)
-        assert {weights[g] for g in base.ARM_GROUPS} == {arm_weight}
+        assert {weights[g] for g in B1K.groups_with_role(*MANIPULATION_ROLES)} == {arm_weight}
         assert weights["base"] == weights["torso"] == 1.0
 
 
@@ -88,7 +88,7 @@ def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
     weights = np.asarray(load("simple_arm_focused").loss.dimension_weights)
     B1K.check_dimension_weights(weights)
     for g in B1K.group_names:
-        assert set(weights[B1K.group_dims(g)]) == {3.0 if g in base.ARM_GROUPS else 1.0}
+        assert set(weights[B1K.group_dims(g)]) == {3.0 if g in B1K.groups_with_role(*MANIPULATION_ROLES) else 1.0}
     assert not weights[B1K.real_dim:].any()
 
 

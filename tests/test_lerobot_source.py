@@ -1,7 +1,9 @@
 """LeRobot source: every layout version and storage variant, and every bad input's message."""
 
 import json
+import logging
 import pickle
+import re
 
 import numpy as np
 import pyarrow as pa
@@ -256,14 +258,53 @@ def test_corrupt_parquet_file_is_an_error(tmp_path):
         list(source.iter_blocks())
 
 
-def test_missing_video_file_is_an_error(tmp_path):
-    root = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
-    video = next(root.glob("videos/chunk-000/observation.images.rgb.head/episode_000001.mp4"))
-    video.unlink()
+def _without_videos_of(tmp_path, episodes, total=4):
+    root = write_dataset(tmp_path / "ds", make_episodes(total), "v2.1", image_format="video")
+    for episode in episodes:
+        next(root.glob(f"videos/chunk-000/observation.images.rgb.head/"
+                       f"episode_{episode:06d}.mp4")).unlink()
+    return root
+
+
+def test_missing_video_files_are_one_error_naming_every_episode_and_the_fix(tmp_path):
+    root = _without_videos_of(tmp_path, [1, 3])
     source = LeRobotSource(root, LAYOUT)
-    with pytest.raises(ValueError, match=r"missing video file .*rgb.head/episode_000001.mp4"):
-        source.load_table()
-    assert source.load_table(images=False).num_episodes == 2
+    for read in (source.load_table, source.probe):
+        with pytest.raises(ValueError) as err:
+            read()
+        message = str(err.value)
+        assert "\n" not in message
+        assert re.search(r"missing video files for 2 of 4 episodes .*: episodes 1, 3; .*"
+                         r"data.skip_missing_videos=True", message)
+
+
+def test_a_pass_without_images_reads_every_episode_of_a_set_with_missing_videos(tmp_path):
+    source = LeRobotSource(_without_videos_of(tmp_path, [1]), LAYOUT)
+    assert source.load_table(images=False).num_episodes == 4
+
+
+def test_skip_missing_videos_leaves_those_episodes_out_and_names_them_once(tmp_path, caplog):
+    with caplog.at_level(logging.WARNING):
+        source = LeRobotSource(_without_videos_of(tmp_path, [1, 3]), LAYOUT,
+                               skip_missing_videos=True)
+    assert source.episode_index.tolist() == [0, 2] and source.skipped_episodes == (1, 3)
+    warnings = [r.getMessage() for r in caplog.records if "skip_missing_videos" in r.getMessage()]
+    assert len(warnings) == 1 and "episodes 1, 3" in warnings[0]
+    table = source.load_table()
+    assert table.episode_index.tolist() == [0, 2] and table.images is not None
+    with pytest.raises(ValueError, match="out of range"):
+        source.load_table([1])
+
+
+def test_skip_missing_videos_with_no_video_left_is_an_error(tmp_path):
+    with pytest.raises(ValueError, match="no episode is left"):
+        LeRobotSource(_without_videos_of(tmp_path, [0, 1], total=2), LAYOUT,
+                      skip_missing_videos=True)
+
+
+def test_skip_missing_videos_is_read_from_the_config(tmp_path):
+    config = _config(_without_videos_of(tmp_path, [2]), skip_missing_videos=True)
+    assert open_source(config.data, LAYOUT).episode_index.tolist() == [0, 1, 3]
 
 
 def test_episode_out_of_range_is_an_error(tmp_path):

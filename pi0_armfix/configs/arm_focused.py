@@ -1,6 +1,7 @@
 """The project's arm fix (the main job): torso and arm joints as delta actions relative to the
 current state, base and grippers absolute, and K = 4 flow-matching draws per prefix pass, with a
-uniform loss; at the demo scale, a conv stem in the vision tower and no colour jitter. Delta
+uniform loss; with the demo model, a conv stem in the vision tower, and in the demo world no colour
+jitter. On a G1 (`:g1`) the relative groups are both arms and both hands. Delta
 actions remove the state-copy shortcut (the current joint positions explain most of an absolute arm
 target, so a uniform loss learns to repeat them); the extra draws give the small deltas more
 gradient per prefix compute; the conv stem lets the 32 px cameras' arm targets be learned within
@@ -24,7 +25,8 @@ def get_config(arg=None):
         # conv stem in the vision tower"). The pi0 presets keep SigLIP's own stem, whose
         # parameters openpi's checkpoints hold.
         config.model.sizes.siglip.conv_stem = 3
+    if not arg:
         # The demo world never changes its colours; with the stem, the jitter only slows the
-        # base (RESULTS.md, "The main job without colour jitter"). Real cameras keep it (b1k).
+        # base (RESULTS.md, "The main job without colour jitter"). Real cameras keep it (b1k, g1).
         config.model.augment.jitter_p = 0.0
     return config

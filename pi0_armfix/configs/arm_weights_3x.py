@@ -12,5 +12,5 @@ from pi0_armfix.configs import base
 def get_config(arg=None):
     config = base.get_config(arg)
     config.loss.strategy = "per_group"
-    config.loss.group_weights = base.group_weights(arm_weight=3.0)
+    config.loss.group_weights = base.group_weights(3.0, config.layout.preset)
     return config

@@ -9,6 +9,12 @@ only the `loss` (and, for a few, the `data`) section. `arg` picks the scale:
     'b1k2026'            full pi0 on BEHAVIOR-1K 2026 as published (LeRobot v3.0, the 61-D state,
                          concatenated GOP-8 videos, prompts from meta/tasks.jsonl), the same
                          recipe with the 2026 state preset; statistics computed from the data.
+    'g1'                 the `demo` model on a Unitree G1 with Inspire hands as LeRobot records
+                         it, at `--config.data.root` (layout `g1_inspire`: each arm's 7 joints,
+                         each hand's 6 finger joints, joint positions at 30 fps, the state in the
+                         same order; its head camera scaled to the preset's 32 px), held out: the
+                         last 20 episodes; learning curves every quarter of the run. README, "The
+                         fix on a real robot's data".
 
 The config is locked by the entrypoint: every key a run can set exists here, and an unknown key on
 the command line is an error.
@@ -17,23 +23,26 @@ the command line is an error.
 import ml_collections
 from ml_collections import config_dict
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.state_space import DEMO_STATE_PRESET
 
-SCALES = ("", "b1k", "b1k2026")
+SCALES = ("", "b1k", "b1k2026", "g1")
 # The state preset of each B1K release (pi0_armfix.data.selection): its 23-D state in the action
 # order, grippers the sum of their two fingers.
 B1K_STATE_PRESETS = {"b1k": "b1k_r1pro", "b1k2026": "b1k2026_r1pro"}
 
-# The B1K R1Pro groups (pi0_armfix.action_space preset "b1k_r1pro"). Group weights name them all:
-# a missing key is an error, never a silent default.
-B1K_GROUPS = ("base", "torso", "left_arm", "left_gripper", "right_arm", "right_gripper")
-ARM_GROUPS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
+# The layout preset of each scale's robot (pi0_armfix.action_space).
+LAYOUT_PRESETS = {"": "b1k_r1pro", "b1k": "b1k_r1pro", "b1k2026": "b1k_r1pro",
+                  "g1": "g1_inspire"}
 
 
-def group_weights(arm_weight: float = 1.0) -> dict[str, float]:
-    """Static weights of the B1K groups: arms and grippers at `arm_weight`, base and torso at 1."""
-    return {g: float(arm_weight) if g in ARM_GROUPS else 1.0 for g in B1K_GROUPS}
+def group_weights(arm_weight: float = 1.0, layout: str = "b1k_r1pro") -> dict[str, float]:
+    """Static weights of every group of a layout preset (a missing key is an error, never a
+    silent default): the manipulation groups (roles arm, hand, gripper) at `arm_weight`, the rest
+    (base, torso) at 1."""
+    action_layout = ActionLayout.preset(layout)
+    manipulation = action_layout.groups_with_role(*MANIPULATION_ROLES)
+    return {g: float(arm_weight) if g in manipulation else 1.0 for g in action_layout.group_names}
 
 
 def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> tuple[float, ...]:
@@ -44,13 +53,15 @@ def dimension_weights(weights: dict[str, float], layout: str = "b1k_r1pro") -> t
 
 
 def use_arm_delta_actions(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
-    """Torso and arm joints as targets relative to the current state; base velocity and grippers
-    stay absolute (B1K 2025's winners' representation). The state must be in the action order:
-    the release's preset at the b1k / b1k2026 scales; at the demo scale the demo's
-    (`state_space.DEMO_STATE_PRESET`, also for a demo written elsewhere by
-    `tools.make_demo_dataset`; another dataset names its own preset or `data.state_groups`)."""
-    config.data.delta_action_mask = ("torso", "left_arm", "right_arm")
-    if not config.data.state_preset:
+    """The joint groups (roles torso, arm, hand) as targets relative to the current state; base
+    velocity and grippers stay absolute (B1K 2025's winners' representation). The state must be
+    in the action order: the release's preset at the b1k / b1k2026 scales, the G1's own order
+    (`data.state_groups`) at g1; at the demo scale the demo's (`state_space.DEMO_STATE_PRESET`,
+    also for a demo written elsewhere by `tools.make_demo_dataset`; another dataset names its own
+    preset or `data.state_groups`)."""
+    layout = ActionLayout.preset(config.layout.preset)
+    config.data.delta_action_mask = layout.groups_with_role("torso", "arm", "hand")
+    if not config.data.state_preset and config.data.state_groups is None:
         config.data.state_preset = DEMO_STATE_PRESET
     return config
 
@@ -98,7 +109,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.loss = ml_collections.ConfigDict()
     # uniform | original | per_group | per_dimension | loss_balanced | uncertainty
     config.loss.strategy = "per_group"
-    config.loss.group_weights = group_weights(1.0)
+    config.loss.group_weights = group_weights(1.0, LAYOUT_PRESETS[scale])
     config.loss.dimension_weights = ()  # per_dimension only: action_dim weights, 0 on padding
     config.loss.delta_weighting = False
     config.loss.weight_warmup_steps = 0  # group weights ramp 1.0 -> target (0 = off)
@@ -113,7 +124,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.loss.switch_window = 3  # ... within this many steps of the switch
 
     config.layout = ml_collections.ConfigDict()
-    config.layout.preset = "b1k_r1pro"
+    config.layout.preset = LAYOUT_PRESETS[scale]
     # An explicit layout wins over the preset: groups {name: (start, stop)}, real_dim, action_dim.
     config.layout.groups = config_dict.placeholder(object)  # a dict; `object` makes it overridable
     config.layout.real_dim = config_dict.placeholder(int)
@@ -138,6 +149,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.data.state_indices = ()  # LeRobot: dims of the stored state to keep (() = all)
     config.data.action_indices = ()  # LeRobot: dims of the stored actions to keep (() = all)
     config.data.video_tolerance_frames = 0.5  # a row's timestamp vs its video frame (frames)
+    # Episodes whose video file of a read camera is missing (a partial download or mirror): False
+    # refuses, naming them all in one line; True leaves them out of training and evaluation and
+    # names them in one warning line (the held-out split is the last eval.episodes of the rest).
+    config.data.skip_missing_videos = False
     # How camera frames are read (pi0_armfix.data.pipeline.video_stream): 'random' = each sample's
     # frame on request (short-GOP video, re-encoded copies, images); 'stream' = episodes decoded
     # front to back, several open at once, through a window shuffle (long-GOP video: B1K 2025's HEVC
@@ -246,4 +261,12 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         config.sharding.fsdp = -1
         config.eval.every = 2_000
         config.eval.episodes = 20
+    if scale == "g1":
+        layout = ActionLayout.preset(LAYOUT_PRESETS[scale])
+        config.data.root = config_dict.placeholder(str)  # required: a LeRobot G1 root
+        config.data.state_groups = dict(layout.groups)  # the state is in the action order
+        # Its 640x480 AV1 (a keyframe every 2 frames) is read at random; 2 worker processes keep
+        # the decoding off the training step's critical path.
+        config.data.num_workers = 2
+        config.eval.every = config.train.total_steps // 4
     return config

@@ -10,5 +10,6 @@ from pi0_armfix.configs import base
 def get_config(arg=None):
     config = base.get_config(arg)
     config.loss.strategy = "per_dimension"
-    config.loss.dimension_weights = base.dimension_weights(base.group_weights(arm_weight=3.0))
+    preset = config.layout.preset
+    config.loss.dimension_weights = base.dimension_weights(base.group_weights(3.0, preset), preset)
     return config

@@ -30,7 +30,7 @@ import numpy as np
 from etils import epath
 from tqdm import tqdm
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.data.statistics import stats as stats_lib
@@ -54,10 +54,10 @@ STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluation
 def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
                 ) -> dict[str, tuple[str, ...]]:
     """`{"gripper_groups", "plot_groups"}`: the `eval.*` keys, or when empty the layout's groups of
-    role gripper, and of role arm or gripper (every group if it declares none)."""
+    role gripper, and of the manipulation roles (every group if it declares none)."""
     return {
         "gripper_groups": tuple(eval_cfg["gripper_groups"]) or layout.groups_with_role("gripper"),
-        "plot_groups": (tuple(eval_cfg["plot_groups"]) or layout.groups_with_role("arm", "gripper")
+        "plot_groups": (tuple(eval_cfg["plot_groups"]) or layout.groups_with_role(*MANIPULATION_ROLES)
                         or layout.group_names),
     }
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.data.statistics import stats as stats_lib
 
@@ -133,7 +133,7 @@ def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dic
 def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[str, Any]:
     """The mechanisms found for the groups of role arm and gripper (every group if none has a
     role), and the lever to try first."""
-    watched = [g for g in layout.groups_with_role("arm", "gripper") or layout.group_names
+    watched = [g for g in layout.groups_with_role(*MANIPULATION_ROLES) or layout.group_names
                if not groups[g]["constant"]]
     magnitude = [g for g in watched
                  if groups[g]["loss_share"] < MAGNITUDE_RATIO * groups[g]["dim_share"]]

@@ -56,6 +56,7 @@ import concurrent.futures
 import functools
 import itertools
 import json
+import logging
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,10 @@ class LeRobotSource:
       action_indices: `data.action_indices`, dims of the stored actions to keep (() = all).
       video_tolerance_frames: `data.video_tolerance_frames`, how far (in frames) a row's
         timestamp may lie from the video frame it reads.
+      skip_missing_videos: `data.skip_missing_videos`: episodes whose video file of a read camera
+        is missing are left out, named in one warning line (True), or (False) are an error naming
+        them all as soon as a pass would read images (`probe`, `load_table`); passes that read
+        none (statistics, analysis) read every episode.
 
     Attributes:
       num_episodes, episode_index ([E] int64 episode ids), episode_lengths ([E] int64),
@@ -121,7 +126,8 @@ class LeRobotSource:
                  cameras: Mapping[str, str] | None = None, action_key: str = ACTION,
                  state_key: str = STATE, state_indices: Sequence[int] | None = None,
                  state_preset: str = "", action_indices: Sequence[int] | None = None,
-                 video_tolerance_frames: float = 0.5, images: bool = True):
+                 video_tolerance_frames: float = 0.5, images: bool = True,
+                 skip_missing_videos: bool = False):
         self.root = Path(root)
         info_path = self.root / "meta" / "info.json"
         if not info_path.is_file():
@@ -180,6 +186,13 @@ class LeRobotSource:
         self._episodes = with_prompts(load(self.root, info, video_keys), rows)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
+        self._missing_videos = self._missing_videos_message(video_keys)
+        self.skipped_episodes: tuple[int, ...] = ()
+        if self._missing_videos and skip_missing_videos:
+            self._episodes, self.skipped_episodes = self._without_missing_videos(video_keys)
+            logging.warning("%s; left out of training and evaluation (data.skip_missing_videos)",
+                            self._missing_videos)
+            self._missing_videos = None
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
@@ -187,6 +200,40 @@ class LeRobotSource:
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
 
     block_keys = BLOCK_KEYS
+
+    def _missing(self, video_keys: Sequence[str]) -> list[EpisodeRecord]:
+        """The episodes whose video file of a camera in `video_keys` is missing (one `stat` per
+        file)."""
+        return [e for e in self._episodes if any(not e.videos[k][0].is_file() for k in video_keys)]
+
+    def _missing_videos_message(self, video_keys: Sequence[str]) -> str | None:
+        """One line naming every episode without its video files, or None."""
+        missing = self._missing(video_keys)
+        if not missing:
+            return None
+        example = next(e.videos[k][0] for e in missing for k in video_keys
+                       if not e.videos[k][0].is_file())
+        return (f"missing video files for {len(missing)} of {len(self._episodes)} episodes of "
+                f"{self.root} (e.g. {example}): episodes "
+                f"{', '.join(str(e.index) for e in missing)}")
+
+    def _without_missing_videos(self, video_keys: Sequence[str]
+                                ) -> tuple[list[EpisodeRecord], tuple[int, ...]]:
+        """`(the episodes with every video file, the ids of those without)`."""
+        missing = self._missing(video_keys)
+        kept = [e for e in self._episodes if e not in missing]
+        if not kept:
+            raise ValueError(f"{self._missing_videos}: no episode is left "
+                             "(data.skip_missing_videos=True)")
+        return kept, tuple(e.index for e in missing)
+
+    def _check_videos_present(self) -> None:
+        """Refuses, before a pass reads images, a dataset with episodes whose videos are
+        missing, naming them all (the fix: the files, or `data.skip_missing_videos`)."""
+        if self._missing_videos:
+            raise ValueError(f"{self._missing_videos}; fetch the files, or set "
+                             "data.skip_missing_videos=True to leave these episodes out of "
+                             "training and evaluation")
 
     @property
     def num_episodes(self) -> int:
@@ -232,10 +279,12 @@ class LeRobotSource:
         Raises:
           ValueError naming the file, the episode and the time that cannot be read.
         """
+        videos = [k for k, kind in self._camera_kind.items() if kind == "video"] if videos else []
+        if videos:
+            self._check_videos_present()
         if num_episodes <= 0:
             return
         positions = np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round())
-        videos = [k for k, kind in self._camera_kind.items() if kind == "video"] if videos else []
         for position in positions.astype(int):
             episode = self._episodes[position]
             keys = ("actions", "state") + (("timestamp",) if videos else ())
@@ -246,8 +295,6 @@ class LeRobotSource:
             self._check_row_rate(times, episode)
             for key in videos:
                 path, start, stop = episode.videos[key]
-                if not path.is_file():
-                    raise ValueError(f"missing video file {path} (episode {episode.index})")
                 decoder = VideoDecoder(path, self.fps, self.video_tolerance_frames)
                 try:
                     where = f"episode {episode.index}, camera {key!r}"
@@ -285,9 +332,8 @@ class LeRobotSource:
         videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
         if not videos:
             return None
+        self._check_videos_present()
         path = self._episodes[0].videos[videos[0]][0]
-        if not path.is_file():
-            raise ValueError(f"missing video file {path} (episode {self._episodes[0].index})")
         codec, height, width, interval = keyframe_interval(path)
         return f"{codec} {height}x{width} ({videos[0]})", interval
 
@@ -451,10 +497,7 @@ class LeRobotSource:
         chosen = [self._episodes[p] for p in positions]
         videos = images and any(kind == "video" for kind in self._camera_kind.values())
         if videos:
-            for episode in chosen:
-                for path, *_ in episode.videos.values():
-                    if not path.is_file():
-                        raise ValueError(f"missing video file {path} (episode {episode.index})")
+            self._check_videos_present()
         store = self.frame_store
         starts = np.concatenate([[0], np.cumsum([e.length for e in chosen])]).astype(np.int64)
         reader = None

@@ -13,6 +13,8 @@ Config keys read here (`config.data`):
   state_preset, state_indices, action_indices   LeRobot: which stored dims the model sees
                  (`pi0_armfix.data.selection`; B1K's 256-D state needs `state_preset='b1k_r1pro'`).
   video_tolerance_frames    LeRobot: how far a row's timestamp may lie from its video frame.
+  skip_missing_videos       LeRobot: leave out the episodes whose video files are missing
+                 (named in one line) instead of refusing them.
   split          optional, RLDS only: the split to read (default "train").
 """
 
@@ -88,4 +90,4 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         state_preset=selection_lib.state_preset(data_cfg),
         action_indices=data_cfg.get("action_indices") or None,
         video_tolerance_frames=float(data_cfg.get("video_tolerance_frames") or 0.5),
-        images=images)
+        images=images, skip_missing_videos=bool(data_cfg.get("skip_missing_videos", False)))
