@@ -1,0 +1,102 @@
+"""A Unitree G1 with Inspire hands as published (layout-exact fixture, `g1_fixture`): the `g1`
+scale reads it with its camera, leaves out the episodes whose videos are missing only when told,
+trains and evaluates, and the analysis tools run on it."""
+
+import numpy as np
+import pytest
+
+import g1_fixture
+from data_fixtures import identify_frame
+from pi0_armfix import train
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.configs import arm_focused, arm_weights_3x, uniform
+from pi0_armfix.data.formats.sources import open_source
+from pi0_armfix.data.formats.video import keyframe_interval
+from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.tools import analyze_action_magnitudes
+
+LAYOUT = ActionLayout.preset("g1_inspire")
+MISSING = (1,)
+
+
+@pytest.fixture(scope="module")
+def g1(tmp_path_factory):
+    root = tmp_path_factory.mktemp("g1") / "G1-policy-train"
+    return root, g1_fixture.write_g1_dataset(root, missing_videos=MISSING)
+
+
+def g1_config(root, make=arm_focused.get_config, **overrides):
+    """A `:g1` config shrunk to the tiny preset on the fixture: two steps of batch 8 and an
+    evaluation on the last 2 episodes."""
+    config = make("g1")
+    config.update_from_flattened_dict({
+        "model.preset": "tiny", "data.root": str(root), "data.num_workers": 0,
+        "train.total_steps": 2, "train.batch_size": 8, "train.log_every": 1,
+        "train.checkpoint_every": 2, "optim.warmup_steps": 1, "eval.every": 2,
+        "eval.episodes": 2, "eval.batch_size": 8, "eval.max_chunks": 16, **overrides})
+    return config
+
+
+def test_the_fixture_is_av1_with_a_keyframe_every_two_frames_as_published(g1):
+    root, _ = g1
+    video = root / "videos/chunk-000" / g1_fixture.CAMERA / "episode_000000.mp4"
+    codec, height, width, interval = keyframe_interval(video)
+    assert (codec, height, width, interval) == ("libdav1d", 48, 64, 2)
+
+
+def test_the_g1_scale_reads_both_arms_and_hands_with_the_state_in_the_action_order():
+    config = arm_focused.get_config("g1")
+    assert config.layout.preset == "g1_inspire"
+    assert dict(config.data.state_groups) == dict(LAYOUT.groups)
+    assert LAYOUT.roles == {"left_arm": "arm", "right_arm": "arm", "left_hand": "hand",
+                            "right_hand": "hand"}
+    assert config.data.delta_action_mask == ("left_arm", "right_arm", "left_hand", "right_hand")
+
+
+def test_the_g1_scale_weights_the_arms_and_hands_in_the_seeds_3x():
+    assert dict(arm_weights_3x.get_config("g1").loss.group_weights) == {
+        "left_arm": 3.0, "right_arm": 3.0, "left_hand": 3.0, "right_hand": 3.0}
+    assert set(dict(uniform.get_config("g1").loss.group_weights)) == set(LAYOUT.group_names)
+
+
+def test_missing_videos_are_refused_by_default_naming_the_episodes(g1):
+    root, _ = g1
+    source = open_source(g1_config(root).data, LAYOUT)
+    with pytest.raises(ValueError, match=r"episodes 1; .*data.skip_missing_videos=True"):
+        source.probe()
+
+
+def test_the_camera_feeds_the_head_camera_and_decodes_each_rows_frame(g1):
+    root, written = g1
+    source = open_source(g1_config(root, **{"data.skip_missing_videos": True}).data, LAYOUT)
+    assert source.cameras == {"base_0_rgb": g1_fixture.CAMERA}
+    assert source.skipped_episodes == MISSING
+    table = source.load_table([2])
+    np.testing.assert_array_equal(table.actions[:], written[2][1])
+    np.testing.assert_array_equal(table.state[:], written[2][0])
+    for frame in (0, 9, 17, g1_fixture.LENGTHS[2] - 1):
+        image = table.images(frame)["base_0_rgb"]
+        # the colour repeats every 16 frames (`data_fixtures.frame_colour`)
+        assert identify_frame(image, 2, g1_fixture.LENGTHS[2], 0) == frame % 16
+
+
+def test_the_g1_scale_trains_and_evaluates_without_the_episodes_missing_their_videos(g1, tmp_path):
+    root, _ = g1
+    workdir = tmp_path / "run"
+    record = train.train_and_evaluate(
+        g1_config(root, **{"data.skip_missing_videos": True}), str(workdir))
+    assert np.isfinite(record["loss"]) and (workdir / "checkpoints" / "2").is_dir()
+    step, metrics, _, _ = evaluator_lib.evaluate_checkpoint(workdir)
+    assert step == 2
+    for group in LAYOUT.group_names:
+        assert np.isfinite(metrics[f"skill/{group}"])
+    assert not any(key.startswith("switch") for key in metrics)  # hands are joints
+
+
+def test_the_analysis_finds_the_idle_sides_state_copy(g1, tmp_path):
+    root, _ = g1
+    report = analyze_action_magnitudes.run(
+        g1_config(root, make=uniform.get_config, **{"eval.episodes": 1}), tmp_path / "r.json")
+    groups = report["mechanism"]["groups"]
+    assert groups["left_arm"]["state_explained"] > 0.9
+    assert groups["left_hand"]["state_explained"] > 0.9
