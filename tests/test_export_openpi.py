@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 
+import ml_collections
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
@@ -183,3 +184,11 @@ def test_delta_masks_become_openpis_make_bool_mask_arguments():
     mask = np.array([False] * 3 + [True] * 4 + [True] * 7 + [False] + [True] * 7 + [False])
     assert export_openpi.bool_mask_runs(mask) == (-3, 11, -1, 7, -1)
     assert export_openpi.bool_mask_runs(np.array([True, True])) == (2,)
+
+
+def test_a_run_relative_to_the_previous_action_is_one_openpi_cannot_reproduce(run):
+    restored = inference.restore_run(run)
+    config = ml_collections.ConfigDict(restored.config.to_dict())
+    config.data.delta_reference = "previous_action"
+    problems = export_openpi.openpi_problems(dataclasses.replace(restored, config=config))
+    assert any(p.startswith("data.delta_reference = 'previous_action'") for p in problems)

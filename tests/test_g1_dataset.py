@@ -2,6 +2,7 @@
 scale reads it with its camera, leaves out the episodes whose videos are missing only when told,
 trains and evaluates, and the analysis tools run on it."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -9,10 +10,11 @@ import g1_fixture
 from data_fixtures import identify_frame
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
-from pi0_armfix.configs import arm_focused, arm_weights_3x, uniform
+from pi0_armfix.configs import arm_focused, arm_focused_previous_action, arm_weights_3x, uniform
 from pi0_armfix.data.formats.sources import open_source
 from pi0_armfix.data.formats.video import keyframe_interval
 from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.policies import inference
 from pi0_armfix.tools import analyze_action_magnitudes
 
 LAYOUT = ActionLayout.preset("g1_inspire")
@@ -100,3 +102,76 @@ def test_the_analysis_finds_the_idle_sides_state_copy(g1, tmp_path):
     groups = report["mechanism"]["groups"]
     assert groups["left_arm"]["state_explained"] > 0.9
     assert groups["left_hand"]["state_explained"] > 0.9
+
+
+KEYS = inference.ObservationKeys({"cam_high": "base_0_rgb"}, state="state", prompt="prompt")
+
+
+@pytest.fixture(scope="module")
+def previous_action_run(g1, tmp_path_factory):
+    root, _ = g1
+    workdir = tmp_path_factory.mktemp("previous") / "run"
+    train.train_and_evaluate(g1_config(root, make=arm_focused_previous_action.get_config,
+                                       **{"data.skip_missing_videos": True}), str(workdir))
+    return workdir
+
+
+def _observation(written, frame, episode=2):
+    state, _ = written[episode]
+    return {"cam_high": np.zeros((g1_fixture.HEIGHT, g1_fixture.WIDTH, 3), np.uint8),
+            "state": state[frame], "prompt": g1_fixture.TASK}
+
+
+def test_a_previous_action_policy_is_relative_to_the_command_it_is_given(g1, previous_action_run):
+    _, written = g1
+    policy = inference.RunPolicy.from_workdir(previous_action_run, keys=KEYS)
+    assert policy.metadata()["delta_reference"] == "previous_action"
+    state, action = written[2]
+    observation = _observation(written, 5)
+    inputs, selected = policy.model_inputs([observation])
+    # one camera: the wrists are what training fed for them, masked out
+    assert inputs["image_mask"]["base_0_rgb"].all()
+    assert not inputs["image_mask"]["left_wrist_0_rgb"].any()
+    given = {**observation, "previous_action": action[4]}
+    np.testing.assert_array_equal(policy.reference([given], selected), action[4][None])
+    # no command yet (an episode's first step): the state, as in training
+    np.testing.assert_array_equal(policy.reference([observation], selected), state[5][None])
+    rng = jax.random.key(3)
+    np.testing.assert_allclose(policy.infer([observation], rng=rng, previous=action[4][None]),
+                               policy.infer([given], rng=rng), atol=1e-6)
+
+
+def test_a_malformed_previous_action_is_one_error_naming_the_key(g1, previous_action_run):
+    _, written = g1
+    policy = inference.RunPolicy.from_workdir(previous_action_run, keys=KEYS)
+    observation = {**_observation(written, 5), "previous_action": np.zeros(3)}
+    with pytest.raises(ValueError, match=r"'previous_action' must be the 26 finite values"):
+        policy.infer([observation])
+
+
+class _Recording:
+    """A previous-action policy that records what it was given."""
+
+    delta_reference = "previous_action"
+    layout = LAYOUT
+
+    def __init__(self):
+        self.given = []
+
+    def infer(self, observations, follow=None, previous=None):
+        self.given.append(previous)
+        return np.random.default_rng(len(self.given)).normal(
+            size=(len(observations), 4, 26)).astype(np.float32)
+
+
+def test_the_replanner_gives_the_policy_the_last_action_it_executed():
+    policy = _Recording()
+    replanning = inference.Replanner(policy, n_exec=3, follow_tail=False)
+    replanning.start()
+    first = replanning([0, 1], [{}, {}])
+    assert np.isnan(policy.given[0]).all()  # an episode's start: none yet
+    replanning([1], [{}])
+    np.testing.assert_array_equal(policy.given[1], first[1:, 2])
+    replanning.start()
+    replanning([1], [{}])
+    assert np.isnan(policy.given[2]).all()

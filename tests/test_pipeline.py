@@ -495,3 +495,63 @@ def test_a_state_in_prompt_tokenizer_gets_openpis_float64_normalization_exactly(
     assert got.dtype == np.float64
     np.testing.assert_array_equal(got, openpi)
     np.testing.assert_array_equal(tokenizer_lib.state_bins(got), tokenizer_lib.state_bins(openpi))
+
+
+PREVIOUS = {**ARM_DELTA, "delta_reference": "previous_action"}
+
+
+def test_previous_action_reference_is_the_command_one_frame_before_and_the_state_at_a_start():
+    table = arm_table()
+    frames = np.array([0, 1, 6, 7, 8])  # episodes start at 0 and 7
+    reference = transforms.delta_reference("previous_action", table.actions, table.state,
+                                           frames, table.episode_starts)
+    np.testing.assert_array_equal(reference[[1, 2, 4]], table.actions[[0, 5, 7]])
+    np.testing.assert_array_equal(reference[[0, 3], :20], table.state[[0, 7]])
+    assert not reference[[0, 3], 20:].any()  # the state has no dims there: nothing relative
+
+
+def test_delta_actions_relative_to_the_previous_action_round_trip_to_the_true_chunks():
+    table = arm_table()
+    spec = spec_of(PREVIOUS)
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5), spec,
+                                         action_horizon=HORIZON, progress=False)
+    transform = batching.BatchTransform(table, LAYOUT, norm_stats=stats, norm_mode="zscore",
+                                        action_horizon=HORIZON, delta_mask=spec.delta_mask,
+                                        delta_reference=spec.delta_reference,
+                                        actions_only=True)
+    frames = np.arange(table.num_frames)
+    index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
+    np.testing.assert_allclose(transform.absolute_actions(transform(frames)["actions"], frames),
+                               table.actions[index], atol=1e-4)
+
+
+def test_previous_action_delta_stats_are_over_the_chunk_steps_the_batches_hold():
+    table = arm_table()
+    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5),
+                                         spec_of(PREVIOUS), action_horizon=HORIZON,
+                                         progress=False)
+    frames = np.arange(table.num_frames)
+    index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
+    previous = transforms.previous_frames(frames, table.episode_starts)
+    first = previous == frames
+    reference = np.where(first[:, None], table.state[frames, 7:14], table.actions[previous, 7:14])
+    targets = (table.actions[index][..., 7:14] - reference[:, None]).reshape(-1, 7)
+    np.testing.assert_allclose(stats["actions"].mean[7:14], targets.mean(0, dtype=np.float64),
+                               atol=1e-6)
+    np.testing.assert_allclose(stats["actions"].std[7:14], targets.std(0, dtype=np.float64),
+                               atol=1e-6)
+
+
+def test_the_statistics_of_previous_action_runs_have_their_own_cache_key():
+    table = arm_table()
+    source = type("S", (), {"episode_index": np.arange(table.num_episodes),
+                            "episode_lengths": np.diff(table.episode_starts), "root": ""})()
+    keys = [dataset_lib.norm_stats_key(spec_of(data), source, action_horizon=HORIZON)
+            for data in (ARM_DELTA, PREVIOUS)]
+    assert "data.delta_reference" not in keys[0]
+    assert keys[1]["data.delta_reference"] == "previous_action"
+
+
+def test_an_unknown_delta_reference_is_an_error_naming_the_choices():
+    with pytest.raises(ValueError, match=r"data.delta_reference = 'goal' is not one of"):
+        spec_of({**ARM_DELTA, "delta_reference": "goal"})

@@ -181,6 +181,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Action dims made relative to the state: group names, e.g. ("torso", "left_arm",
     # "right_arm"), or dim indices; () = absolute. Needs the state in the action order.
     config.data.delta_action_mask = ()
+    # What they are relative to: 'state' (the current state), or 'previous_action' (the action
+    # commanded one frame before, which holding the previous action exploits where a command sits
+    # at an offset from the measured state; a policy needs it at inference: the closed loop and
+    # the harness pass the last executed action, a server client sends it: README, "Serve").
+    config.data.delta_reference = "state"
     config.data.norm_per_timestep = False  # action stats per chunk position h ([H, A])
     config.data.chunk_stats_chunks = 20_000  # chunks sampled for per-timestep stats / correlation
     config.data.state_groups = config_dict.placeholder(object)  # the state's {group: (start, stop)}

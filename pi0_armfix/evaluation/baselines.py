@@ -24,20 +24,15 @@ import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.pipeline import transforms
 
 BASELINES = ("persistence", "state_copy")
 
 
-def previous_frames(frames: np.ndarray, episode_starts: np.ndarray) -> np.ndarray:
-    """`[N]` the frame before each of `frames`, clamped to its episode's first frame."""
-    frames = np.asarray(frames, np.int64)
-    first = episode_starts[np.searchsorted(episode_starts, frames, side="right") - 1]
-    return np.maximum(frames - 1, first)
-
-
 def persistence(table: EpisodeTable, frames: np.ndarray, horizon: int) -> np.ndarray:
     """`[N, H, A]`: the previous action held for the whole chunk."""
-    held = np.asarray(table.actions[previous_frames(frames, table.episode_starts)], np.float64)
+    previous = transforms.previous_frames(frames, table.episode_starts)
+    held = np.asarray(table.actions[previous], np.float64)
     return np.repeat(held[:, None], horizon, axis=1)
 
 

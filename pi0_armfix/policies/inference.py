@@ -13,6 +13,12 @@ with the run's `eval.num_steps` Euler steps, its inference levers (`eval.average
 batch shape), and undoes the action normalization and delta actions: the
 result is absolute actions in the dataset's units. Used by the closed-loop evaluation and by the
 policy server.
+
+A run whose actions are relative to the previous commanded action (`data.delta_reference =
+'previous_action'`) needs that action: `infer(previous=...)` (the closed loop and the harness pass
+the last action they executed), else the observation's `previous_action` key (`ObservationKeys`;
+a server's client sends the last action it commanded), in the dataset's units `[real_dim]`. An
+observation without one (an episode's first step) is relative to its state, as in training.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from etils import epath
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import base as base_config
+from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.formats.video import fit_frames
 from pi0_armfix.data.pipeline import batching, run_inputs, transforms
@@ -54,11 +61,12 @@ class ObservationKeys:
     cameras: Mapping[str, str]
     state: str
     prompt: str
+    previous_action: str = "previous_action"
 
     @classmethod
     def parse(cls, text: str) -> "ObservationKeys":
-        """`"key=camera,...,key=state,key=prompt"` (e.g. `"cam_high=base_0_rgb,...,
-        observation/state=state,task=prompt"`); '' = `B1K_KEYS`."""
+        """`"key=camera,...,key=state,key=prompt[,key=previous_action]"` (e.g. `"cam_high=
+        base_0_rgb,...,observation/state=state,task=prompt"`); '' = `B1K_KEYS`."""
         if not text:
             return B1K_KEYS
         cameras, roles = {}, {}
@@ -67,7 +75,7 @@ class ObservationKeys:
             if not sep or not key:
                 raise ValueError(f"observation key mapping item {item!r} is not key=role "
                                  "(role: a batch camera, 'state' or 'prompt')")
-            if role in ("state", "prompt"):
+            if role in ("state", "prompt", "previous_action"):
                 roles[role] = key
             else:
                 cameras[key] = role
@@ -75,7 +83,8 @@ class ObservationKeys:
         if missing or not cameras:
             raise ValueError(f"observation key mapping {text!r} names no key for "
                              f"{missing or ['any camera']}")
-        return cls(cameras, roles["state"], roles["prompt"])
+        return cls(cameras, roles["state"], roles["prompt"],
+                   roles.get("previous_action", "previous_action"))
 
 
 B1K_KEYS = ObservationKeys(
@@ -246,6 +255,7 @@ class RunPolicy:
         self.action_norm = batching.action_normalizer(run.norm_stats, layout.real_dim, norm_mode,
                                                       self.horizon)
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
+        self.delta_reference = config.data.get("delta_reference") or "state"
         model_cfg, own = config.model, run_inputs.tokenizer_path(run.workdir)
         if own is not None:  # the tokenizer it trained with, wherever model.tokenizer pointed
             model_cfg = {**model_cfg.to_dict(), "tokenizer": str(own)}
@@ -303,41 +313,73 @@ class RunPolicy:
                 "action_dim": self.layout.real_dim,
                 "action_groups": {g: list(map(int, v)) for g, v in self.layout.groups.items()},
                 "state_width": self.stored_state_width,
+                "delta_reference": self.delta_reference,
                 "observation_keys": {**self.keys.cameras, self.keys.state: "state",
                                      self.keys.prompt: "prompt"},
                 "actions": "absolute, in the dataset's units"}
 
     def infer(self, observations: Sequence[Mapping[str, Any]],
-              follow: np.ndarray | None = None, rng: jax.Array | None = None) -> np.ndarray:
+              follow: np.ndarray | None = None, rng: jax.Array | None = None,
+              previous: np.ndarray | None = None) -> np.ndarray:
         """`observations` (one dict per robot) -> actions float32 `[B, H, real_dim]`.
 
         Args:
           follow: `[B, k, real_dim]` absolute actions (dataset units) the new chunks should start
             with, softly (`soft_mask`: real-time chunking's weights, no inference delay), e.g. the
             unexecuted tail of the previous chunks; None samples freely.
+          previous: `[B, real_dim]` the action each robot last executed (NaN rows: none yet), for
+            a run relative to it (`data.delta_reference`); None: the observations' own.
           rng: the sampling noise's key (a caller with its own noise stream, e.g. one harness
             connection of several); None draws the policy's next (`seed`, `reseed`).
         Raises:
           ValueError naming the key and what it should be, for a malformed observation.
         """
         observation, state = self.model_inputs(observations)
+        reference = self.reference(observations, state, previous)
         if rng is None:
             rng = jax.random.fold_in(self._key, self._draws)
             self._draws += 1
         kwargs = {}
         if follow is not None:
-            kwargs = self._inpaint(np.asarray(follow, np.float32), state)
+            kwargs = self._inpaint(np.asarray(follow, np.float32), reference)
         return self.absolute(np.asarray(self._sample(self.run.params, rng, observation,
-                                                     **kwargs)), state)
+                                                     **kwargs)), reference)
 
-    def _inpaint(self, follow: np.ndarray, state: np.ndarray) -> dict[str, np.ndarray]:
+    def reference(self, observations: Sequence[Mapping[str, Any]], state: np.ndarray,
+                  previous: np.ndarray | None = None) -> np.ndarray:
+        """What the relative dims are relative to (`transforms.delta_reference`): the selected
+        `state` `[B, S]`, or for a previous-action run the previous actions `[B, real_dim]`
+        (`previous`, else each observation's `keys.previous_action`), the state in the action
+        order where a robot has none yet.
+
+        Raises:
+          ValueError naming the key, for a previous action of the wrong shape or not finite.
+        """
+        if self.delta_mask is None or self.delta_reference == "state":
+            return state
+        width, key = self.layout.real_dim, self.keys.previous_action
+        if previous is None:
+            previous = np.full((len(observations), width), np.nan, np.float32)
+            for i, observation in enumerate(observations):
+                if observation.get(key) is not None:
+                    given = np.asarray(observation[key], np.float32).reshape(-1)
+                    if given.shape != (width,) or not np.isfinite(given).all():
+                        raise ValueError(f"{key!r} must be the {width} finite values of the "
+                                         f"action last commanded (dataset units), got shape "
+                                         f"{np.shape(observation[key])}")
+                    previous[i] = given
+        previous = np.asarray(previous, np.float32)
+        start = transforms.pad_last(state[..., :width], width).astype(np.float32)
+        return np.where(np.isnan(previous).any(-1, keepdims=True), start, previous)
+
+    def _inpaint(self, follow: np.ndarray, reference: np.ndarray) -> dict[str, np.ndarray]:
         batch, overlap = follow.shape[:2]
         if not 0 < overlap < self.horizon or follow.shape[2] != self.layout.real_dim:
             raise ValueError(f"follow must be [B, k, {self.layout.real_dim}] with 0 < k < "
                              f"H = {self.horizon}, got {follow.shape}")
         chunk = np.concatenate([follow, np.repeat(follow[:, -1:], self.horizon - overlap, 1)], 1)
         if self.delta_mask is not None:
-            chunk = transforms.to_delta(chunk, state, self.delta_mask)
+            chunk = transforms.to_delta(chunk, reference, self.delta_mask)
         weights = np.broadcast_to(soft_mask(self.horizon, overlap), (batch, self.horizon))
         return {"inpaint": transforms.pad_last(self.action_norm(chunk), self.layout.action_dim),
                 "inpaint_weights": weights.astype(np.float32)}
@@ -357,18 +399,27 @@ class RunPolicy:
         batch_size = len(observations)
         images = {camera: self._fit(np.stack([self._image(o, key) for o in observations]))
                   for key, camera in self.keys.cameras.items()}
+        image_masks = {camera: np.ones(batch_size, bool) for camera in images}
+        # A camera the robot does not have (a G1's wrists) is what training fed for it: an
+        # all-zero image, masked out.
+        blank = np.zeros((batch_size, *self.run.model_config.image_resolution, 3), np.uint8)
+        for camera in cameras_lib.BATCH_CAMERAS:
+            if camera not in images:
+                images[camera] = self._fit(blank)
+                image_masks[camera] = np.zeros(batch_size, bool)
         return {
             "image": images,
-            "image_mask": {camera: np.ones(batch_size, bool) for camera in images},
+            "image_mask": image_masks,
             "state": transforms.pad_last(normalized, self.layout.action_dim),
             "tokenized_prompt": tokens,
             "tokenized_prompt_mask": masks,
         }, state
 
-    def absolute(self, actions: np.ndarray, state: np.ndarray) -> np.ndarray:
-        """Normalized chunks `[B, H, >= real_dim]` sampled at the selected `state` `[B, S]` ->
-        absolute actions float32 `[B, H, real_dim]` in the dataset's units."""
-        return batching.absolute_actions(actions, state, action_norm=self.action_norm,
+    def absolute(self, actions: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """Normalized chunks `[B, H, >= real_dim]` sampled at `reference` (`reference`: the
+        selected state `[B, S]`, or the previous action) -> absolute actions float32
+        `[B, H, real_dim]` in the dataset's units."""
+        return batching.absolute_actions(actions, reference, action_norm=self.action_norm,
                                          delta_mask=self.delta_mask).astype(np.float32)
 
     # ------------------------------------------------------------------ checks
@@ -419,7 +470,9 @@ class Replanner:
     sessions): a chunk per request, of which the rollout executes
     `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
     tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
-    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env)."""
+    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env). A
+    policy relative to the previous action gets each env's last executed one (the `n_exec`-th of
+    its last chunk; none at an episode's start)."""
 
     def __init__(self, policy: RunPolicy, n_exec: int, follow_tail: bool,
                  latch: hysteresis.GripperLatch | None = None):
@@ -427,8 +480,9 @@ class Replanner:
         self.latch = latch
 
     def start(self, envs=None):
-        """A new episode: no tails, the latch's held commands forgotten."""
+        """A new episode: no tails, no executed action, the latch's held commands forgotten."""
         self._tails: dict[int, np.ndarray] = {}
+        self._executed: dict[int, np.ndarray] = {}
         if self.latch is not None:
             self.latch.reset()
 
@@ -439,11 +493,16 @@ class Replanner:
         follow = None
         if self.follow_tail and all(i in self._tails for i in active):
             follow = np.stack([self._tails[i] for i in active])
-        chunks = self.policy.infer(observations, follow=follow,
-                                   **({} if rng is None else {"rng": rng}))
+        kwargs = {} if rng is None else {"rng": rng}
+        if getattr(self.policy, "delta_reference", "state") == "previous_action":
+            width = self.policy.layout.real_dim
+            kwargs["previous"] = np.stack([self._executed.get(i, np.full(width, np.nan))
+                                           for i in active])
+        chunks = self.policy.infer(observations, follow=follow, **kwargs)
         if self.latch is not None:
             chunks = np.stack([self.latch(i, chunk, self.n_exec)
                                for i, chunk in zip(active, chunks)])
         for i, chunk in zip(active, chunks):
             self._tails[i] = chunk[self.n_exec:]
+            self._executed[i] = chunk[min(self.n_exec, len(chunk)) - 1]
         return chunks

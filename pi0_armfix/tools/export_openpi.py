@@ -87,6 +87,11 @@ def openpi_problems(run: inference.RestoredRun) -> list[str]:
     if float(config.loss.get("noise_beta", 1.0)) < 1.0:
         problems.append(f"loss.noise_beta = {config.loss.noise_beta}: this run samples from "
                         "correlated noise; openpi's sampler draws independent N(0, I) noise")
+    if config.data.get("delta_action_mask") and config.data.get("delta_reference",
+                                                                "state") != "state":
+        problems.append(f"data.delta_reference = {config.data.delta_reference!r}: this run's "
+                        "actions are relative to the previous commanded action; openpi's "
+                        "DeltaActions makes them relative to the state")
     if not model.use_state:
         problems.append("model.use_state = False: this run's model sees a zero state; openpi's "
                         "feeds the normalized state")

@@ -65,9 +65,9 @@ def loss_mask(norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayou
 def absolute_actions(actions: np.ndarray, state: np.ndarray, *,
                      action_norm: normalize.Normalizer, delta_mask: np.ndarray | None
                      ) -> np.ndarray:
-    """Normalized chunks `[b, H, >= A]` sampled at `state` `[b, S]` (the selected state, data
-    units) -> absolute actions `[b, H, A]` in the data's units: normalization undone, then each
-    relative dim of `delta_mask` gets the state back."""
+    """Normalized chunks `[b, H, >= A]` sampled at `state` `[b, S]` (the delta reference: the
+    selected state, or the previous action, data units) -> absolute actions `[b, H, A]` in the
+    data's units: normalization undone, then each relative dim of `delta_mask` gets it back."""
     actions = action_norm.inverse(actions)
     if delta_mask is not None:
         actions = transforms.from_delta(actions, state, delta_mask)
@@ -109,6 +109,7 @@ class BatchTransform:
       norm_mode: `data.norm`, "zscore" or "quantile".
       action_horizon: H.
       delta_mask: `[A]` bool relative action dims, or None.
+      delta_reference: what they are relative to (`transforms.delta_reference`).
       tokenize: `tokenize(prompt) -> (tokens int32 [L], mask bool [L])`; required unless
         `actions_only`; called as `PromptTokens` says.
       actions_only: only `state`, `actions`, `action_is_pad` (no images, no prompt).
@@ -119,8 +120,8 @@ class BatchTransform:
     def __init__(self, table: EpisodeTable, layout: ActionLayout, *,
                  norm_stats: Mapping[str, stats_lib.NormStats], norm_mode: str,
                  action_horizon: int, delta_mask: np.ndarray | None = None,
-                 tokenize: Tokenize | None = None, actions_only: bool = False,
-                 image_size: tuple[int, int] = (224, 224)):
+                 delta_reference: str = "state", tokenize: Tokenize | None = None,
+                 actions_only: bool = False, image_size: tuple[int, int] = (224, 224)):
         layout.check_real_dim(table.actions.shape[1], source="the dataset's actions")
         state_width = table.state.shape[1]
         if state_width > layout.action_dim:
@@ -135,6 +136,7 @@ class BatchTransform:
         self.action_dim = layout.action_dim
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
+        self.delta_reference = delta_reference
         self.tokens = None if actions_only else PromptTokens(tokenize)
         self.actions_only = actions_only
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
@@ -154,7 +156,7 @@ class BatchTransform:
         actions = self.table.actions[index]  # [b, H, A]
         raw_state = self.table.state[frames]  # [b, S]
         if self.delta_mask is not None:
-            actions = transforms.to_delta(actions, raw_state, self.delta_mask)
+            actions = transforms.to_delta(actions, self.reference(frames), self.delta_mask)
         state = self.state_norm(raw_state)
         batch = {
             "state": transforms.pad_last(state, self.action_dim),
@@ -171,9 +173,14 @@ class BatchTransform:
     def absolute_actions(self, actions: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """Normalized chunks `[b, H, >= A]` of the chunks starting at `frames` -> absolute actions
         in the data's units `[b, H, A]` (normalization undone, then delta actions: each relative
-        dim gets the frame's state back). The inverse of the action part of `__call__`."""
-        return absolute_actions(actions, self.table.state[np.asarray(frames)],
-                                action_norm=self.action_norm, delta_mask=self.delta_mask)
+        dim gets the frame's reference back). The inverse of the action part of `__call__`."""
+        return absolute_actions(actions, self.reference(frames), action_norm=self.action_norm,
+                                delta_mask=self.delta_mask)
+
+    def reference(self, frames: np.ndarray) -> np.ndarray:
+        """`[b, W]` what the relative dims of the chunks starting at `frames` are relative to."""
+        return transforms.delta_reference(self.delta_reference, self.table.actions,
+                                          self.table.state, frames, self.table.episode_starts)
 
     def _images(self, frames: np.ndarray, decoded: Mapping[str, np.ndarray] | None = None
                 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:

@@ -69,14 +69,17 @@ def chunk_starts(num_frames: int, max_chunks: int) -> np.ndarray:
 
 
 def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
-                        delta_mask: np.ndarray | None, max_chunks: int) -> ChunkStats:
-    """Per-timestep statistics and Σ of the chunks of `table` (see the module docstring)."""
+                        delta_mask: np.ndarray | None, max_chunks: int,
+                        delta_reference: str = "state") -> ChunkStats:
+    """Per-timestep statistics and Σ of the chunks of `table` (see the module docstring);
+    `delta_reference`: what the relative dims are relative to (`transforms.delta_reference`)."""
     frames = chunk_starts(table.num_frames, max_chunks)
     index, is_pad = transforms.chunk_indices(frames, table.episode_starts, action_horizon)
     chunks = np.asarray(table.actions[index], np.float64)  # [N, H, A]
     if delta_mask is not None:
-        chunks = transforms.to_delta(chunks, np.asarray(table.state[frames], np.float64),
-                                     delta_mask)
+        reference = transforms.delta_reference(delta_reference, table.actions, table.state,
+                                               frames, table.episode_starts)
+        chunks = transforms.to_delta(chunks, np.asarray(reference, np.float64), delta_mask)
     valid = ~is_pad
     fields = {name: np.zeros(chunks.shape[1:]) for name in stats_lib.FIELDS}
     for h in range(action_horizon):
@@ -134,6 +137,7 @@ def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: 
                              "start a new --workdir")
     table = source.load_table(dataset_lib.training_episodes(spec, source), images=False)
     stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=spec.delta_mask,
+                                delta_reference=spec.delta_reference,
                                 max_chunks=int(spec.get("chunk_stats_chunks")))
     save_per_timestep(paths[0], stats.per_timestep)
     # Through a temporary file and a rename, like the norm stats: every process of a run writes.

@@ -37,6 +37,8 @@ class DataSpec:
       total_steps: `train.total_steps` (0: not a training run).
       norm: the normalization ('zscore', 'quantile', ...): `data.norm`, else the model's.
       delta_mask: `[A]` bool, the action dims trained relative to the state; None = absolute.
+      delta_reference: what they are relative to (`data.delta_reference`,
+        `transforms.DELTA_REFERENCES`): "state" or "previous_action".
       state_preset: the state preset read ('' = every stored dim or `data.state_indices`).
       state_groups: the state's {group: (start, stop)} in the action order, or None.
       curriculum: the parsed `data.curriculum` (one phase of the full dataset when unset).
@@ -51,6 +53,7 @@ class DataSpec:
     total_steps: int = 0
     norm: str = "zscore"
     delta_mask: np.ndarray | None = None
+    delta_reference: str = "state"
     state_preset: str = ""
     state_groups: Mapping[str, Sequence[int]] | None = None
     curriculum: curriculum_lib.Curriculum = dataclasses.field(
@@ -79,6 +82,7 @@ class DataSpec:
             norm=(norm or options.get("norm")
                   or (model_config_lib.norm_mode(config) if "model" in config else "zscore")),
             delta_mask=transforms.delta_action_mask(options.get("delta_action_mask"), layout),
+            delta_reference=_delta_reference(options),
             state_preset=selection_lib.state_preset(options),
             state_groups=selection_lib.state_groups(options),
             curriculum=curriculum_lib.Curriculum.from_config(options, seed))
@@ -87,6 +91,14 @@ class DataSpec:
         """`data.<key>` as configured (None or missing: `default`)."""
         value = self.options.get(key)
         return default if value is None else value
+
+
+def _delta_reference(options: Mapping[str, Any]) -> str:
+    kind = options.get("delta_reference") or "state"
+    if kind not in transforms.DELTA_REFERENCES:
+        raise ValueError(f"data.delta_reference = {kind!r} is not one of "
+                         f"{list(transforms.DELTA_REFERENCES)}")
+    return kind
 
 
 def _plain(section: Mapping[str, Any]) -> dict[str, Any]:

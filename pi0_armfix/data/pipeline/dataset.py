@@ -214,7 +214,7 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
     Absolute action dims and the state: over frames, each frame once. The relative dims of
     `data.delta_action_mask`: over every step of every chunk, as openpi (which computes its stats
     through the data transforms) and exactly what the training batches hold: for each frame t and
-    h < H, `a[min(t + h, last)] - s[t]` (float32, clamped at the episode's last frame like the
+    h < H, `a[min(t + h, last)] - s[t]` (or `- a[t - 1]`, `data.delta_reference`) (float32, clamped at the episode's last frame like the
     chunker; the padded steps are included because the batch holds them too). A frame's own delta
     `a[t] - s[t]` is far smaller than the chunk's later ones, so per-frame stats would blow the
     normalized targets up. This pass re-cuts the stream into whole episodes and costs H times the
@@ -241,8 +241,11 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
         episode = np.asarray(block["episode_index"])
         starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
                                  [len(episode)]])
-        index, _ = transforms.chunk_indices(np.arange(len(episode)), starts, action_horizon)
-        steps = (transforms.to_delta(actions[index[:, h]], state, mask)[:, mask]
+        frames = np.arange(len(episode))
+        index, _ = transforms.chunk_indices(frames, starts, action_horizon)
+        reference = transforms.delta_reference(spec.delta_reference, actions, state, frames,
+                                               starts)
+        steps = (transforms.to_delta(actions[index[:, h]], reference, mask)[:, mask]
                  for h in range(action_horizon))
         return {"actions": actions, "delta_actions": steps, "state": state}
 
@@ -327,6 +330,8 @@ def norm_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str, 
         key["layout.groups"] = {g: list(b) for g, b in layout.groups.items()}
     if mask is not None:
         key["data.delta_action_mask"] = np.flatnonzero(mask).tolist()
+        if spec.delta_reference != "state":  # the default adds no entry: existing caches hold
+            key["data.delta_reference"] = spec.delta_reference
         key["data.state_groups"] = _jsonable(spec.state_groups)
         key["model.action_horizon"] = int(action_horizon)
     return key

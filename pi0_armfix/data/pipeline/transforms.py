@@ -48,7 +48,46 @@ def chunk_indices(frames: np.ndarray, episode_starts: np.ndarray, horizon: int
     return np.minimum(wanted, last[..., None]), wanted > last[..., None]
 
 
+def previous_frames(frames: np.ndarray, episode_starts: np.ndarray) -> np.ndarray:
+    """`[...]` the frame before each of `frames`, clamped to its episode's first frame."""
+    frames = np.asarray(frames, np.int64)
+    first = np.asarray(episode_starts, np.int64)[
+        np.searchsorted(episode_starts, frames, side="right") - 1]
+    return np.maximum(frames - 1, first)
+
+
 # ---------------------------------------------------------------------- delta actions
+
+# What delta actions are relative to (`data.delta_reference`): the current state (B1K 2025's
+# winners), or the action commanded one frame before, which a robot's controller holds at
+# inference: a real arm's command sits at an offset from its measured position (a controller's
+# steady-state error) that the state alone does not give and holding the previous action carries
+# (docs/mechanisms.md).
+DELTA_REFERENCES = ("state", "previous_action")
+
+
+def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
+                    episode_starts: np.ndarray) -> np.ndarray:
+    """`[..., W]` what the relative dims of chunks starting at `frames` are relative to.
+
+    Args:
+      kind: `data.delta_reference`: "state" (the state at the frame, `[..., S]`) or
+        "previous_action" (the action at the frame before, `[..., A]`; at an episode's first
+        frame, where no command precedes, the state in the action order).
+      actions, state: row-indexable `[N, A]` / `[N, S]` columns of a table (or arrays).
+      frames: `[...]` frame indices; episode_starts: `[E + 1]` the table's episode offsets.
+    """
+    frames = np.asarray(frames, np.int64)
+    current = np.asarray(state[frames])
+    if kind == "state":
+        return current
+    if kind != "previous_action":
+        raise ValueError(f"data.delta_reference = {kind!r}; choose one of {list(DELTA_REFERENCES)}")
+    previous = previous_frames(frames, episode_starts)
+    held = np.asarray(actions[previous])
+    start = pad_last(current[..., :held.shape[-1]], held.shape[-1]).astype(held.dtype)
+    return np.where((previous == frames)[..., None], start, held)
+
 
 def delta_action_mask(value: Any, layout: ActionLayout) -> np.ndarray | None:
     """`data.delta_action_mask` -> `[real_dim]` bool, or None when no dim is relative.
@@ -130,11 +169,11 @@ def check_delta_state_layout(mask: np.ndarray, layout: ActionLayout,
 
 
 def to_delta(actions: np.ndarray, state: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Makes the masked dims relative to the current state.
+    """Makes the masked dims relative to the current state (or another `delta_reference`).
 
     Args:
       actions: `[..., H, A]` (chunks) or `[..., A]` (frames).
-      state: `[..., S]`, the current state, leading dims as `actions` without H.
+      state: `[..., S]`, the current state (the reference), leading dims as `actions` without H.
       mask: `[A]` bool, the relative dims.
     """
     return actions - _state_offset(actions, state, mask)
