@@ -92,16 +92,21 @@ def test_the_g1_scale_trains_and_evaluates_without_the_episodes_missing_their_vi
     assert step == 2
     for group in LAYOUT.group_names:
         assert np.isfinite(metrics[f"skill/{group}"])
-    assert not any(key.startswith("switch") for key in metrics)  # hands are joints
+    # hands are joints: no switch is counted, and the table has no switch line
+    assert sum(metrics[f"gripper_switch/{k}"] for k in ("tp", "fp", "fn")) == 0
+    assert "gripper switches" not in evaluator_lib.format_metrics(metrics, LAYOUT)
 
 
-def test_the_analysis_finds_the_idle_sides_state_copy(g1, tmp_path):
+def test_the_analysis_finds_the_idle_sides_state_copy_and_offset(g1, tmp_path):
     root, _ = g1
     report = analyze_action_magnitudes.run(
         g1_config(root, make=uniform.get_config, **{"eval.episodes": 1}), tmp_path / "r.json")
     groups = report["mechanism"]["groups"]
     assert groups["left_arm"]["state_explained"] > 0.9
     assert groups["left_hand"]["state_explained"] > 0.9
+    # the idle side is commanded at a steady offset from where it is: the offset verdict
+    assert {"left_arm", "left_hand"} <= set(report["mechanism"]["offset"])
+    assert "right_arm" not in report["mechanism"]["offset"]
 
 
 KEYS = inference.ObservationKeys({"cam_high": "base_0_rgb"}, state="state", prompt="prompt")

@@ -87,3 +87,48 @@ def test_a_group_that_never_moves_is_constant_not_a_magnitude_imbalance():
     groups, verdict = _report(blocks)
     assert groups["arm"]["constant"] and groups["arm"]["state_explained"] is None
     assert verdict["magnitude"] == [] and verdict["constant"] == ["arm"]
+
+
+def _commanded(offset: float, seed=0):
+    """Arms commanded at a per-episode steady offset from their measured, slowly drifting
+    position (a controller's steady-state error); the state places the arm in the action order."""
+    rng = np.random.default_rng(seed)
+    blocks = []
+    for e in range(20):
+        measured = rng.normal(size=2) + 1e-3 * np.cumsum(rng.normal(size=(100, 2)), axis=0)
+        arm = measured + offset * rng.choice([-1.0, 1.0], size=2)
+        actions = np.concatenate([rng.normal(size=(100, 1)), arm], axis=1)
+        blocks.append({"actions": actions, "state": measured, "episode_index": np.full(100, e)})
+    return blocks
+
+
+def _report_with_copy(blocks):
+    frames = {k: np.concatenate([b[k] for b in blocks]) for k in ("actions", "state")}
+    norm = {k: NormStats(v.mean(0), v.std(0), v.min(0), v.max(0)) for k, v in frames.items()}
+    copy_dims = (np.array([1, 2]), np.array([0, 1]))
+    sums = mechanism.accumulate(stats.whole_episode_blocks(iter(blocks)), norm["actions"],
+                                norm["state"], H, copy_dims)
+    groups = mechanism.group_mechanisms(sums, LAYOUT)
+    return groups, mechanism.verdict(groups, LAYOUT), norm["actions"].std
+
+
+def test_a_command_at_a_steady_offset_from_the_state_is_the_offset_verdict():
+    groups, verdict, std = _report_with_copy(_commanded(offset=0.05))
+    arm = groups["arm"]
+    assert arm["state_explained"] > 0.99  # what the R2 hides
+    np.testing.assert_allclose(arm["copy_error"], np.sqrt(np.mean((0.05 / std[1:]) ** 2)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(arm["steady_offset"], arm["copy_error"], rtol=1e-6)
+    assert arm["hold_error"] < 0.1 * arm["copy_error"]
+    assert verdict["offset"] == ["arm"]
+    assert any("data.delta_reference='previous_action'" in line for line in verdict["verdict"])
+
+
+def test_a_command_that_is_its_state_has_no_offset():
+    groups, verdict, _ = _report_with_copy(_commanded(offset=0.0))
+    assert groups["arm"]["copy_error"] == 0.0 and verdict["offset"] == []
+
+
+def test_groups_the_state_does_not_place_have_no_copy_error():
+    groups, verdict, _ = _report_with_copy(_commanded(offset=0.05))
+    assert groups["base"]["copy_error"] is None and groups["base"]["hold_error"] > 0

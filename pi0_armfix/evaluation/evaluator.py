@@ -226,7 +226,7 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
     """A table: per group the single draw's error and skill over persistence, the skill of the
     mean of the draws and the energy-score skill, the single draw's motion gain and ratio, then
     the error and gain of each reference predictor on the same chunks (the do-nothing
-    baselines; the ceiling on the demo); then gripper switches."""
+    baselines; the ceiling on the demo); then gripper switches, where the layout has grippers."""
     references = [name for name in ("persistence", "state_copy", heldout_lib.CEILING)
                   if f"{name}/err/{layout.group_names[0]}" in metrics]
     draws = int(metrics.get("draws", 1))
@@ -251,6 +251,8 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
             f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>8.3f}"
             + "".join(f" |{metrics[f'{name}/err/{g}']:>16.4f}"
                       f"{metrics[f'{name}/motion_gain/{g}']:>7.3f}" for name in references))
+    if not layout.groups_with_role("gripper"):  # hands are joints: no switch to count
+        return "\n".join(lines)
     counts = "/".join(str(int(metrics[f"gripper_switch/{k}"])) for k in ("tp", "fp", "fn"))
     lines.append("gripper switches (each event once): " + ", ".join(
         f"{name} {metrics[f'gripper_switch/{name}']:.3f}" for name in ("precision", "recall", "f1"))

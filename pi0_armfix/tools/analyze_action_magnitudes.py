@@ -51,6 +51,7 @@ from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.data.statistics import motion as motion_lib
 from pi0_armfix.data.statistics import stats as stats_lib
+from pi0_armfix.evaluation import baselines
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.tools import mechanism as mechanism_lib
 
@@ -190,8 +191,9 @@ def run(config: ml_collections.ConfigDict, output: str | Path) -> dict[str, Any]
                                          source=source)
     unit, active = motion_lib.normalized_units(norm_stats["actions"], norm_mode)
     blocks, _ = dataset_lib.training_blocks(spec, ("actions", "state"), source=source)
+    copy_dims = baselines.state_copy_dims(layout, spec.state_groups)
     sums = mechanism_lib.accumulate(stats_lib.whole_episode_blocks(blocks), actions.result(),
-                                    norm_stats["state"], horizon)
+                                    norm_stats["state"], horizon, copy_dims)
     mechanism = mechanism_lib.group_mechanisms(sums, layout)
     report = {
         "normalization": norm_mode,
@@ -223,12 +225,14 @@ def format_report(report: dict[str, Any]) -> str:
     lines += ["", f"stagnation mechanism (z-scored absolute actions, chunks of "
               f"H = {mechanism['horizon']}):",
               f"{'group':<16}{'loss %':>8}{'dims %':>8}{'state R2':>10}{'after state %':>15}"
-              f"{'chunk change':>14}"]
+              f"{'chunk change':>14}{'hold err':>10}{'copy err':>10}{'offset':>8}"]
     for name, g in mechanism["groups"].items():
         explained = "constant" if g["constant"] else f"{g['state_explained']:.3f}"
+        copied = ("" if g["copy_error"] is None
+                  else f"{g['copy_error']:>10.3f}{g['steady_offset']:>8.3f}")
         lines.append(f"{name:<16}{100 * g['loss_share']:>8.1f}{100 * g['dim_share']:>8.1f}"
                      f"{explained:>10}{100 * g['share_after_state']:>15.1f}"
-                     f"{g['within_chunk_change']:>14.4f}")
+                     f"{g['within_chunk_change']:>14.4f}{g['hold_error']:>10.3f}{copied}")
     lines += [f"VERDICT: {v}" for v in mechanism["verdict"]]
     lines += [f"WARNING: {w}" for w in report["warnings"]]
     return "\n".join(lines)

@@ -25,6 +25,19 @@ actions sees), over every step h < H of every training chunk:
                       teach, per group.
   within_chunk_change mean squared change of the target from the chunk's first step (normalized
                       units): the motion a chunk asks for.
+
+And per frame, for the groups the state places in the action order (`data.state_groups`), what the
+two do-nothing predictors of the evaluation pay (RMS, same units) and what the R^2 hides:
+
+  hold_error          the action against the one commanded a frame before (holding it).
+  copy_error          the action against the measured state (copying it).
+  steady_offset       the part of copy_error that is a constant per episode: RMS over the group's
+                      dims of each episode's mean `a - s`. A commanded joint that sits at a fixed
+                      offset from its measured position (a controller's steady-state error, a
+                      calibration) keeps R^2 near 1, since the offset is almost constant, yet
+                      copying the state misses by it where holding the previous command does not:
+                      the **offset** verdict, whose lever gives the policy the previous command
+                      (`data.delta_reference='previous_action'`).
 """
 
 from __future__ import annotations
@@ -42,6 +55,8 @@ from pi0_armfix.data.statistics import stats as stats_lib
 MAGNITUDE_RATIO = 0.5  # loss share below this fraction of the dim share: a magnitude imbalance
 COPY_EXPLAINED = 0.9  # state explains at least this much of a group's targets ...
 COPY_SHRINK = 0.5  # ... and its share of what is left falls below this fraction of its share
+OFFSET_HOLD_RATIO = 0.5  # holding errs less than this fraction of copying ...
+OFFSET_SHARE = 0.5  # ... and a steady offset makes at least this share of copying's squared error
 
 
 @dataclasses.dataclass
@@ -52,12 +67,18 @@ class MechanismSums:
     xty: np.ndarray  # [S + 1, A]
     yty: np.ndarray  # [A]
     change: np.ndarray  # [A] sum of (y_h - y_0)^2
+    hold: np.ndarray  # [A] per frame: sum of (a_t - a_{t-1})^2, t past the episode's first frame
+    copy: np.ndarray  # [A] per frame: sum of (a_t - s_t)^2 on the dims the state places
+    offset: np.ndarray  # [A] sum over episodes of frames * (mean a_t - s_t)^2
+    placed: np.ndarray  # [A] bool: the dims the state places (copy, offset)
     count: int = 0
+    frames: int = 0
+    held_frames: int = 0
 
     @classmethod
     def zeros(cls, state_width: int, action_width: int) -> "MechanismSums":
         return cls(np.zeros((state_width + 1,) * 2), np.zeros((state_width + 1, action_width)),
-                   np.zeros(action_width), np.zeros(action_width))
+                   *(np.zeros(action_width) for _ in range(5)), np.zeros(action_width, bool))
 
 
 def _zscore(x: np.ndarray, stats: stats_lib.NormStats) -> np.ndarray:
@@ -68,11 +89,17 @@ def _zscore(x: np.ndarray, stats: stats_lib.NormStats) -> np.ndarray:
 
 
 def accumulate(blocks: Iterable[stats_lib.Block], action_stats: stats_lib.NormStats,
-               state_stats: stats_lib.NormStats, horizon: int) -> MechanismSums:
+               state_stats: stats_lib.NormStats, horizon: int,
+               copy_dims: tuple[np.ndarray, np.ndarray] = (np.zeros(0, int), np.zeros(0, int))
+               ) -> MechanismSums:
     """One pass over blocks `{"actions": [n, A], "state": [n, S], "episode_index": [n]}` of whole
     episodes (`stats.whole_episode_blocks`): every chunk step `a[min(t + h, last)]` against
-    `s[t]`, both z-scored by the given (absolute, per-frame) statistics."""
+    `s[t]`, both z-scored by the given (absolute, per-frame) statistics; and per frame the
+    holding and copying errors (`copy_dims`: `(action dims, state dims)` the state places one to
+    one, `baselines.state_copy_dims`), in the actions' z units."""
     sums = None
+    action_dims, state_dims = (np.asarray(d, np.int64) for d in copy_dims)
+    std = np.where(action_stats.constant("zscore"), 1.0, action_stats.std)
     for block in blocks:
         actions = _zscore(block["actions"], action_stats)
         state = _zscore(block["state"], state_stats)
@@ -81,6 +108,20 @@ def accumulate(blocks: Iterable[stats_lib.Block], action_stats: stats_lib.NormSt
         episode = np.asarray(block["episode_index"])
         starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
                                  [len(episode)]])
+        raw = np.asarray(block["actions"], np.float64)
+        previous = transforms.previous_frames(np.arange(len(episode)), starts)
+        held = previous != np.arange(len(episode))
+        sums.hold += np.square((raw[held] - raw[previous[held]]) / std).sum(axis=0)
+        sums.held_frames += int(held.sum())
+        sums.frames += len(episode)
+        if len(action_dims):
+            sums.placed[action_dims] = True
+            gap = np.zeros_like(raw)
+            gap[:, action_dims] = (raw[:, action_dims] - np.asarray(
+                block["state"], np.float64)[:, state_dims]) / std[action_dims]
+            sums.copy += np.square(gap).sum(axis=0)
+            for start, stop in zip(starts[:-1], starts[1:]):
+                sums.offset += (stop - start) * np.square(gap[start:stop].mean(axis=0))
         index, _ = transforms.chunk_indices(np.arange(len(episode)), starts, horizon)
         x = np.concatenate([np.ones((len(state), 1)), state], axis=1)
         xtx = x.T @ x
@@ -109,16 +150,19 @@ def residual_variance(sums: MechanismSums) -> tuple[np.ndarray, np.ndarray]:
 
 def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dict[str, Any]]:
     """Per group: loss_share, dim_share (of the dims that move at all), state_explained (None for
-    a group that never moves), share_after_state, within_chunk_change, constant (see the module
+    a group that never moves), share_after_state, within_chunk_change, constant, and hold_error,
+    copy_error, steady_offset (None for a group the state does not place; see the module
     docstring)."""
     variance, residual = residual_variance(sums)
     active = variance > 0
     change = sums.change / sums.count
+    placed = sums.placed
     report = {}
     for name in layout.group_names:
         dims = layout.group_dims(name)
         group_var = float(variance[dims].sum())
         moving = bool(active[dims].any())
+        copied = moving and bool(placed[dims].all())
         report[name] = {
             "loss_share": group_var / max(float(variance.sum()), 1e-12),
             "dim_share": float(active[dims].sum() / max(active.sum(), 1)),
@@ -126,6 +170,11 @@ def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dic
             "share_after_state": float(residual[dims].sum()) / max(float(residual.sum()), 1e-12),
             "within_chunk_change": float(change[dims].mean()),
             "constant": not moving,
+            "hold_error": float(np.sqrt(sums.hold[dims].mean() / max(sums.held_frames, 1))),
+            "copy_error": (float(np.sqrt(sums.copy[dims].mean() / sums.frames)) if copied
+                           else None),
+            "steady_offset": (float(np.sqrt(sums.offset[dims].mean() / sums.frames)) if copied
+                              else None),
         }
     return report
 
@@ -139,6 +188,9 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
                  if groups[g]["loss_share"] < MAGNITUDE_RATIO * groups[g]["dim_share"]]
     copy = [g for g in watched if groups[g]["state_explained"] >= COPY_EXPLAINED
             and groups[g]["share_after_state"] < COPY_SHRINK * groups[g]["loss_share"]]
+    offset = [g for g in watched if groups[g].get("copy_error") is not None
+              and groups[g]["hold_error"] < OFFSET_HOLD_RATIO * groups[g]["copy_error"]
+              and groups[g]["steady_offset"] ** 2 >= OFFSET_SHARE * groups[g]["copy_error"] ** 2]
     lines = []
     if copy:
         lines.append(
@@ -147,6 +199,16 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
             "that residual. Try delta actions relative to the state first "
             "(data.delta_action_mask, pi0_armfix/configs/arm_focused.py), or state dropout "
             "(pi0_armfix/configs/state_dropout.py).")
+    if offset:
+        numbers = ", ".join(f"{g} {groups[g]['steady_offset']:.2f} σ (holding errs "
+                            f"{groups[g]['hold_error']:.2f} σ, copying {groups[g]['copy_error']:.2f} "
+                            "σ)" for g in offset)
+        lines.append(
+            f"offset: {offset}'s actions sit at a steady offset from the measured state "
+            f"({numbers}): the state R2 hides it and holding the previous action exploits it. "
+            "Give the policy the previous command: actions relative to it "
+            "(data.delta_reference='previous_action', "
+            "pi0_armfix/configs/arm_focused_previous_action.py).")
     if magnitude:
         lines.append(
             f"magnitude: {magnitude} carry less than {MAGNITUDE_RATIO:.0%} of their dims' share "
@@ -159,4 +221,5 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
     constant = [g for g in groups if groups[g]["constant"]]
     if constant:
         lines.append(f"{constant} never move in these episodes (nothing to learn; left out).")
-    return {"state_copy": copy, "magnitude": magnitude, "constant": constant, "verdict": lines}
+    return {"state_copy": copy, "magnitude": magnitude, "offset": offset, "constant": constant,
+            "verdict": lines}
