@@ -37,6 +37,18 @@ def test_recall_splits_the_executed_steps_from_those_ahead():
     assert timing["by_tolerance"][1]["recall"] == 0.5
 
 
+def test_one_predicted_switch_counts_once_across_the_parts():
+    # True opens at 3 (executed) and 5 (ahead), a close at 4; one predicted open at 4, within the
+    # tolerance of both opens: it matches one switch overall, so the parts share that one.
+    timing = _timing([_gripper(4)], [_gripper(3, 4, 5)])
+    assert timing["by_tolerance"][1]["recall"] == 1 / 3
+    assert timing["recall"]["executed"] == {"true": 1, "recall": 1.0}
+    assert timing["recall"]["ahead"] == {"true": 2, "recall": 0.0}
+    matched = sum(timing["recall"][p]["true"] * timing["recall"][p]["recall"]
+                  for p in ("executed", "ahead"))
+    assert matched == 1
+
+
 def test_recall_splits_opening_from_closing():
     # -1 -> +1 at step 2 opens, +1 -> -1 at step 5 closes; only the opening is predicted.
     timing = _timing([_gripper(2)], [_gripper(2, 5)])

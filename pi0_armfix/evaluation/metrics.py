@@ -85,24 +85,29 @@ def switch_events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray
     return tuple(np.concatenate([start, x], axis=1).transpose(0, 2, 1) for x in (up, down))
 
 
-def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> np.ndarray:
-    """Per row, the true switch events matched one-to-one by a predicted event of the same kind
-    within `tolerance` steps (greedy in time order, each predicted event used once).
+def matched_events(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> np.ndarray:
+    """The true switch events matched one-to-one by a predicted event of the same kind within
+    `tolerance` steps (greedy in time order, each predicted event used once).
 
     Args:
       predicted, true: `[R, H]` bool events (one row per chunk, dim and direction).
     Returns:
-      `[R]` matched counts.
+      `[R, H]` bool: the matched true events.
     """
-    matched = np.zeros(len(true), np.int64)
+    matched = np.zeros(np.shape(true), bool)
     for row, true_row in enumerate(true):
         candidates = list(np.flatnonzero(predicted[row]))
         for h in np.flatnonzero(true_row):
             near = [p for p in candidates if abs(p - h) <= tolerance]
             if near:
                 candidates.remove(min(near, key=lambda p: abs(p - h)))
-                matched[row] += 1
+                matched[row, h] = True
     return matched
+
+
+def matched_switches(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> np.ndarray:
+    """`[R]` per row, the count of `matched_events`."""
+    return matched_events(predicted, true, tolerance).sum(axis=-1)
 
 
 def switch_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,

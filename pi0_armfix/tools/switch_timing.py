@@ -43,10 +43,11 @@ def _events(chunk: np.ndarray, valid: np.ndarray, threshold: np.ndarray) -> np.n
     return np.stack(eval_metrics.switch_events(chunk, valid, threshold), axis=1)
 
 
-def _matched(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> int:
+def _matched(predicted: np.ndarray, true: np.ndarray, tolerance: int) -> np.ndarray:
+    """The true events `[N, 2, D, H]` matched by a predicted one (`metrics.matched_events`)."""
     horizon = predicted.shape[-1]
-    return int(eval_metrics.matched_switches(predicted.reshape(-1, horizon),
-                                             true.reshape(-1, horizon), tolerance).sum())
+    return eval_metrics.matched_events(predicted.reshape(-1, horizon),
+                                       true.reshape(-1, horizon), tolerance).reshape(true.shape)
 
 
 def switch_timing(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
@@ -78,11 +79,13 @@ def switch_timing(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray,
     kind = np.arange(2)[:, None, None]  # ... and over its (opens, closes) axis
     parts = {"executed": steps < executed, "ahead": steps >= executed,
              "opens": kind == 0, "closes": kind == 1}
+    # One matching over every true switch, then split: matched per part, a predicted switch
+    # could match a true one in each part and count twice.
+    matched_all = _matched(pred_events, true_events, tolerance)
     recall = {}
     for name, mask in parts.items():
-        subset = true_events & mask
-        num_true = int(subset.sum())
-        matched = _matched(pred_events, subset, tolerance)
+        num_true = int((true_events & mask).sum())
+        matched = int((matched_all & mask).sum())
         recall[name] = {"true": num_true,
                         "recall": matched / num_true if num_true else float("nan")}
     no_true = true_events.reshape(len(true_events), -1).sum(axis=1) == 0
