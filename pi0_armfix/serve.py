@@ -83,8 +83,8 @@ def cli() -> None:
     flags.DEFINE_integer("port", 8000, "port to listen on")
     console.define_lever_flags()
     flags.DEFINE_string("keys", "", "observation key mapping key=role,... (role: a batch camera "
-                        "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state' or 'prompt'); "
-                        "'' = B1K's openpi keys")
+                        "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state', 'prompt' or "
+                        "'previous_action'); '' = B1K's openpi keys")
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
                       "hysteresis (pi0_armfix.policies.hysteresis), in action units; "
                       "unset: the run's eval.gripper_hysteresis; empty: none")
