@@ -189,10 +189,16 @@ def switch_emphasis(actions: jax.Array, valid: jax.Array | None, layout: ActionL
     return jnp.where(near, jnp.float32(weight), jnp.float32(1.0))
 
 
-def _group_means(x: jax.Array, layout: ActionLayout) -> jax.Array:
-    """Mean of `x` `[..., D]` over each group's dims -> `[..., G]`."""
-    membership = layout.membership()
-    return jnp.einsum("...d,dg->...g", x, jnp.asarray(membership / membership.sum(0)))
+def _group_means(x: jax.Array, layout: ActionLayout, live: Any = None) -> jax.Array:
+    """Mean of `x` `[..., D]` over each group's live dims -> `[..., G]`. `live`: `[D]` or
+    `[H, D]` (`x` then `[..., H, D]`), 0 on the dims that carry no loss (the constant dims,
+    `data.batching.loss_mask`), so that a group's mean is over the dims it trains; None = all."""
+    membership = jnp.asarray(layout.membership(), jnp.float32)  # [D, G]
+    if live is None:
+        live = jnp.ones(membership.shape[0], jnp.float32)
+    weights = jnp.asarray(live, jnp.float32)[..., None] * membership  # [(H,) D, G]
+    weights = weights / jnp.maximum(weights.sum(axis=-2, keepdims=True), 1.0)
+    return jnp.einsum("...d,...dg->...g", x, weights)
 
 
 def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strategy: str,
@@ -200,7 +206,8 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
                           dimension_weights: Any = None, delta_weighting: bool = False,
                           log_vars: jax.Array | None = None, min_log_var: float = -5.0,
                           valid: jax.Array | None = None,
-                          timestep_weights: jax.Array | None = None) -> jax.Array:
+                          timestep_weights: jax.Array | None = None,
+                          live: Any = None) -> jax.Array:
     """Weighted loss per (sample, step).
 
     Args:
@@ -216,6 +223,8 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
       valid: `[B, H]` bool, False on `action_is_pad` steps: the normalizations over time (delta
         weighting, `original`) ignore them. None = all valid.
       timestep_weights: `[B, H]` extra weights on every dim of a step (`switch_emphasis`).
+      live: `[D]` or `[H, D]`, 0 on the dims that carry no loss: the group means of
+        `uncertainty` are over the others (`_group_means`). None = all.
     Returns:
       `[B, H]` float32.
     """
@@ -248,7 +257,7 @@ def compute_weighted_loss(per_dim_loss: jax.Array, actions: jax.Array, *, strate
             weights = jnp.stack([_as_float32(group_weights[g]) for g in layout.group_names])
         s = jnp.maximum(_as_float32(log_vars), min_log_var)
         precision = jax.lax.stop_gradient(weights) * jnp.exp(-s)
-        return jnp.sum(precision * _group_means(e_scaled, layout), axis=-1) + jnp.sum(s)
+        return jnp.sum(precision * _group_means(e_scaled, layout, live), axis=-1) + jnp.sum(s)
     w = jax.lax.stop_gradient(static_dim_weights(strategy, layout, group_weights, dimension_weights))
     return jnp.mean(w * e_scaled, axis=-1)
 
@@ -261,29 +270,34 @@ def masked_mean(x: jax.Array, valid: jax.Array | None) -> jax.Array:
 
 
 def per_group_losses(per_dim_loss: jax.Array, layout: ActionLayout,
-                     valid: jax.Array | None = None) -> dict[str, jax.Array]:
-    """Unweighted mean squared error of each group over the valid (b, h) entries, for metrics.
+                     valid: jax.Array | None = None, live: Any = None) -> dict[str, jax.Array]:
+    """Unweighted mean squared error of each group over the valid (b, h) entries and its live
+    dims, for metrics and the `loss_balanced` EMA.
 
     Args:
       per_dim_loss: e `[B, H, D]`.
       valid: `[B, H]` bool, True where the timestep is real (not `action_is_pad`); None = all.
+      live: `[D]` or `[H, D]`, 0 on the dims that carry no loss; None = all.
     Returns:
       `{group: scalar}`.
     """
-    means = masked_mean(_group_means(_as_float32(per_dim_loss), layout), valid)
+    means = masked_mean(_group_means(_as_float32(per_dim_loss), layout, live), valid)
     return {g: means[i] for i, g in enumerate(layout.group_names)}
 
 
 def training_loss(per_dim_loss: jax.Array, actions: jax.Array, action_is_pad: jax.Array, *,
                   layout: ActionLayout, strategy: str, group_weights=None, dimension_weights=None,
                   delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0,
-                  switch_threshold=None, switch_weight: float = 1.0, switch_window: int = 0):
+                  switch_threshold=None, switch_weight: float = 1.0, switch_window: int = 0,
+                  live: Any = None):
     """The scalar training loss over valid timesteps, and the per-group unweighted losses.
 
     Args:
       per_dim_loss: e `[B, H, D]`; actions `[B, H, D]`; action_is_pad `[B, H]` bool.
       switch_threshold, switch_weight, switch_window: gripper-switch emphasis
         (`switch_emphasis`), on when `switch_weight != 1`.
+      live: `[D]` or `[H, D]`, 0 on the dims that carry no loss (whose e is 0): group means are
+        over the others. None = all.
     Returns:
       `(loss scalar, {"group_loss": {group: scalar}})`.
     """
@@ -295,9 +309,9 @@ def training_loss(per_dim_loss: jax.Array, actions: jax.Array, action_is_pad: ja
     weighted = compute_weighted_loss(
         per_dim_loss, actions, strategy=strategy, layout=layout, group_weights=group_weights,
         dimension_weights=dimension_weights, delta_weighting=delta_weighting, log_vars=log_vars,
-        min_log_var=min_log_var, valid=valid, timestep_weights=timestep_weights)
+        min_log_var=min_log_var, valid=valid, timestep_weights=timestep_weights, live=live)
     return masked_mean(weighted, valid), {
-        "group_loss": per_group_losses(jax.lax.stop_gradient(per_dim_loss), layout, valid)}
+        "group_loss": per_group_losses(jax.lax.stop_gradient(per_dim_loss), layout, valid, live)}
 
 
 # ---------------------------------------------------------------------- schedules and adaptive state

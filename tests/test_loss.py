@@ -333,3 +333,29 @@ def test_train_state_carries_the_log_variances_and_ema_its_strategy_declares(str
     assert ("ema" in state.balancer) == spec.balances
     assert spec.learns_log_vars == (strategy == "uncertainty")
     assert spec.balances == (strategy == "loss_balanced")
+
+
+@pytest.mark.parametrize("per_timestep", [False, True])
+def test_a_groups_logged_loss_is_its_mean_over_the_dims_that_carry_loss(per_timestep):
+    # The demo's torso: dim 6 is constant, masked out of the loss (its e is 0).
+    layout = ActionLayout.preset("b1k_r1pro")
+    live = np.ones(layout.action_dim, np.float32)
+    live[6] = 0.0
+    if per_timestep:
+        live = np.tile(live, (4, 1))
+    e = np.ones((2, 4, layout.action_dim), np.float32) * live
+    losses = L.per_group_losses(jnp.asarray(e), layout, live=live)
+    assert float(losses["torso"]) == 1.0  # not 3/4
+    assert float(losses["left_arm"]) == 1.0
+
+
+def test_uncertaintys_group_means_skip_the_dims_that_carry_no_loss():
+    layout = ActionLayout.preset("b1k_r1pro")
+    live = np.ones(layout.action_dim, np.float32)
+    live[6] = 0.0
+    e = np.ones((1, 2, layout.action_dim), np.float32) * live
+    zeros = jnp.zeros(layout.num_groups)
+    per_step = L.compute_weighted_loss(jnp.asarray(e), jnp.zeros_like(e),
+                                              strategy="uncertainty", layout=layout,
+                                              log_vars=zeros, live=live)
+    np.testing.assert_allclose(per_step, layout.num_groups)  # every group's mean error is 1

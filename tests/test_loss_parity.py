@@ -147,3 +147,15 @@ def test_jax_and_torch_switch_emphasis_agree(seed, window):
     got_jax = jl.switch_emphasis(jnp.asarray(actions), jnp.asarray(valid), layout, **kwargs)
     got_torch = tl.switch_emphasis(torch.tensor(actions), torch.tensor(valid), layout, **kwargs)
     np.testing.assert_array_equal(got_torch.numpy(), np.asarray(got_jax))
+
+
+def test_jax_and_torch_group_losses_agree_over_the_live_dims():
+    layout = ActionLayout.preset("b1k_r1pro")
+    rng = np.random.default_rng(0)
+    live = (rng.uniform(size=(4, layout.action_dim)) > 0.2).astype(np.float32)
+    e = rng.uniform(size=(3, 4, layout.action_dim)).astype(np.float32) * live
+    valid = np.ones((3, 4), bool)
+    got_jax = jl.per_group_losses(e, layout, valid, live)
+    got_torch = tl.per_group_losses(torch.tensor(e), layout, torch.tensor(valid), live)
+    for g in layout.group_names:
+        np.testing.assert_allclose(got_torch[g].numpy(), got_jax[g], rtol=RTOL)

@@ -115,7 +115,8 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
     per_dim_loss = jnp.square(v - (noise - actions))
     if loss_mask is not None:
         per_dim_loss = per_dim_loss * jnp.asarray(loss_mask, per_dim_loss.dtype)
-    return loss_lib.training_loss(per_dim_loss, actions, is_pad, layout=layout, **loss_kwargs)
+    return loss_lib.training_loss(per_dim_loss, actions, is_pad, layout=layout, live=loss_mask,
+                                  **loss_kwargs)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache", "num_draws",

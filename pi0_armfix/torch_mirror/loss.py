@@ -122,10 +122,13 @@ def switch_emphasis(actions: torch.Tensor, valid: torch.Tensor | None, layout: A
     return torch.where(near, torch.tensor(float(weight)), torch.tensor(1.0))
 
 
-def _group_means(x: torch.Tensor, layout: ActionLayout) -> torch.Tensor:
-    membership = layout.membership()
-    averaging = torch.as_tensor(membership / membership.sum(0), dtype=x.dtype, device=x.device)
-    return torch.einsum("...d,dg->...g", x, averaging)
+def _group_means(x: torch.Tensor, layout: ActionLayout, live: Any = None) -> torch.Tensor:
+    membership = torch.as_tensor(layout.membership(), dtype=x.dtype, device=x.device)
+    live = (torch.ones(membership.shape[0], dtype=x.dtype, device=x.device) if live is None
+            else torch.as_tensor(np.asarray(live), dtype=x.dtype, device=x.device))
+    weights = live[..., None] * membership
+    weights = weights / torch.clamp(weights.sum(dim=-2, keepdim=True), min=1.0)
+    return torch.einsum("...d,...dg->...g", x, weights)
 
 
 def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, strategy: str,
@@ -133,7 +136,8 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
                           dimension_weights: Any = None, delta_weighting: bool = False,
                           log_vars: torch.Tensor | None = None,
                           min_log_var: float = -5.0, valid: torch.Tensor | None = None,
-                          timestep_weights: torch.Tensor | None = None) -> torch.Tensor:
+                          timestep_weights: torch.Tensor | None = None,
+                          live: Any = None) -> torch.Tensor:
     """Weighted loss per (sample, step) `[B, H]`; mirrors `pi0_armfix.loss.compute_weighted_loss`."""
     weighting = loss_strategy(strategy, delta_weighting).weighting
     e = _as_float32(per_dim_loss)
@@ -163,7 +167,7 @@ def compute_weighted_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, *, 
                                    for g in layout.group_names]).to(e.dtype)
         s = torch.clamp(_as_float32(log_vars), min=min_log_var)
         precision = weights.detach() * torch.exp(-s)
-        return torch.sum(precision * _group_means(e_scaled, layout), dim=-1) + torch.sum(s)
+        return torch.sum(precision * _group_means(e_scaled, layout, live), dim=-1) + torch.sum(s)
     w = static_dim_weights(strategy, layout, group_weights, dimension_weights, like=e).detach()
     return torch.mean(w.to(e.dtype) * e_scaled, dim=-1)
 
@@ -176,16 +180,19 @@ def masked_mean(x: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
 
 
 def per_group_losses(per_dim_loss: torch.Tensor, layout: ActionLayout,
-                     valid: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """Unweighted mean squared error of each group over the valid (b, h) entries, for metrics."""
-    means = masked_mean(_group_means(_as_float32(per_dim_loss), layout), valid)
+                     valid: torch.Tensor | None = None, live: Any = None
+                     ) -> dict[str, torch.Tensor]:
+    """Unweighted mean squared error of each group over the valid (b, h) entries and its live
+    dims; mirrors `pi0_armfix.loss.per_group_losses`."""
+    means = masked_mean(_group_means(_as_float32(per_dim_loss), layout, live), valid)
     return {g: means[i] for i, g in enumerate(layout.group_names)}
 
 
 def training_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, action_is_pad: torch.Tensor, *,
                   layout: ActionLayout, strategy: str, group_weights=None, dimension_weights=None,
                   delta_weighting: bool = False, log_vars=None, min_log_var: float = -5.0,
-                  switch_threshold=None, switch_weight: float = 1.0, switch_window: int = 0):
+                  switch_threshold=None, switch_weight: float = 1.0, switch_window: int = 0,
+                  live: Any = None):
     """`(loss scalar, {"group_loss": {group: scalar}})`; mirrors `pi0_armfix.loss.training_loss`."""
     valid = torch.logical_not(action_is_pad)
     timestep_weights = None
@@ -195,9 +202,9 @@ def training_loss(per_dim_loss: torch.Tensor, actions: torch.Tensor, action_is_p
     weighted = compute_weighted_loss(
         per_dim_loss, actions, strategy=strategy, layout=layout, group_weights=group_weights,
         dimension_weights=dimension_weights, delta_weighting=delta_weighting, log_vars=log_vars,
-        min_log_var=min_log_var, valid=valid, timestep_weights=timestep_weights)
+        min_log_var=min_log_var, valid=valid, timestep_weights=timestep_weights, live=live)
     return masked_mean(weighted, valid), {
-        "group_loss": per_group_losses(per_dim_loss.detach(), layout, valid)}
+        "group_loss": per_group_losses(per_dim_loss.detach(), layout, valid, live)}
 
 
 def warmup_fraction(step: Any, warmup_steps: int) -> torch.Tensor:

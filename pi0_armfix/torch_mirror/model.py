@@ -243,7 +243,7 @@ class Pi0(nn.Module):
         if loss_mask is not None:
             per_dim_loss = per_dim_loss * as_tensor(loss_mask).to(torch.float32)
         return loss_lib.training_loss(per_dim_loss, actions, as_tensor(action_is_pad).to(torch.bool),
-                                      layout=layout, **loss_kwargs)
+                                      layout=layout, live=loss_mask, **loss_kwargs)
 
     @torch.no_grad()
     def sample_actions(self, observation: Mapping[str, Any], noise: Any, num_steps: int = 10, *,
