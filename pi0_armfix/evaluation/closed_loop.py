@@ -67,7 +67,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     results_path, figure_path = closed_loop_paths(
         run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
         hysteresis_on=latch is not None, sim_seed=sim_seed,
-        levers=inference.lever_tag(run.config.eval))
+        levers=run.result_tag())
     writable_folder(results_path.parent)  # before the rollouts, not after
     if run.layout.real_dim != 23:
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
@@ -126,7 +126,8 @@ def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int, n_ex
     """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis][levers].json` and
     the `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
     asked: 0, half the horizon, is left out; the world seed when not the evaluation's; `levers`:
-    `inference.lever_tag` of the sampler)."""
+    `RestoredRun.result_tag` of the run read: its sampler, and the raw params of a run with an
+    EMA)."""
     out = epath.Path(workdir) / "eval" / f"step_{step}"
     tag = (f"_{episodes}ep" + (f"_exec{n_exec}" if n_exec else "")
            + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")

@@ -285,10 +285,11 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
     the run kept them, else the params) or "params"; `levers`: inference levers in place of the
     run's (`inference.restore_run`). The metrics go to `metrics.json` there (with levers other
-    than the plain sampler's, `metrics<inference.lever_tag>.json`, which the stagnation figure
-    leaves out). Returns `(step, metrics, layout, metrics path)`."""
+    than the plain sampler's, or the raw params of a run with an EMA,
+    `metrics<RestoredRun.result_tag>.json`, which the stagnation figure and the study leave out).
+    Returns `(step, metrics, layout, metrics path)`."""
     run = inference.restore_run(workdir, step, params_name, levers)
-    tag = inference.lever_tag(run.config.eval)
+    tag = run.result_tag()
     workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
     out = workdir / "eval" / f"step_{step}"
     writable_folder(out)  # before the sampling, not after

@@ -166,6 +166,14 @@ class RestoredRun:
     params: Any
     params_name: str  # "ema_params" or "params"
     norm_stats: dict[str, stats_lib.NormStats]
+    ema_kept: bool = False  # the checkpoint holds EMA params (read unless "params" was asked)
+
+    def result_tag(self) -> str:
+        """The suffix of this evaluation's result files: `lever_tag` of its sampler, and
+        `_params` where the raw params were read although the run kept an EMA, so that neither
+        replaces the default evaluation's files (the EMA's, plain sampler)."""
+        raw = self.ema_kept and self.params_name == "params"
+        return lever_tag(self.config.eval) + ("_params" if raw else "")
 
 
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",
@@ -208,7 +216,8 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
     return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
                        model_config_lib.from_model_config(config.model),
                        state["ema_params"] if use_ema else state["params"],
-                       "ema_params" if use_ema else "params", norm_stats_from_json(norm_stats))
+                       "ema_params" if use_ema else "params", norm_stats_from_json(norm_stats),
+                       bool(state.get("ema_params")))
 
 
 def soft_mask(horizon: int, overlap: int, delay: int = 0) -> np.ndarray:
