@@ -25,7 +25,7 @@ CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "
            "arm_delta_focused", "arm_delta_per_timestep", "arm_delta_correlated_noise",
            "arm_delta_flow_samples", "gripper_switch", "arm_recipe", "arm_weights_3x",
            "state_dropout", "state_noise", "no_state", "arm_focused_openpi_augment",
-           "arm_focused_delta_base")
+           "arm_focused_delta_base", "arm_focused_previous_action")
 # Trained at tiny scale: every strategy, and every lever (arm_recipe holds delta actions,
 # per-timestep stats, correlated noise and switch emphasis; K flow samples on its own).
 TRAINED = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -58,7 +58,7 @@ def test_every_config_file_is_listed():
     assert found == set(CONFIGS)
 
 
-@pytest.mark.parametrize("scale", [None, "b1k", "b1k2026"])
+@pytest.mark.parametrize("scale", [None, "b1k", "b1k2026", "g1"])
 @pytest.mark.parametrize("name", CONFIGS)
 def test_config_has_exactly_the_keys_of_the_base(name, scale):
     assert flat_keys(load(name, scale)) == flat_keys(base.get_config(scale))
@@ -94,7 +94,7 @@ def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
 
 DELTA_CONFIGS = {"arm_delta", "arm_delta_focused", "arm_delta_per_timestep",
                  "arm_delta_correlated_noise", "arm_delta_flow_samples", "arm_recipe",
-                 "arm_focused", "arm_focused_openpi_augment"}
+                 "arm_focused", "arm_focused_openpi_augment", "arm_focused_previous_action"}
 STATE_LEVERS = {"state_dropout": ("state_dropout", 0.5), "state_noise": ("state_noise", 0.3),
                 "no_state": ("use_state", False)}
 
@@ -307,3 +307,10 @@ def test_the_demo_state_preset_is_named_once_and_is_what_the_world_writes_and_th
     sources = [p for p in (tf.REPO_ROOT / "pi0_armfix").rglob("*.py")
                if f'"{DEMO_STATE_PRESET}"' in p.read_text()]
     assert [p.name for p in sources] == ["state_space.py"]  # a literal in one module only
+
+
+def test_the_previous_action_config_is_the_main_job_relative_to_the_previous_command():
+    config, main = load("arm_focused_previous_action"), load("arm_focused")
+    assert config.data.delta_reference == "previous_action"
+    config.data.delta_reference = main.data.delta_reference
+    assert config == main

@@ -207,14 +207,18 @@ def test_skill_intervals_over_held_out_episodes_bracket_the_skill_and_pin_a_perf
     rng = np.random.default_rng(0)
     true = np.cumsum(rng.normal(size=(40, H, LAYOUT.action_dim)), axis=1)
     episodes = np.repeat(np.arange(8), 5)
-    perfect = heldout.episode_intervals(_kept(true, true, episodes), LAYOUT)
+    held = _metrics(np.repeat(true[:, :1], H, axis=1), true)["err/arm"]
+    perfect = heldout.episode_intervals(_kept(true, true, episodes), LAYOUT,
+                                        {"skill/arm": 1.0, "mean_of_draws/skill/arm": 1.0})
     assert perfect["interval_low/skill/arm"] == perfect["interval_high/skill/arm"] == 1.0
     noisy = true + rng.normal(size=true.shape)
-    intervals = heldout.episode_intervals(_kept(noisy, true, episodes), LAYOUT)
-    skill = _metrics(noisy, true)["err/arm"] / _metrics(
-        np.repeat(true[:, :1], H, axis=1), true)["err/arm"]
-    assert intervals["interval_low/skill/arm"] < 1 - skill < intervals["interval_high/skill/arm"]
-    assert intervals["interval_low/mean_of_draws/skill/arm"] == intervals["interval_low/skill/arm"]
+    skill = 1 - _metrics(noisy, true)["err/arm"] / held
+    intervals = heldout.episode_intervals(_kept(noisy, true, episodes), LAYOUT,
+                                          {"skill/arm": skill, "mean_of_draws/skill/arm": skill})
+    low, high = intervals["interval_low/skill/arm"], intervals["interval_high/skill/arm"]
+    assert low < skill < high
+    np.testing.assert_allclose((low + high) / 2, skill)  # the t rule: centred on the estimate
+    assert intervals["interval_low/mean_of_draws/skill/arm"] == low
 
 
 def test_unknown_group_in_eval_config_is_an_error_naming_the_key():

@@ -138,3 +138,41 @@ def test_seeds_alone_overstate_a_lever_that_differs_by_episode():
 
 def test_the_paired_lever_interval_finds_a_real_effect():
     assert _paired_study_miss_rate(0.5, 0.5) > 0.7
+
+
+def _run_miss_rate(rule: str, episodes: int, spread: float, runs: int = 2000, seed: int = 0
+                   ) -> float:
+    """Share of simulated single runs whose 95 % interval misses the population skill. Each
+    held-out episode has a persistence error (gamma) and the policy's, 0.6 of it times a
+    lognormal factor of sd `spread`: population skill 1 - 0.6 exp(spread^2 / 2); the run's skill
+    is 1 - sum(policy) / sum(persistence) over its episodes, recomputed on the study's resamples
+    as `heldout.resampled_metrics` does."""
+    rng = np.random.default_rng(seed)
+    counts = intervals.episode_counts(episodes)
+    truth = 1 - 0.6 * np.exp(spread ** 2 / 2)
+    misses = 0
+    for _ in range(runs):
+        held = rng.gamma(8.0, 1.0, episodes)
+        policy = 0.6 * held * rng.lognormal(0.0, spread, episodes)
+        replicates = 1 - (counts @ policy) / (counts @ held)
+        if rule == "run_interval":
+            _, low, high = intervals.run_interval(1 - policy.sum() / held.sum(), replicates,
+                                                  episodes)
+        else:  # the percentile bootstrap of the same resamples
+            low, high = np.percentile(replicates, [2.5, 97.5])
+        misses += not low <= truth <= high
+    return misses / runs
+
+
+@pytest.mark.parametrize("episodes, spread", [(20, 0.1), (20, 0.3), (38, 0.3)])
+def test_a_single_runs_interval_misses_the_population_skill_in_about_5_percent_of_runs(
+        episodes, spread):
+    assert 0.03 <= _run_miss_rate("run_interval", episodes, spread) <= 0.07
+
+
+def test_the_percentile_bootstrap_of_the_same_resamples_misses_more_often():
+    assert _run_miss_rate("percentile", 20, 0.1) > _run_miss_rate("run_interval", 20, 0.1) + 0.02
+
+
+def test_a_run_without_a_spread_over_its_episodes_has_a_zero_width_interval():
+    assert intervals.run_interval(0.4, np.full(200, 0.4), 20) == (0.4, 0.4, 0.4)

@@ -171,7 +171,7 @@ class HeldOutChunks:
                 **{f"policy/{k}": v for k, v in sums.items()},
                 **{f"{MEAN_OF_DRAWS}/{k}": v for k, v in mean_sums.items()},
                 **{f"persistence/{k}": v for k, v in self.reference_sums["persistence"].items()}}
-        metrics.update(episode_intervals(kept, self.layout))
+        metrics.update(episode_intervals(kept, self.layout, metrics))
         return metrics, kept
 
 
@@ -201,24 +201,24 @@ def resampled_metrics(kept: Mapping[str, np.ndarray], layout) -> Iterator[dict[s
         yield metrics
 
 
-def episode_intervals(kept: Mapping[str, np.ndarray], layout,
+def episode_intervals(kept: Mapping[str, np.ndarray], layout, metrics: Mapping[str, float],
                       confidence: float = intervals.CONFIDENCE) -> dict[str, float]:
-    """Percentile bootstrap intervals over the held-out episodes (`resampled_metrics`: the
-    study's resamples) of each group's skill, the single draw's and the mean of the draws',
-    from an evaluation's kept per-chunk sums: `interval_low/<key>` and `interval_high/<key>` for
-    `<key>` = `skill/<g>` and `mean_of_draws/skill/<g>`. How far one run's skill is from 0 given
-    which episodes happened to be held out (not the seeds' spread: `pi0_armfix.study`)."""
+    """Intervals over the held-out episodes (`intervals.run_interval`, from the metric on the
+    study's resamples, `resampled_metrics`) of each group's skill, the single draw's and the
+    mean of the draws', around the evaluation's own `metrics`, from its kept per-chunk sums:
+    `interval_low/<key>` and `interval_high/<key>` for `<key>` = `skill/<g>` and
+    `mean_of_draws/skill/<g>`. How far one run's skill is from 0 given which episodes happened
+    to be held out (not the seeds' spread: `pi0_armfix.study`)."""
     keys = [f"{name}skill/{g}" for name in ("", f"{MEAN_OF_DRAWS}/") for g in layout.group_names]
     values = {key: [] for key in keys}
-    for metrics in resampled_metrics(kept, layout):
+    for resampled in resampled_metrics(kept, layout):
         for key in keys:
-            values[key].append(metrics.get(key, math.nan))
-    tail = 100 * (1 - confidence) / 2
+            values[key].append(resampled.get(key, math.nan))
+    episodes = len(np.unique(kept[EPISODE]))
     out = {}
     for key, v in values.items():
-        v = np.asarray(v, np.float64)
-        low, high = (np.percentile(v[np.isfinite(v)], [tail, 100 - tail])
-                     if np.isfinite(v).any() else (math.nan, math.nan))
+        _, low, high = intervals.run_interval(float(metrics.get(key, math.nan)), v, episodes,
+                                              confidence)
         out[f"interval_low/{key}"], out[f"interval_high/{key}"] = float(low), float(high)
     return out
 

@@ -19,6 +19,14 @@ to the Welch variance (`welch_interval(..., episode_variance=, episodes=)`), wit
 Welch-Satterthwaite degrees of freedom over both parts. Without the resamples (runs kept without
 their per-chunk sums), the interval speaks for these episodes only, and the study says so.
 
+One rule gives every interval: the estimate +- t * sqrt(the sum of its variance parts), with
+Welch-Satterthwaite degrees of freedom over the parts (`_interval`): the seeds' parts of each side,
+and the held-out episodes' part (the variance over the study's resamples, times E / (E - 1), df
+E - 1). A single run (`run_interval`: the `[low, high]` every evaluation prints beside a skill,
+`evaluation.heldout`) has the episodes' part alone. `tests/test_intervals.py` checks its coverage
+too: on simulated held-out sets of 20 and 38 episodes it misses the population skill in 5-7 % of
+them, where the percentile bootstrap of the same 200 resamples missed in 8-9 %.
+
 Several comparisons: the study names one primary comparison (`--primary`), whose interval is the
 plain 95 % one; every other comparison's interval is Bonferroni-corrected over the secondary
 comparisons, so that all of them together hold at 95 %.
@@ -122,6 +130,18 @@ def welch_interval(values: Sequence[float], baseline: Sequence[float],
     if episode_variance > 0 and episodes > 1:
         parts.append((episode_variance, episodes - 1))
     return _interval(diff, parts, confidence)
+
+
+def run_interval(estimate: float, replicates: Sequence[float], episodes: int,
+                 confidence: float = CONFIDENCE) -> tuple[float, float, float]:
+    """`(estimate, low, high)` of one run's metric on its held-out episodes: `estimate` +- t *
+    its episodes' sampling standard deviation (`episode_variance` of the run's `replicates` `[B]`
+    on the study's resamples, df `episodes - 1`), the rule of every interval here with the
+    episodes' part alone. NaN bounds without an estimate or with fewer than 2 episodes."""
+    if not math.isfinite(estimate) or episodes < 2:
+        return estimate, math.nan, math.nan
+    variance = episode_variance([replicates], episodes)
+    return _interval(estimate, [(variance, episodes - 1)], confidence)
 
 
 def comparison_confidence(primary: bool, num_secondary: int,
