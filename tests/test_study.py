@@ -80,6 +80,27 @@ def test_secondary_comparisons_get_bonferroni_corrected_intervals():
     assert width(secondary) > width(primary)
 
 
+def test_the_secondary_family_holds_only_trained_configs_with_two_seeds_or_more():
+    # uniform, the primary a, one secondary b; a one-seed screen and two lever variants
+    results = [_result(c, s, g + 0.05 * s) for c, g in (("uniform", 0.0), ("a", 0.3),
+                                                         ("b", 0.3)) for s in range(5)]
+    results.append(_result("screen", 0, 0.3))
+    levers = {k: [{**_result(f"a@eval.average_draws={k}", s, 0.35 + 0.05 * s + 0.03 * s * s),
+                   "trained": "a"} for s in range(5)] for k in (2, 4)}
+    agg = aggregate.aggregate(results + levers[2] + levers[4], primary="a")
+    assert agg["configs"]["b"]["confidence"] == 0.95  # the only secondary: nothing to correct
+    layout = ActionLayout.from_config(LAYOUT)
+    trained = [r for r in results if r["config"] == "a"]
+    for k in (2, 4):
+        lever = agg["configs"][f"a@eval.average_draws={k}"]
+        assert lever["comparison"] == "lever" and lever["confidence"] == pytest.approx(0.975)
+        # its paired test holds at the lever family's level, wider than an uncorrected 95 %
+        paired = lever["vs_trained"]["arm_gain"]
+        assert paired == aggregate.lever_comparisons(levers[k], trained, layout, 0.975)["arm_gain"]
+        uncorrected = aggregate.lever_comparisons(levers[k], trained, layout)["arm_gain"]
+        assert paired[2] - paired[1] > uncorrected[2] - uncorrected[1]
+
+
 def test_reports_are_written_and_name_every_config(tmp_path):
     results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
     study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")

@@ -136,9 +136,13 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
               ) -> dict[str, Any]:
     """Mean and std over seeds of every metric per config, the headline numbers with their
     per-seed values, each config's difference to the first config (the baseline) with Welch t
-    intervals (95 % for the `primary` config, Bonferroni-corrected for the others), the
-    do-nothing rows, and the targets each config meets. `ceiling`: metrics of a perfect sampler
-    on the same chunks (`evaluation.ceiling`), where known."""
+    intervals, the do-nothing rows, and the targets each config meets. `ceiling`: metrics of a
+    perfect sampler on the same chunks (`evaluation.ceiling`), where known.
+
+    Two families of comparisons, each Bonferroni-corrected within itself: the trained configs
+    with >= 2 seeds against the baseline (95 % for the `primary` config, the others secondary),
+    and the lever variants (each against its trained config, paired, and against the baseline).
+    A 1-seed config has no interval, so it is in no family."""
     configs = list(dict.fromkeys(r["config"] for r in results))
     layout = ActionLayout.from_config(results[0]["layout"])
     baseline = configs[0]
@@ -146,7 +150,10 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         primary = configs[1] if len(configs) > 1 else baseline
     if primary not in configs:
         raise ValueError(f"--primary={primary!r} is not one of the study's configs {configs}")
-    secondary = [c for c in configs if c not in (baseline, primary)]
+    levers = [c for c in configs if any(r.get("trained") for r in results if r["config"] == c)]
+    secondary = [c for c in configs if c not in (baseline, primary, *levers)
+                 and sum(r["config"] == c for r in results) >= 2]
+    lever_confidence = intervals.comparison_confidence(False, len(levers))
     resampled = _episode_resamples(results)
     episodes = resampled["episodes"] if resampled else 0
 
@@ -179,10 +186,13 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
     base_runs = [r for r in results if r["config"] == baseline]
     for config in configs:
         entry = per_config[config]
-        confidence = intervals.comparison_confidence(config in (primary, baseline),
-                                                       len(secondary))
-        entry["comparison"] = ("baseline" if config == baseline else
-                               "primary" if config == primary else "secondary")
+        if config in levers:
+            confidence, entry["comparison"] = lever_confidence, "lever"
+        else:
+            confidence = intervals.comparison_confidence(config in (primary, baseline),
+                                                         len(secondary))
+            entry["comparison"] = ("baseline" if config == baseline else
+                                   "primary" if config == primary else "secondary")
         entry["confidence"] = confidence
         entry["vs_baseline"] = {k: intervals.welch_interval(
             entry["headline"][k], base_values[k], confidence, episodes=episodes,
@@ -197,7 +207,7 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         if trained in per_config:
             entry["trained"] = trained
             entry["vs_trained"] = lever_comparisons(
-                runs, [r for r in results if r["config"] == trained], layout)
+                runs, [r for r in results if r["config"] == trained], layout, confidence)
     reference = results[0]["metrics"]
     do_nothing = {name: {k[len(name) + 1:]: v for k, v in reference.items()
                          if k.startswith(name + "/")} for name in baselines_lib.BASELINES}

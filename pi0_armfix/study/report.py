@@ -120,9 +120,10 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
                 "so the interval speaks for these held-out episodes alone")
     lines += ["", f"## Against `{study['baseline']}` (difference of means over seeds, Welch t "
               "interval)", "",
-              f"Primary comparison: `{study['primary']}` (95 % interval); the others are "
-              "secondary, their intervals Bonferroni-corrected so that together they hold at "
-              f"95 %. The intervals hold {sampling}. An interval that excludes 0 is a "
+              f"Primary comparison: `{study['primary']}` (95 % interval); the other trained "
+              "configs with >= 2 seeds are secondary, their intervals Bonferroni-corrected so "
+              "that together they hold at 95 %; the lever variants are a family of their own, "
+              f"corrected the same way among themselves. The intervals hold {sampling}. An interval that excludes 0 is a "
               "difference these seeds and episodes can tell.", "",
               "| config | comparison | " + " | ".join(COMPARED_HEADINGS) + " |",
               "|---" * (len(COMPARED) + 2) + "|"]
@@ -163,8 +164,9 @@ def lever_table(configs: Mapping[str, Any]) -> list[str]:
     headings = [*COMPARED_HEADINGS, "navigation phases", "manipulation phases", "task"]
     lines = ["", "## Inference levers against the trained config they sample (paired)", "",
              "Each lever variant samples its trained config's checkpoints, seed for seed: the "
-             "difference of the two, mean over seeds with the 95 % t interval of the per-seed "
-             "differences, widened by the held-out (world) episodes' sampling error of the "
+             "difference of the two, mean over seeds with the t interval of the per-seed "
+             "differences (95 % over the lever variants together: Bonferroni-corrected among "
+             "them, the level in the table above), widened by the held-out (world) episodes' sampling error of the "
              "difference. The executed chunk is the variant's (the single draw of its sampler); "
              "the closed-loop columns are phase and task success in the demo world.", "",
              "| lever variant | against | " + " | ".join(headings) + " |",
