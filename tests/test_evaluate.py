@@ -447,3 +447,13 @@ def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(train
     assert json.loads(ema_path.read_text())["params"] == "ema_params"
     assert json.loads(raw_path.read_text())["params"] == "params"
     assert (raw_path.parent / "chunk_sums_params.npz").is_file()
+
+
+def test_an_evaluation_names_the_chunks_it_scored(trained):
+    _, metrics, _, path = evaluator_lib.evaluate_checkpoint(trained)
+    sums = heldout.load_chunk_sums(path.parent / heldout.CHUNK_SUMS_FILE)
+    chunks = sums[heldout.CHUNKS]  # episode id, first frame in it, horizon
+    assert chunks.shape == (metrics["chunks"], 3) and (chunks[:, 2] == chunks[0, 2]).all()
+    assert heldout.chunks_fingerprint(sums) == heldout.chunks_fingerprint(dict(sums))
+    other = {**sums, heldout.CHUNKS: chunks + np.array([0, 0, 1])}  # another horizon
+    assert heldout.chunks_fingerprint(other) != heldout.chunks_fingerprint(sums)

@@ -101,6 +101,19 @@ def test_the_secondary_family_holds_only_trained_configs_with_two_seeds_or_more(
         assert paired[2] - paired[1] > uncorrected[2] - uncorrected[1]
 
 
+def test_runs_scored_on_different_held_out_chunks_are_refused_naming_them():
+    results = [_result(c, s, 0.1) for c in ("uniform", "fix") for s in range(2)]
+    for r in results:
+        r["episode_replicates"] = {"episodes": 20, "chunks": "a1" if r["config"] == "uniform"
+                                   else "b2", **{k: [0.0] * 200 for k in aggregate.COMPARED}}
+    with pytest.raises(ValueError, match=r"different held-out chunks \(chunks a1: uniform seed "
+                                         r"0, uniform seed 1; chunks b2: fix seed 0, fix seed 1\)"):
+        aggregate.aggregate(results)
+    for r in results:
+        r["episode_replicates"]["chunks"] = "a1"
+    assert aggregate.aggregate(results)["episode_resampling"]["episodes"] == 20
+
+
 def test_reports_are_written_and_name_every_config(tmp_path):
     results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
     study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")

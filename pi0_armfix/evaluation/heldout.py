@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pi0_armfix.cache import digest
 from pi0_armfix.data.pipeline import batching
 from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
@@ -36,6 +37,18 @@ CEILING = "ceiling"  # the reference name of the expert's redraw (the demo only)
 MEAN_OF_DRAWS = "mean_of_draws"  # the metrics of the mean of a sampler's N draws
 CHUNK_SUMS_FILE = "chunk_sums.npz"  # of an evaluation, in eval/step_<N>/
 EPISODE = "episode"  # the chunk-sums entry holding each chunk's held-out episode (0 .. E-1)
+# The chunk-sums entry naming each chunk `[N, 3]`: its episode id, its first frame in the episode
+# and the horizon; runs are comparable only on the same chunks (`chunks_fingerprint`).
+CHUNKS = "chunks"
+NOT_SUMS = (EPISODE, CHUNKS)
+
+
+def chunks_fingerprint(kept: Mapping[str, np.ndarray]) -> str | None:
+    """A short digest of the held-out chunks an evaluation's kept sums were scored on (None for
+    sums kept before they named their chunks)."""
+    if CHUNKS not in kept:
+        return None
+    return digest(np.asarray(kept[CHUNKS], np.int64).tolist())
 
 
 def tiled_chunk_starts(episode_starts: np.ndarray, horizon: int, max_chunks: int) -> np.ndarray:
@@ -107,6 +120,10 @@ class HeldOutChunks:
         batch_size = eval_cfg["batch_size"]
         self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg["max_chunks"])
         self.episodes = np.searchsorted(table.episode_starts, self.frames, side="right") - 1
+        self.chunk_names = np.stack([
+            np.asarray(table.episode_index, np.int64)[self.episodes],
+            self.frames - np.asarray(table.episode_starts, np.int64)[self.episodes],
+            np.full(len(self.frames), horizon, np.int64)], axis=1)
         starts = range(0, len(self.frames), batch_size)
         self.batch_rows = [min(batch_size, len(self.frames) - i) for i in starts]
         self.batches = [self.transform(np.pad(self.frames[i:i + batch_size],
@@ -158,7 +175,7 @@ class HeldOutChunks:
         `energy_skill/<g>`); the mean of the M draws under `mean_of_draws/...`; every
         reference's under `<name>/...`; `chunks` and `draws`. Kept sums (`CHUNK_SUMS_FILE`):
         the single draw's under `policy/`, the mean's under `mean_of_draws/`, persistence's under
-        `persistence/`, and `episode`."""
+        `persistence/`, `episode` and `chunks` (`CHUNKS`)."""
         sums = self.sums(draws)
         mean_sums = self._sums(np.mean(draws, axis=0))
         metrics = self._skilled(sums)
@@ -167,7 +184,7 @@ class HeldOutChunks:
             metrics.update({f"{name}/{k}": v for k, v in measured.items()})
         metrics["chunks"] = float(len(self.frames))
         metrics["draws"] = float(len(draws))
-        kept = {EPISODE: self.episodes.astype(np.int64),
+        kept = {EPISODE: self.episodes.astype(np.int64), CHUNKS: self.chunk_names,
                 **{f"policy/{k}": v for k, v in sums.items()},
                 **{f"{MEAN_OF_DRAWS}/{k}": v for k, v in mean_sums.items()},
                 **{f"persistence/{k}": v for k, v in self.reference_sums["persistence"].items()}}
@@ -184,7 +201,7 @@ def resampled_metrics(kept: Mapping[str, np.ndarray], layout) -> Iterator[dict[s
     onehot = np.eye(int(episode.max()) + 1)[episode]  # [N, E]
     counts = intervals.episode_counts(onehot.shape[1])  # [B, E]
     totals = {k: counts @ (np.asarray(v, np.float64) @ onehot) for k, v in kept.items()
-              if k != EPISODE}  # [B] each
+              if k not in NOT_SUMS}  # [B] each
     mean_prefix = f"{MEAN_OF_DRAWS}/"
 
     def part(prefix, b):

@@ -56,14 +56,35 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
                        ) -> dict[str, Any]:
     """A run's headline numbers (`COMPARED`) on each of the study's resamples of its held-out
     episodes (`intervals.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
-    `{"episodes": E, <name>: [B] values}`."""
+    `{"episodes": E, "chunks": the chunks' fingerprint, <name>: [B] values}`."""
     num_episodes = len(np.unique(sums[heldout_lib.EPISODE]))
     replicates = {k: [] for k in COMPARED}
     for metrics in heldout_lib.resampled_metrics(sums, layout):
         for k, v in run_summary(metrics, layout).items():
             if k in replicates:
                 replicates[k].append(v if math.isfinite(v) else None)
-    return {"episodes": num_episodes, **replicates}
+    return {"episodes": num_episodes, "chunks": heldout_lib.chunks_fingerprint(sums),
+            **replicates}
+
+
+def check_same_chunks(results: Sequence[Mapping[str, Any]]) -> None:
+    """Refuses runs scored on different held-out chunks (another horizon, `eval.max_chunks` or
+    held-out split): their differences and the do-nothing rows (the first run's) would compare
+    other chunks. Runs kept before their chunks had a fingerprint are not checked.
+
+    Raises:
+      ValueError naming the runs of each set of chunks.
+    """
+    groups: dict[str, list[str]] = {}
+    for r in results:
+        fingerprint = (r.get(EPISODE_REPLICATES) or {}).get("chunks")
+        if fingerprint:
+            groups.setdefault(fingerprint, []).append(f"{r['config']} seed {r['seed']}")
+    if len(groups) > 1:
+        sets = "; ".join(f"chunks {k}: {', '.join(v)}" for k, v in groups.items())
+        raise ValueError(f"the runs were scored on different held-out chunks ({sets}): compare "
+                         "runs with the same model.action_horizon, eval.max_chunks and held-out "
+                         "episodes (eval.episodes, data.root), or study them apart")
 
 
 
@@ -143,6 +164,7 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
     with >= 2 seeds against the baseline (95 % for the `primary` config, the others secondary),
     and the lever variants (each against its trained config, paired, and against the baseline).
     A 1-seed config has no interval, so it is in no family."""
+    check_same_chunks(results)
     configs = list(dict.fromkeys(r["config"] for r in results))
     layout = ActionLayout.from_config(results[0]["layout"])
     baseline = configs[0]
