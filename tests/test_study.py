@@ -647,3 +647,17 @@ def test_the_report_names_the_configs_with_fewer_seeds_than_a_result_needs(tmp_p
     text = (tmp_path / "study.md").read_text()
     assert text.startswith("# Study: 2 configs x 1-5 seeds, 10 steps")
     assert "Fewer than 5 seeds for arm_focused (1): their intervals" in text
+
+
+def test_a_study_kept_as_its_report_alone_is_reported_again_from_its_study_json(tmp_path):
+    results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    curves = ["", f"{report.CURVES_HEADING} (held-out skill)", "", "| config | step |",
+              "| uniform | 10 |"]
+    with open(tmp_path / "study.md", "a") as study_md:
+        study_md.write("\n".join(curves) + "\n")
+    again = study_run.run_study(["uniform", "arm_focused"], [0, 1], 10, tmp_path, train=False)
+    assert again == results
+    study_main.write_reports(again, tmp_path, steps=10, command="again")
+    text = (tmp_path / "study.md").read_text()
+    assert text.endswith("\n".join(curves) + "\n") and "`again`" in text

@@ -210,6 +210,8 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         entry = per_config[config]
         if config in levers:
             confidence, entry["comparison"] = lever_confidence, "lever"
+        elif config not in (baseline, primary, *secondary):
+            confidence, entry["comparison"] = intervals.CONFIDENCE, "anecdote (1 seed)"
         else:
             confidence = intervals.comparison_confidence(config in (primary, baseline),
                                                          len(secondary))

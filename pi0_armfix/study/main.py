@@ -80,7 +80,8 @@ from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.policies import inference
 from pi0_armfix.study.aggregate import aggregate
-from pi0_armfix.study.report import curve_table, markdown, plot_curves, plot_study
+from pi0_armfix.study.report import (CURVES_HEADING, curve_table, markdown, plot_curves,
+                                     plot_study)
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,
                                   closed_loop_plan, default_closed_loop_episodes, parse_config,
                                   run_folder, run_study, trained_config)
@@ -117,8 +118,11 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
                   command: str, primary: str | None = None,
                   ceiling: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Writes `study.md`, `study.json`, `study.png` and (from the runs' metrics logs, where
-    kept) `study_curves.png` into `workdir`; returns the aggregate."""
+    kept) `study_curves.png` into `workdir`; returns the aggregate. A study folder kept as its
+    report alone (no run folder has a metrics log) keeps the learning curves its `study.md`
+    was written with."""
     study = aggregate(results, primary=primary, ceiling=ceiling)
+    kept_curves = kept_curve_section(workdir / "study.md")
     (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
     json_files.write_json_atomic(workdir / "study.json",
                                 {"command": command, "steps": steps, "runs": list(results),
@@ -131,10 +135,21 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
         folder = run_folder(workdir, result["config"], result["seed"])
         curves.setdefault(result["config"], []).append(
             metrics_log.read_metrics(folder / metrics_log.METRICS_FILE))
+    table = curve_table(curves, study) if any(any(c) for c in curves.values()) else kept_curves
     with open(workdir / "study.md", "a") as report:
-        report.write("\n".join(curve_table(curves, study)) + "\n")
+        report.write("\n".join(table) + "\n")
     plot_curves(curves, study["groups"], workdir / "study_curves.png")
     return study
+
+
+def kept_curve_section(path: Path) -> list[str]:
+    """The learning-curve section of an existing `study.md` (its lines from the heading on, the
+    last section), or nothing."""
+    if not path.is_file():
+        return []
+    lines = path.read_text().splitlines()
+    start = next((i for i, line in enumerate(lines) if line.startswith(CURVES_HEADING)), None)
+    return [] if start is None else ["", *lines[start:]]
 
 
 # ---------------------------------------------------------------------- entrypoint

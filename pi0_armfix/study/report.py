@@ -38,6 +38,8 @@ GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
 
 
 
+CURVES_HEADING = "## Learning curves"  # study.md's last section
+
 def _cell(summary: Mapping[str, Any], key: str, digits: int = 3) -> str:
     mean, std = summary["mean"].get(key), summary["std"].get(key)
     if mean is None:
@@ -432,7 +434,7 @@ def curve_table(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
             rows.append(f"| {name} | {step} | {len(at)} | " + " | ".join(cells) + " |")
     if len({row.split(" | ")[1] for row in rows}) < 2:
         return []
-    return ["", "## Learning curves (held-out skill over persistence at every evaluated step)",
+    return ["", f"{CURVES_HEADING} (held-out skill over persistence at every evaluated step)",
             "", "Single draw unless said; mean ± std over the seeds that reached the step. "
             "Persistence (doing nothing) is 0 everywhere.", "",
             "| config | step | seeds | training min | "

@@ -314,23 +314,40 @@ def load_result(folder: Path) -> dict[str, Any] | None:
                          "that run again") from None
 
 
+def reported_runs(workdir: Path) -> dict[tuple[str, int], dict[str, Any]]:
+    """`{(config, seed): result}` of the runs in `workdir`'s `study.json` (none without one)."""
+    path = workdir / "study.json"
+    if not path.is_file():
+        return {}
+    try:
+        runs = json.loads(path.read_text())["runs"]
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"{path} is not a study's report ({e!r}); move it away to report the "
+                         "run folders alone") from None
+    return {(r["config"], int(r["seed"])): r for r in runs}
+
+
 def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir: Path,
               overrides: Sequence[str] = (), parallel: int = 1, closed_loop_episodes: int = 0,
               train: bool = True, evaluations: int = 1) -> list[dict[str, Any]]:
     """Every (config, seed) run, the finished ones read back (and evaluated in closed loop when
     they were not), the others trained; with `train=False`, only the finished ones (a partial
-    study's tables, labelled by their seed counts). Lever variants (`trained_config`) are measured
-    after every trained run, on the checkpoints of their trained config, which the study must
-    hold."""
+    study's tables, labelled by their seed counts), read from `workdir`'s `study.json` where a
+    run has no folder (a study kept as its report alone, `results/<study>/`). Lever variants
+    (`trained_config`) are measured after every trained run, on the checkpoints of their trained
+    config, which the study must hold."""
     missing = sorted({trained_config(c) for c in configs} - set(configs))
     if train and missing:
         raise ValueError(f"--configs {[c for c in configs if trained_config(c) in missing]} "
                          f"are measured on the checkpoints of {missing}: add them to --configs")
     results, todo, unmeasured = {}, [], []
+    reported = {} if train else reported_runs(workdir)
     for seed in seeds:  # seed-major: an interrupted study has every config's first seeds
         for config in configs:
             folder = run_folder(workdir, config, seed)
             result, trained = load_result(folder), run_steps(config, steps)
+            if result is None:
+                result = reported.get((config, seed))
             if result is not None and result["steps"] == trained:
                 result = add_episode_replicates(result, folder, evaluate_missing=train)
                 results[config, seed] = result
