@@ -661,3 +661,12 @@ def test_a_study_kept_as_its_report_alone_is_reported_again_from_its_study_json(
     study_main.write_reports(again, tmp_path, steps=10, command="again")
     text = (tmp_path / "study.md").read_text()
     assert text.endswith("\n".join(curves) + "\n") and "`again`" in text
+
+
+def test_a_study_on_other_data_than_the_demo_has_no_closed_loop_by_default():
+    assert study_main.on_other_data(["uniform", "arm_focused"], []) == ""
+    assert study_main.on_other_data(["uniform"], ["data.root="]) == ""
+    assert study_main.on_other_data(["uniform"], ["data.root=/data/g1"]) == (
+        "--override=data.root=/data/g1")
+    assert "the config arm_focused:g1" in study_main.on_other_data(["uniform:g1", "arm_focused:g1"],
+                                                                  [])

@@ -30,7 +30,9 @@ Every held-out number is the single draw's (what a robot executes), with the mea
 `eval.num_draws` draws and the energy skill beside it (docs/evaluation.md).
 
 Closed loop (`--closed_loop_episodes=N`; the default, -1, is one episode per 120 training steps
-within [10, 50], announced at start with its estimated time; 0 = off): every run's final
+within [10, 50] on the embedded demo, announced at start with its estimated time, and off for a
+study on other data, `--override=data.root=...` or a config's scale `:b1k` / `:g1`, whose actions
+the demo world cannot take; 0 = off): every run's final
 checkpoint also drives the demo world (`python -m pi0_armfix.evaluate --closed_loop --episodes=N
 --tolerances=1,2,4`, the same N episodes for every run), and study.md / study.png add, mean ± std
 over seeds: the share of navigation and manipulation phases that succeeded, the episodes whose
@@ -86,6 +88,14 @@ from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, Study
                                   closed_loop_plan, default_closed_loop_episodes, parse_config,
                                   run_folder, run_study, trained_config)
 from pi0_armfix.training import metrics_log
+
+def on_other_data(configs: Sequence[str], overrides: Sequence[str]) -> str:
+    """What puts a study on data other than the embedded demo (a `data.root` override or a
+    config's scale), or ''."""
+    roots = [o for o in overrides if o.partition("=")[0] == "data.root" and o.partition("=")[2]]
+    scaled = [c for c in configs if parse_config(c)[1]]
+    return ", ".join([*(f"--override={o}" for o in roots), *(f"the config {c}" for c in scaled)])
+
 
 def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
                     ) -> dict[str, float] | None:
@@ -171,8 +181,13 @@ def main(argv: Sequence[str]) -> None:
     if FLAGS.seeds < 1 or FLAGS.steps < 1 or FLAGS.parallel < 1 or FLAGS.evaluations < 1:
         raise SystemExit("pi0_armfix.study: --seeds, --steps, --parallel and --evaluations must "
                          "be >= 1")
-    episodes = (default_closed_loop_episodes(FLAGS.steps) if FLAGS.closed_loop_episodes < 0
-                else FLAGS.closed_loop_episodes)
+    episodes = FLAGS.closed_loop_episodes
+    if episodes < 0:
+        elsewhere = on_other_data(configs, FLAGS.override)
+        episodes = 0 if elsewhere else default_closed_loop_episodes(FLAGS.steps)
+        if elsewhere:
+            print(f"study: no closed loop ({elsewhere}: the demo world takes the embedded "
+                  "demo's actions)", flush=True)
     bad = [o for o in FLAGS.override if "=" not in o]
     if bad:
         raise SystemExit(f"pi0_armfix.study: --override {bad} must be key=value "
