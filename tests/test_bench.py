@@ -94,3 +94,25 @@ def test_train_benchmark_prints_throughput_against_the_bounds_and_the_batch_swee
         line = next(line for line in out.splitlines() if line.startswith(f"  K = {k}:"))
         assert "samples/s" in line and "of the compute bound" in line and "FLOP/byte" in line
     assert "  K = 4, batch 16:" in out
+
+
+def test_the_step_benchmark_times_the_projects_train_step_and_counts_its_flops():
+    from pi0_armfix.bench import step as step_bench
+
+    config = step_bench.load_config("arm_focused:b1k", preset="tiny", batch=4, flow_samples=2)
+    result = step_bench.measure(config, remat="on", steps=2, peak=1.0, matmul_size=128)
+    assert result["batch"] == 4 and result["flow_samples"] == 2 and result["remat"]
+    assert result["step_s"] > 0 and result["samples_per_s"] == 4 / result["step_s"]
+    assert result["loss"] > 0 and result["compiled_memory_gib"] > 0
+    # rematerialization recomputes the forward pass: more hardware than model FLOPs
+    assert result["hardware_tflop_per_step"] > result["model_tflop_per_step"] > 0
+    assert result["mfu"] == result["model_tflops_per_s"] / 1.0
+    assert "MFU" in step_bench.format_result(result)
+
+
+def test_the_step_benchmark_knows_the_peak_of_the_gpus_users_have():
+    from pi0_armfix.bench import step as step_bench
+
+    assert step_bench.peak_tflops("NVIDIA H200") == 989.0
+    assert step_bench.peak_tflops("NVIDIA A100-SXM4-80GB") == 312.0
+    assert step_bench.peak_tflops("cpu") is None and step_bench.peak_tflops("cpu", 2.0) == 2.0

@@ -3,7 +3,7 @@
 import importlib
 import sys
 
-BENCHMARKS = ("data", "faults", "model", "serve", "sim", "train", "video")
+BENCHMARKS = ("data", "faults", "model", "serve", "sim", "step", "train", "video")
 
 
 def main(argv: list[str]) -> None:
