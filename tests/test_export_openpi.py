@@ -192,3 +192,11 @@ def test_a_run_relative_to_the_previous_action_is_one_openpi_cannot_reproduce(ru
     config.data.delta_reference = "previous_action"
     problems = export_openpi.openpi_problems(dataclasses.replace(restored, config=config))
     assert any(p.startswith("data.delta_reference = 'previous_action'") for p in problems)
+
+
+def test_an_output_that_is_a_file_is_refused_in_one_line(run, tmp_path):
+    existing = tmp_path / "notes.txt"
+    existing.write_text("kept")
+    with pytest.raises(ValueError, match=r"--output=.*notes.txt is a file; name a new folder"):
+        export_openpi.export(run, existing, force=True)
+    assert existing.read_text() == "kept"

@@ -277,3 +277,25 @@ def test_the_harness_image_sizes_are_compiled_before_healthz_says_ready(run2025)
     for size in harness.IMAGE_SIZES:  # what B1K's harness sends compiles nothing new
         server.policy._fit(np.zeros((1, *size, 3), np.uint8))
     assert server.policy._to_model_images._cache_size() == compiled
+
+
+def test_a_batched_task_id_of_another_length_than_the_envs_is_one_error(run2026):
+    workdir, data = run2026
+    client = HarnessClient(_serve(workdir).port)
+    proprio = np.stack([data[0]["state"][0]] * 3)  # three envs
+    observation = _observation(proprio, task_id=1, envs=3)
+    observation[harness.TASK_ID] = np.array([[1], [2]], np.int64)  # two tasks
+    with pytest.raises(RuntimeError, match=r"'task_id' has 2 entries for 3 envs: send one per env"):
+        client.act(observation)
+    observation[harness.TASK_ID] = np.array([1], np.int64)  # one for every env
+    assert client.act(observation)["action"].shape == (3, 23)
+
+
+def test_batched_cameras_beside_an_unbatched_proprio_are_blamed_on_the_proprio(run2026):
+    workdir, data = run2026
+    client = HarnessClient(_serve(workdir).port)
+    observation = _observation(np.stack([data[0]["state"][0]] * 2), task_id=1, envs=2)
+    observation[harness.PROPRIO] = observation[harness.PROPRIO][0]  # [D]: no env dim
+    with pytest.raises(RuntimeError, match=r"hold a leading env dim but 'robot_r1::proprio' is "
+                                           r"\[61\]: .*\[N, D\]"):
+        client.act(observation)

@@ -670,3 +670,13 @@ def test_a_study_on_other_data_than_the_demo_has_no_closed_loop_by_default():
         "--override=data.root=/data/g1")
     assert "the config arm_focused:g1" in study_main.on_other_data(["uniform:g1", "arm_focused:g1"],
                                                                   [])
+
+
+@pytest.mark.parametrize("content", ["[]", "{}", '{"steps": 6}', '"text"'])
+def test_a_result_json_of_the_wrong_shape_is_one_error_naming_the_file_and_the_fix(
+        tmp_path, content):
+    folder = tmp_path / "uniform" / "seed_0"
+    folder.mkdir(parents=True)
+    (folder / "result.json").write_text(content)
+    with pytest.raises(ValueError, match=r"result.json (holds|lacks) .*delete it and rerun"):
+        study_run.run_study(["uniform"], [0], 6, tmp_path, train=False)

@@ -138,14 +138,26 @@ class HarnessSession:
 
     def _check_shapes(self, message: Mapping[str, Any], proprio: np.ndarray, batched: bool
                       ) -> None:
-        """Raises ValueError naming the keys whose leading sizes differ in a batched request, or
-        a proprio of another B1K release than the run's."""
+        """Raises ValueError naming the keys whose leading sizes differ in a batched request, a
+        `task_id` per env that is not one per env (nor one for all), batched cameras beside an
+        unbatched proprio, or a proprio of another B1K release than the run's."""
         if batched:
             sizes = {key: np.shape(message[key])[0] if np.ndim(message[key]) else None
                      for key in (PROPRIO, *CAMERAS) if key in message}
             if len(set(sizes.values())) > 1:
                 raise ValueError("a batched request holds one leading env dim N in every key; "
                                  f"got leading sizes {sizes}")
+            tasks = np.size(message[TASK_ID]) if TASK_ID in message else 1
+            if tasks not in (1, len(proprio)):
+                raise ValueError(f"{TASK_ID!r} has {tasks} entries for {len(proprio)} envs: send "
+                                 "one per env ([N, 1]) or one for every env")
+        else:
+            batched_cameras = [key for key in CAMERAS if key in message
+                               and np.ndim(message[key]) == 4]
+            if batched_cameras:
+                raise ValueError(f"{batched_cameras} hold a leading env dim but {PROPRIO!r} is "
+                                 f"{list(proprio.shape)}: a batched request sends the proprio "
+                                 "as [N, D], one row per env")
         width, expected = proprio.shape[-1], self.policy.stored_state_width
         if width != expected:
             releases = {256: "a B1K 2025 (256-D proprio) run", 61: "a B1K 2026 (61-D proprio) run"}
@@ -182,7 +194,7 @@ class HarnessSession:
 
     def _task_prompt(self, message: Mapping[str, Any], env: int, batched: bool) -> str:
         ids = self._array(message, TASK_ID, np.int64).reshape(-1)
-        task = int(ids[env] if batched and len(ids) > env else ids[0])
+        task = int(ids[env] if batched and len(ids) > 1 else ids[0])
         prompts = self.policy.task_prompts
         if task in prompts:
             prompt = prompts[task]

@@ -303,15 +303,32 @@ def run_has_closed_loop(result: Mapping[str, Any], episodes: int) -> bool:
             and CLOSED_LOOP_EPISODES in result)
 
 
+# What every result.json holds (`run_one`), with its type.
+RESULT_FIELDS = {"config": str, "seed": int, "steps": int, "layout": dict, "metrics": dict}
+
+
 def load_result(folder: Path) -> dict[str, Any] | None:
+    """A finished run's `result.json`, None where there is none.
+
+    Raises:
+      ValueError naming the file, what it lacks and the fix, for one that is not JSON or not a
+      result's shape (a truncated or hand-edited file).
+    """
     path = folder / RESULT_FILE
     if not path.exists():
         return None
+    fix = "delete it and rerun the study to evaluate that run again"
     try:
-        return json.loads(path.read_text())
+        result = json.loads(path.read_text())
     except json.JSONDecodeError as e:
-        raise ValueError(f"{path} is not JSON ({e}): delete it and rerun the study to evaluate "
-                         "that run again") from None
+        raise ValueError(f"{path} is not JSON ({e}): {fix}") from None
+    if not isinstance(result, dict):
+        raise ValueError(f"{path} holds a {type(result).__name__}, not a run's result (an "
+                         f"object with {sorted(RESULT_FIELDS)}): {fix}")
+    wrong = [k for k, kind in RESULT_FIELDS.items() if not isinstance(result.get(k), kind)]
+    if wrong:
+        raise ValueError(f"{path} lacks a run's {wrong} (or holds them of the wrong type): {fix}")
+    return result
 
 
 def reported_runs(workdir: Path) -> dict[tuple[str, int], dict[str, Any]]:

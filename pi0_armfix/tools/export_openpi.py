@@ -251,6 +251,9 @@ def export(checkpoint: str | Path, output: str | Path, *, asset_id: str = "",
         raise ValueError(f"--dtype={dtype} must be one of {DTYPES}")
     workdir, step = resolve_checkpoint(checkpoint)
     output = Path(output).expanduser().absolute()
+    if output.exists() and not output.is_dir():
+        raise ValueError(f"--output={output} is a file; name a new folder (an export writes "
+                         "params/ and assets/ into one)")
     if output.exists() and any(output.iterdir()):
         raise ValueError(f"--output={output} is not empty; name a new folder (an export never "
                          "overwrites one)")
