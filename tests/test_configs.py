@@ -171,8 +171,11 @@ def test_a_conv_stem_that_does_not_divide_the_patch_is_named():
 def test_the_main_job_on_a_pi0_preset_names_the_conv_stem_and_its_fix():
     config = load("arm_focused")  # built at the demo scale: the conv stem is set
     config.model.preset = "pi0"  # 14 px patches
-    with pytest.raises(ValueError, match=r"siglip.conv_stem=3 .* conv_stem=0 is SigLIP's own"):
-        model_config_lib.from_model_config(config.model)
+    for preset in ("pi0", "pi05"):
+        config.model.preset = preset
+        with pytest.raises(ValueError, match=r"siglip.conv_stem=3 .* conv_stem=0 is SigLIP's own"
+                                             r".*--config.model.sizes.siglip.conv_stem=0$"):
+            model_config_lib.from_model_config(config.model)
 
 
 def test_a_negative_model_size_is_named():

@@ -680,3 +680,15 @@ def test_a_result_json_of_the_wrong_shape_is_one_error_naming_the_file_and_the_f
     (folder / "result.json").write_text(content)
     with pytest.raises(ValueError, match=r"result.json (holds|lacks) .*delete it and rerun"):
         study_run.run_study(["uniform"], [0], 6, tmp_path, train=False)
+
+
+def test_a_lever_out_of_range_is_refused_before_any_run_trains(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "pi0_armfix.study",
+                           "--configs=uniform,uniform@eval.average_draws=0", "--seeds=1",
+                           "--steps=2", f"--workdir={tmp_path / 'study'}"],
+                          capture_output=True, text=True, timeout=300, cwd=tf.REPO_ROOT,
+                          env=dict(os.environ, PYTHONPATH=str(tf.REPO_ROOT)))
+    assert done.returncode != 0
+    assert ("--configs uniform@eval.average_draws=0: --average_draws = 0.0 must be >= 1"
+            in done.stderr)
+    assert not (tmp_path / "study").exists()

@@ -158,7 +158,8 @@ class Pi0Config:
             raise ValueError(f"siglip.conv_stem={s.conv_stem} must be >= 0 with 2**conv_stem "
                              f"dividing siglip.patch_size={s.patch_size} (each convolution halves "
                              "the image); conv_stem=0 is SigLIP's own stem, the one the pi0 / "
-                             "pi0.5 presets and their checkpoints have")
+                             "pi0.5 presets and their checkpoints have: "
+                             "--config.model.sizes.siglip.conv_stem=0")
         if s.width % s.num_heads:
             raise ValueError(
                 f"siglip.width={s.width} must be a multiple of siglip.num_heads={s.num_heads}")

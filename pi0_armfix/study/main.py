@@ -85,8 +85,9 @@ from pi0_armfix.study.aggregate import aggregate
 from pi0_armfix.study.report import (CURVES_HEADING, curve_table, markdown, plot_curves,
                                      plot_study)
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,
-                                  closed_loop_plan, default_closed_loop_episodes, parse_config,
-                                  run_folder, run_study, trained_config)
+                                  check_study_levers, closed_loop_plan,
+                                  default_closed_loop_episodes, parse_config, run_folder,
+                                  run_study, trained_config)
 from pi0_armfix.training import metrics_log
 
 def on_other_data(configs: Sequence[str], overrides: Sequence[str]) -> str:
@@ -196,6 +197,10 @@ def main(argv: Sequence[str]) -> None:
     if bad:
         raise SystemExit(f"pi0_armfix.study: --configs {bad}: what follows a config's '@' must "
                          "be key=value (e.g. arm_focused@data.video_access=random)")
+    try:
+        check_study_levers(configs)
+    except ValueError as err:
+        raise SystemExit(f"pi0_armfix.study: {err}") from None
     if FLAGS.primary and FLAGS.primary not in configs:
         raise SystemExit(f"pi0_armfix.study: --primary={FLAGS.primary} is not one of --configs "
                          f"{configs}")

@@ -60,6 +60,19 @@ def inference_levers(config: str) -> dict[str, str]:
             if key.startswith("eval.") and key.removeprefix("eval.") in inference.LEVERS}
 
 
+def check_study_levers(configs: Sequence[str]) -> None:
+    """Refuses, before any run trains, a lever variant whose levers are out of range.
+
+    Raises:
+      ValueError naming the config and the lever's range.
+    """
+    for config in configs:
+        try:
+            inference.check_levers({k: float(v) for k, v in inference_levers(config).items()})
+        except ValueError as err:
+            raise ValueError(f"--configs {config}: {err}") from None
+
+
 def trained_config(config: str) -> str:
     """The config whose runs train `config`'s checkpoints: `config` less its inference levers.
     A lever changes how a checkpoint is sampled, not what is trained, so a lever variant
