@@ -5,9 +5,11 @@ unless asked for, and a user's error as one line."""
 from __future__ import annotations
 
 import contextlib
+import importlib
 import logging as std_logging
 import os
 import re
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -51,7 +53,7 @@ def flags_parser(program: str,
 
     def parse(argv: list[str]) -> list[str]:
         try:
-            return _parse_with_help(argv, flag_values)
+            return _parse_with_help(argv, flag_values, program)
         except flags.Error as e:
             raise SystemExit(f"{program}: {e} (--help lists the flags)") from None
 
@@ -75,7 +77,7 @@ def config_flags_parser(program: str, flag_values: flags.FlagValues = flags.FLAG
             if arg.startswith("--config="):
                 _check_config_file(program, arg.partition("=")[2].partition(":")[0])
         try:
-            return _parse_with_help(argv, flag_values)
+            return _parse_with_help(argv, flag_values, program)
         except flags.Error as e:
             message = str(e)
             if "Error whilst parsing config file" in message:  # get_config raised: its last line
@@ -89,7 +91,28 @@ def config_flags_parser(program: str, flag_values: flags.FlagValues = flags.FLAG
     return parse
 
 
-def _parse_with_help(argv: list[str], flag_values: flags.FlagValues) -> list[str]:
+def command_help(program: str, flag_values: flags.FlagValues) -> str:
+    """`--help` of a command: its module's docstring and every flag it defined, its own and the
+    shared ones (`define_lever_flags`). absl's own lists only the flags of the main module, which
+    for an installed console script is the generated wrapper: no description, no flags."""
+    doc = getattr(sys.modules.get("__main__"), "__doc__", None)  # `python -m`: the command's
+    if not doc:  # a console script's wrapper has none: the command's module
+        try:
+            doc = importlib.import_module(program).__doc__
+        except ImportError:
+            doc = ""
+    doc = (doc or "").strip()
+    ours = [m for m in flag_values.flags_by_module_dict()
+            if "pi0_armfix" in m or m in ("__main__", sys.argv[0])]
+    listed = "\n".join(flag_values.module_help(m) for m in ours)
+    return f"{doc}\n\nflags:\n{listed}\n(--helpfull lists every library's flags too)"
+
+
+def _parse_with_help(argv: list[str], flag_values: flags.FlagValues, program: str = ""
+                     ) -> list[str]:
+    if program and any(a in ("--help", "-?", "--helpshort", "-h") for a in argv[1:]):
+        print(command_help(program, flag_values))
+        raise SystemExit(0)
     try:
         return flag_values(argv)
     except SystemExit as e:  # absl's --help exits 1: a help asked for is no failure

@@ -1,10 +1,16 @@
 """The entrypoints' command line (pi0_armfix.console): every mistake in a flag or a config is one
 line naming it, and `--config=<name>` finds the installed configs from any folder."""
 
+import importlib
+import os
+import subprocess
+import sys
+
 import pytest
 from absl import flags
 from ml_collections import config_flags
 
+import train_fixtures as tf
 from pi0_armfix import console
 
 
@@ -83,3 +89,18 @@ def test_the_installed_config_names_leave_out_the_shared_base():
     names = console.config_names()
     assert "arm_focused" in names and "uniform" in names
     assert "base" not in names and "__init__" not in names
+
+
+@pytest.mark.parametrize("module, own_flag", [("serve", "--workdir"), ("evaluate", "--closed_loop")])
+def test_an_installed_command_help_prints_its_description_and_every_flag(module, own_flag):
+    # As a console script runs it: the main module is a wrapper that defines no flag.
+    done = subprocess.run(
+        [sys.executable, "-c", f"import sys; from pi0_armfix.{module} import cli; "
+         f"sys.argv = ['pi0-armfix-{module}', '--help']; cli()"],
+        capture_output=True, text=True, timeout=120, cwd=tf.REPO_ROOT,
+        env=dict(os.environ, PYTHONPATH=str(tf.REPO_ROOT)))
+    assert done.returncode == 0, done.stderr[-2000:]
+    description = importlib.import_module(f"pi0_armfix.{module}").__doc__.strip().splitlines()[0]
+    assert description in done.stdout
+    for flag in (own_flag, "--average_draws", "--temperature"):
+        assert flag in done.stdout
