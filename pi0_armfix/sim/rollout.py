@@ -267,7 +267,9 @@ def plot_rollouts(records: Sequence[EpisodeRecord], expert: Sequence[EpisodeReco
     """One row per episode: the top-down base path and two arm joints of each arm over time,
     the policy (solid) against the expert on the same episode (dashed)."""
     rows = len(records)
-    fig, axes = plt.subplots(rows, 3, figsize=(13, 3.2 * rows), squeeze=False)
+    # constrained: the suptitle and every panel's title get their room (tight_layout cut them)
+    fig, axes = plt.subplots(rows, 3, figsize=(13, 3.2 * rows + 0.6), squeeze=False,
+                             layout="constrained")
     for row, (mine, theirs) in enumerate(zip(records, expert)):
         ax = axes[row, 0]
         for record, style in ((theirs, "--"), (mine, "-")):
@@ -290,6 +292,5 @@ def plot_rollouts(records: Sequence[EpisodeRecord], expert: Sequence[EpisodeReco
             ax.set_xlabel("s")
             ax.legend(fontsize=7, loc="upper right")
     fig.suptitle(title)
-    fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)

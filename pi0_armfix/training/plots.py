@@ -10,6 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
 from etils import epath  # noqa: E402
 
 from pi0_armfix.action_space import ActionLayout  # noqa: E402
@@ -93,7 +94,15 @@ def plot_stagnation(records: Sequence[Mapping], layout: ActionLayout,
                        "o: the single draw (executed), x: the mean of the draws")
     for ax in (gain_ax, skill_ax):
         ax.grid(alpha=0.3)
-    skill_ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    styles = [Line2D([], [], color="gray", marker="o", markersize=4, lw=2.0,
+                     label="single draw (executed)"),
+              Line2D([], [], color="gray", marker="x", lw=0.8, alpha=0.6,
+                     label="mean of the draws"),
+              Line2D([], [], color="gray", ls=":", lw=1.0,
+                     label="holding the previous action (gain; its skill is 0)")]
+    handles, _ = skill_ax.get_legend_handles_labels()
+    skill_ax.legend(handles=[*handles, *styles], fontsize=8, loc="center left",
+                    bbox_to_anchor=(1.0, 0.5))
     fig.suptitle("held-out evaluation per group (dashed: base and torso)")
     fig.tight_layout()
     fig.savefig(epath.Path(path), dpi=100)
@@ -110,8 +119,8 @@ def plot_trajectories(predicted: np.ndarray, true: np.ndarray, layout: ActionLay
       groups: the layout groups to show.
     """
     n = len(predicted)
-    fig, axes = plt.subplots(n, len(groups), figsize=(3.2 * len(groups), 2.4 * n + 0.8),
-                             squeeze=False)
+    fig, axes = plt.subplots(n, len(groups), figsize=(3.2 * len(groups), 2.4 * n + 1.6),
+                             squeeze=False, layout="constrained")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for row in range(n):
         for col, g in enumerate(groups):
@@ -122,14 +131,14 @@ def plot_trajectories(predicted: np.ndarray, true: np.ndarray, layout: ActionLay
                 ax.plot(predicted[row, :, d], color=color, lw=1.5, ls="--")
             if row == 0:
                 ax.set_title(g)
-                ax.legend(fontsize=6, loc="upper right", ncol=2)
             if row == n - 1:
                 ax.set_xlabel("step in chunk")
+                # below the last row, where it covers no curve
+                ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=2)
             if col == 0:
                 ax.set_ylabel(f"chunk {row + 1}\naction (data units)")
             ax.grid(alpha=0.3)
     fig.suptitle((title + "\n" if title else "") + "solid: demonstration, dashed: policy sample; "
                  "absolute actions in the dataset's units")
-    fig.tight_layout()
     fig.savefig(epath.Path(path), dpi=90)
     plt.close(fig)
