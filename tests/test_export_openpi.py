@@ -200,3 +200,19 @@ def test_an_output_that_is_a_file_is_refused_in_one_line(run, tmp_path):
     with pytest.raises(ValueError, match=r"--output=.*notes.txt is a file; name a new folder"):
         export_openpi.export(run, existing, force=True)
     assert existing.read_text() == "kept"
+
+
+@pytest.mark.slow  # a run of two checkpoints and an export in a subprocess
+def test_exporting_past_a_damaged_latest_checkpoint_says_so_in_one_line(tmp_path, demo_root,
+                                                                         cache_dir):  # noqa: F811
+    run = tf.trained_tiny_run(CONFIG, tmp_path / "run", demo_root, train__total_steps=4)
+    for data in (run / "checkpoints" / "4" / "state").glob("ocdbt.process_0/d/*"):
+        data.unlink()  # the arrays of the latest checkpoint are gone
+    done = subprocess.run([sys.executable, "-m", "pi0_armfix.tools.export_openpi",
+                           f"--checkpoint={run}", f"--output={tmp_path / 'out'}", "--force"],
+                          env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "Exception ignored" not in done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "checkpoints/4 is damaged" in lines[0] and "step 2" in lines[0]

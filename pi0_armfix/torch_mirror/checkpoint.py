@@ -101,9 +101,9 @@ def _restore_arrays(item_dir: epath.Path, subtree: Sequence[str]) -> dict[str, n
     import jax
     import orbax.checkpoint as ocp
 
-    from pi0_armfix.training.checkpoint import drop_closed_loop_noise
+    from pi0_armfix.training.checkpoint import drop_restore_noise
 
-    drop_closed_loop_noise()  # a damaged file echoes from tensorstore's threads
+    drop_restore_noise()  # a damaged file echoes from tensorstore's threads
     handler = ocp.PyTreeCheckpointHandler()
     try:
         tree = handler.metadata(item_dir).tree

@@ -76,15 +76,19 @@ def first_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {text[0][:200] if text else ''}"
 
 
-def drop_closed_loop_noise() -> None:
-    """Silences the "Event loop is closed" that tensorstore's late callbacks raise after an orbax
-    restore failed (through sys.excepthook or sys.unraisablehook, from its threads): the failure
-    itself is reported, this is its echo."""
-    if getattr(sys.excepthook, "drops_closed_loop_noise", False):
+def drop_restore_noise() -> None:
+    """Silences the echoes of an orbax restore that failed on a damaged file, which the failure
+    itself reports in one line: the "Event loop is closed" that tensorstore's late callbacks raise
+    (through sys.excepthook or sys.unraisablehook, from its threads), and the "Exception ignored
+    in: <coroutine ...>" of every array read the failed restore left unawaited (thousands of
+    lines on exit, one traceback per array)."""
+    if getattr(sys.excepthook, "drops_restore_noise", False):
         return
 
     def is_noise(error: BaseException | None) -> bool:
-        return isinstance(error, RuntimeError) and "Event loop is closed" in str(error)
+        text = str(error)
+        return ((isinstance(error, RuntimeError) and "Event loop is closed" in text)
+                or "Encountered error while reading array index" in text)
 
     excepthook, unraisablehook = sys.excepthook, sys.unraisablehook
 
@@ -96,7 +100,7 @@ def drop_closed_loop_noise() -> None:
         if not is_noise(unraisable.exc_value):
             unraisablehook(unraisable)
 
-    quiet_excepthook.drops_closed_loop_noise = True
+    quiet_excepthook.drops_restore_noise = True
     sys.excepthook, sys.unraisablehook = quiet_excepthook, quiet_unraisablehook
 
 
@@ -119,7 +123,7 @@ class Checkpoints:
         if keep is not None and keep <= 0:
             raise ValueError(f"train.keep_checkpoints = {keep} must be positive")
         self.directory = epath.Path(directory).absolute()  # orbax wants absolute paths
-        drop_closed_loop_noise()  # before any read: a damaged file echoes from the first one
+        drop_restore_noise()  # before any read: a damaged file echoes from the first one
         self._keep = None if read_only else keep
         self._confirmed: int | None = None  # the newest step known to be good
         self._saving: int | None = None  # the step of the save in flight
