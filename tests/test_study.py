@@ -692,3 +692,58 @@ def test_a_lever_out_of_range_is_refused_before_any_run_trains(tmp_path):
     assert ("--configs uniform@eval.average_draws=0: --average_draws = 0.0 must be >= 1"
             in done.stderr)
     assert not (tmp_path / "study").exists()
+
+
+G1 = {"preset": "g1_inspire", "action_dim": 32}
+G1_GROUPS = ("left_arm", "right_arm", "left_hand", "right_hand")
+
+
+def _g1_result(config, seed, skills, noise=None):
+    """A G1 run: each group's skill (single draw and mean of draws), no base, no gripper."""
+    metrics = {}
+    for g, skill in zip(G1_GROUPS, skills):
+        metrics |= {f"skill/{g}": skill, f"mean_of_draws/skill/{g}": skill + 0.1,
+                    f"motion_gain/{g}": 0.5, f"persistence/skill/{g}": 0.0,
+                    f"persistence/motion_gain/{g}": 0.0}
+    result = {"config": config, "seed": seed, "steps": 10, "layout": G1, "metrics": metrics}
+    if noise is not None:
+        keys = aggregate.group_keys(ActionLayout.from_config(G1))
+        result["episode_replicates"] = {"episodes": 20, **{k: [0.0] * 200 for k in
+                                                          aggregate.COMPARED},
+                                        **{k: list(metrics[k] + noise) for k in keys}}
+    return result
+
+
+def test_each_group_is_compared_with_the_baseline_and_targets_of_absent_groups_are_na(tmp_path):
+    results = [_g1_result("uniform:g1", s, (-40.0 + s, -0.4, -17.0, -0.4)) for s in range(3)]
+    results += [_g1_result("arm_focused:g1", s, (-1.0 - 0.1 * s, -0.3, -0.5, -0.2 + 0.01 * s))
+                for s in range(3)]
+    agg = aggregate.aggregate(results)
+    fix = agg["configs"]["arm_focused:g1"]
+    diff, low, high = fix["vs_baseline_groups"]["skill/left_arm"]
+    assert diff == pytest.approx(-1.1 - (-39.0)) and low < diff < high
+    assert fix["vs_baseline_groups"]["mean_of_draws/skill/right_hand"][0] == pytest.approx(0.21)
+    assert fix["targets"]["base_skill"] is None and fix["targets"]["switch_f1"] is None
+    study_main.write_reports(results, tmp_path, steps=10, command="study")
+    text = (tmp_path / "study.md").read_text()
+    assert "## Against `uniform:g1`, per group" in text
+    assert "| arm_focused:g1 | single | +37.900 [" in text
+    assert "| n/a | n/a |" in text  # base skill and switch F1 targets: no base, no gripper
+
+
+def test_per_group_intervals_widen_by_the_held_out_episodes_resamples():
+    rng = np.random.default_rng(0)
+
+    def runs(resampled):
+        noise = (lambda: rng.normal(0, 0.5, 200)) if resampled else (lambda: None)  # noqa: E731
+        return ([_g1_result("uniform:g1", s, (-40.0 + s, -0.4 + 0.1 * s, -17.0, -0.4), noise())
+                 for s in range(3)]
+                + [_g1_result("fix:g1", s, (-1.0 - 0.1 * s, -0.3 + 0.1 * s, -0.5, -0.2), noise())
+                   for s in range(3)])
+
+    seeds_only = aggregate.aggregate(runs(False))["configs"]["fix:g1"]
+    both = aggregate.aggregate(runs(True))["configs"]["fix:g1"]
+    width = lambda c: c["vs_baseline_groups"]["skill/right_arm"][2] - c[  # noqa: E731
+        "vs_baseline_groups"]["skill/right_arm"][1]
+    assert both["groups_resampled"] and not seeds_only["groups_resampled"]
+    assert width(both) > width(seeds_only)

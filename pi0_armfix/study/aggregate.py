@@ -56,12 +56,14 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
                        ) -> dict[str, Any]:
     """A run's headline numbers (`COMPARED`) on each of the study's resamples of its held-out
     episodes (`intervals.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
-    `{"episodes": E, "chunks": the chunks' fingerprint, <name>: [B] values}`."""
+    `{"episodes": E, "chunks": the chunks' fingerprint, <name>: [B] values}` for the headline
+    numbers and each group's (`group_keys`)."""
     num_episodes = len(np.unique(sums[heldout_lib.EPISODE]))
-    replicates = {k: [] for k in COMPARED}
+    replicates = {k: [] for k in (*COMPARED, *group_keys(layout))}
     for metrics in heldout_lib.resampled_metrics(sums, layout):
-        for k, v in run_summary(metrics, layout).items():
+        for k, v in {**run_summary(metrics, layout), **metrics}.items():
             if k in replicates:
+                v = as_number(v)
                 replicates[k].append(v if math.isfinite(v) else None)
     return {"episodes": num_episodes, "chunks": heldout_lib.chunks_fingerprint(sums),
             **replicates}
@@ -115,6 +117,13 @@ def closed_loop_replicates(outcomes: Mapping[str, Sequence[int]], key: str) -> n
 
 def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
     return layout.groups_with_role("arm")
+
+
+def group_keys(layout: ActionLayout) -> tuple[str, ...]:
+    """The per-group numbers compared with the baseline beside the headline: each group's skill
+    over persistence, the single draw's and the mean of the draws'."""
+    return tuple(f"{prefix}skill/{g}" for prefix in ("", f"{heldout_lib.MEAN_OF_DRAWS}/")
+                 for g in layout.group_names)
 
 
 def run_summary(metrics: Mapping[str, Any], layout: ActionLayout, prefix: str = ""
@@ -180,11 +189,21 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
     episodes = resampled["episodes"] if resampled else 0
 
     def replicates(config: str, key: str) -> np.ndarray | None:
-        if not resampled:
+        """`[n, B]` the config's runs' `key` on the resamples; None where a run lacks them (a
+        result kept before its per-group resamples)."""
+        runs = [r for r in results if r["config"] == config]
+        if not resampled or any(key not in r[EPISODE_REPLICATES] for r in runs):
             return None
-        return np.asarray([[math.nan if v is None else v
-                            for v in r[EPISODE_REPLICATES][key]]
-                           for r in results if r["config"] == config], np.float64)
+        return np.asarray([[math.nan if v is None else v for v in r[EPISODE_REPLICATES][key]]
+                           for r in runs], np.float64)
+
+    def versus_baseline(config: str, key: str, values, base_values, confidence: float):
+        mine, theirs = replicates(config, key), replicates(baseline, key)
+        with_episodes = mine is not None and theirs is not None and config != baseline
+        return intervals.welch_interval(
+            values, base_values, confidence, episodes=episodes if with_episodes else 0,
+            episode_variance=(intervals.episode_variance(mine, episodes, theirs)
+                              if with_episodes else 0.0))
 
     per_config: dict[str, Any] = {}
     for config in configs:
@@ -218,13 +237,16 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
             entry["comparison"] = ("baseline" if config == baseline else
                                    "primary" if config == primary else "secondary")
         entry["confidence"] = confidence
-        entry["vs_baseline"] = {k: intervals.welch_interval(
-            entry["headline"][k], base_values[k], confidence, episodes=episodes,
-            episode_variance=(intervals.episode_variance(
-                replicates(config, k), episodes, replicates(baseline, k))
-                if resampled and config != baseline else 0.0))
-            for k in COMPARED}
+        entry["vs_baseline"] = {k: versus_baseline(config, k, entry["headline"][k],
+                                                   base_values[k], confidence)
+                                for k in COMPARED}
         runs = [r for r in results if r["config"] == config]
+        groups_of = lambda rs, k: [as_number(r["metrics"].get(k)) for r in rs]  # noqa: E731
+        entry["vs_baseline_groups"] = {
+            k: versus_baseline(config, k, groups_of(runs, k), groups_of(base_runs, k),
+                               confidence) for k in group_keys(layout)}
+        entry["groups_resampled"] = all(replicates(c, k) is not None for c in (config, baseline)
+                                        for k in group_keys(layout))
         entry["vs_baseline"].update(closed_loop_comparisons(runs, base_runs, confidence))
         entry["targets"] = meets_targets(entry, per_config[baseline], layout, targets, ceiling)
         trained = next((r["trained"] for r in runs if r.get("trained")), None)
@@ -336,8 +358,10 @@ def _episode_resamples(results: Sequence[Mapping[str, Any]]) -> dict[str, int] |
 
 
 def meets_targets(entry: Mapping[str, Any], baseline: Mapping[str, Any], layout: ActionLayout,
-                  targets: Targets, ceiling: Mapping[str, float] | None) -> dict[str, bool]:
-    """Which of `Targets` a config meets (means over seeds; the arm skill by its interval)."""
+                  targets: Targets, ceiling: Mapping[str, float] | None
+                  ) -> dict[str, bool | None]:
+    """Which of `Targets` a config meets (means over seeds; the arm skill by its interval);
+    None for a target of a group the layout does not have."""
     mean = entry["mean"]
     _, low, _ = entry["arm_skill_interval"]
     gains = []
@@ -349,13 +373,16 @@ def meets_targets(entry: Mapping[str, Any], baseline: Mapping[str, Any], layout:
         gains.append(mean.get(f"motion_gain/{g}") is not None
                      and mean[f"motion_gain/{g}"] >= bar)
     base, own = baseline["mean"].get("base_skill"), mean.get("base_skill")
+    # A target of a group the robot does not have (a G1: no base, hands for grippers) is None.
     met = {
         "arm_skill": bool(np.isfinite(low) and low > 0),
         "arm_gain": bool(gains) and all(gains),
-        "base_skill": bool(base is not None and own is not None
-                           and own >= base - targets.base_skill_drop * abs(base)),
-        "switch_f1": bool(mean.get("switch_f1") is not None
-                          and mean["switch_f1"] >= targets.switch_f1),
+        "base_skill": (bool(base is not None and own is not None
+                            and own >= base - targets.base_skill_drop * abs(base))
+                       if layout.groups_with_role("base") else None),
+        "switch_f1": (bool(mean.get("switch_f1") is not None
+                           and mean["switch_f1"] >= targets.switch_f1)
+                      if layout.groups_with_role("gripper") else None),
     }
     manipulation = entry["vs_baseline"].get(f"{CLOSED_LOOP}phase_success/manipulation")
     navigation = entry["vs_baseline"].get(f"{CLOSED_LOOP}phase_success/navigation")

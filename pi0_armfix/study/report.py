@@ -137,6 +137,7 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         level = f"{c['comparison']} ({c['confidence']:.1%})"
         lines.append(f"| {name} | {level} | " + " | ".join(_interval(vs[k]) for k in COMPARED)
                      + " |")
+    lines += group_comparison_table(study, sampling)
     lines += ["", "## Targets", "",
               f"Arms' skill over persistence > 0 with its 95 % interval above 0; each arm's "
               f"motion gain >= {targets['arm_gain']} (or >= {targets['ceiling_share']:.0%} of the "
@@ -148,11 +149,37 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
     for name, c in configs.items():
         met = c["targets"]
         lines.append(f"| {name} | {_interval(c['arm_skill_interval'])} | "
-                     + " | ".join("met" if met[k] else "missed" for k in
+                     + " | ".join(_verdict(met[k]) for k in
                                   ("arm_skill", "arm_gain", "base_skill", "switch_f1")) + " |")
     if any_config_has_closed_loop(configs):
         lines += closed_loop_table(study)
     return "\n".join(lines + lever_table(configs)) + "\n"
+
+
+def _verdict(met: bool | None) -> str:
+    return "n/a" if met is None else "met" if met else "missed"
+
+
+def group_comparison_table(study: Mapping[str, Any], sampling: str) -> list[str]:
+    """study.md's per-group differences to the baseline: each group's skill over persistence,
+    the single draw's and the mean of the draws', with the comparison's interval."""
+    configs = {n: c for n, c in study["configs"].items() if "vs_baseline_groups" in c
+               and c["comparison"] != "baseline"}
+    if not configs:
+        return []
+    groups = study["groups"]
+    episodes = (sampling if all(c["groups_resampled"] for c in configs.values())
+                else "the seeds' spread alone (some runs kept no per-group resamples)")
+    lines = ["", f"## Against `{study['baseline']}`, per group (skill over persistence)", "",
+             "Each group's difference of means over seeds, at each comparison's level (above); "
+             f"the intervals hold {episodes}. Single draw, then the mean of the draws.", "",
+             "| config | draw | " + " | ".join(groups) + " |", "|---" * (len(groups) + 2) + "|"]
+    for name, c in configs.items():
+        for label, prefix in (("single", ""), ("mean of draws", f"{MEAN_OF_DRAWS}/")):
+            vs = c["vs_baseline_groups"]
+            lines.append(f"| {name} | {label} | " + " | ".join(
+                _interval(vs[f"{prefix}skill/{g}"]) for g in groups) + " |")
+    return lines
 
 
 def lever_table(configs: Mapping[str, Any]) -> list[str]:
@@ -250,7 +277,7 @@ def closed_loop_targets(study: Mapping[str, Any]) -> list[str]:
              "|---|---|---|---|"]
     for name, met in rows:
         lines.append(f"| {name} | " + " | ".join(
-            "met" if met[k] else "missed" for k in
+            _verdict(met[k]) for k in
             ("closed_loop_manipulation", "closed_loop_navigation", "switch_precision")) + " |")
     return lines
 
