@@ -229,16 +229,16 @@ def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missin
     per-chunk sums; a run without them is evaluated again from its checkpoint when
     `evaluate_missing`, else (or without a checkpoint) returned as it is. Replicates kept before
     the per-group ones (`aggregate.group_keys`) are recomputed where the sums are kept."""
-    layout = ActionLayout.from_config(result["layout"])
     kept = result.get(EPISODE_REPLICATES)
     path = evaluator_lib.heldout_paths(folder, result["steps"])[1]
-    if kept is not None and (all(k in kept for k in group_keys(layout)) or not path.exists()):
-        return result
     if not path.exists():
-        if not evaluate_missing or not (folder / "checkpoints").is_dir():
+        if kept is not None or not evaluate_missing or not (folder / "checkpoints").is_dir():
             return result
         _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={folder}",
                  f"--step={result['steps']}"], folder, f"the held-out evaluation of {folder}")
+    layout = ActionLayout.from_config(result["layout"])
+    if kept is not None and all(k in kept for k in group_keys(layout)):
+        return result
     result = {**result, EPISODE_REPLICATES: episode_replicates(
         heldout_lib.load_chunk_sums(path), layout)}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
