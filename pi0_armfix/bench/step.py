@@ -127,8 +127,10 @@ class Step:
                 real_dim=layout.real_dim, action_dim=layout.action_dim)
         create = functools.partial(state_lib.create_train_state, tx=spec.tx, loss_cfg=spec.loss,
                                    layout=layout, ema_decay=spec.optim["ema_decay"])
-        abstract = jax.eval_shape(lambda rng: create(flow_model.init_params(model, rng)),
-                                  jax.random.key(0))
+        def initial_state(rng):
+            return create(flow_model.init_params(model, rng))
+
+        abstract = jax.eval_shape(initial_state, jax.random.key(0))
         self.state_shardings = sharding_lib.tree_shardings(abstract, self.mesh)
         self.batch_sharding = sharding_lib.batch_sharding(self.mesh)
         batch = dict(fake_observation(model, batch_size),
@@ -136,8 +138,7 @@ class Step:
                          (batch_size, model.action_horizon, model.action_dim)).astype(np.float32),
                      action_is_pad=np.zeros((batch_size, model.action_horizon), bool))
         self.batch = jax.device_put(batch, self.batch_sharding)
-        self._init = jax.jit(lambda rng: create(flow_model.init_params(model, rng)),
-                             out_shardings=self.state_shardings)
+        self._init = jax.jit(initial_state, out_shardings=self.state_shardings)
         self._step_fn = functools.partial(
             step_lib.train_step, base_rng=jax.random.key(spec.seed), model_config=model,
             loss_cfg=spec.loss, layout=layout, tx=spec.tx, schedule=spec.schedule,

@@ -186,10 +186,11 @@ class LeRobotSource:
         self._episodes = with_prompts(load(self.root, info, video_keys), rows)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
-        self._missing_videos = self._missing_videos_message(video_keys)
+        missing = self._missing(video_keys)  # one `stat` per file, once
+        self._missing_videos = self._missing_videos_message(missing, video_keys)
         self.skipped_episodes: tuple[int, ...] = ()
         if self._missing_videos and skip_missing_videos:
-            self._episodes, self.skipped_episodes = self._without_missing_videos(video_keys)
+            self._episodes, self.skipped_episodes = self._without_missing_videos(missing)
             logging.warning("%s; left out of training and evaluation (data.skip_missing_videos)",
                             self._missing_videos)
             self._missing_videos = None
@@ -206,9 +207,9 @@ class LeRobotSource:
         file)."""
         return [e for e in self._episodes if any(not e.videos[k][0].is_file() for k in video_keys)]
 
-    def _missing_videos_message(self, video_keys: Sequence[str]) -> str | None:
-        """One line naming every episode without its video files, or None."""
-        missing = self._missing(video_keys)
+    def _missing_videos_message(self, missing: Sequence[EpisodeRecord],
+                                video_keys: Sequence[str]) -> str | None:
+        """One line naming every episode of `missing` (`_missing`), or None."""
         if not missing:
             return None
         example = next(e.videos[k][0] for e in missing for k in video_keys
@@ -217,10 +218,9 @@ class LeRobotSource:
                 f"{self.root} (e.g. {example}): episodes "
                 f"{', '.join(str(e.index) for e in missing)}")
 
-    def _without_missing_videos(self, video_keys: Sequence[str]
+    def _without_missing_videos(self, missing: Sequence[EpisodeRecord]
                                 ) -> tuple[list[EpisodeRecord], tuple[int, ...]]:
-        """`(the episodes with every video file, the ids of those without)`."""
-        missing = self._missing(video_keys)
+        """`(the episodes with every video file, the ids of those of `missing`)`."""
         kept = [e for e in self._episodes if e not in missing]
         if not kept:
             raise ValueError(f"{self._missing_videos}: no episode is left "
