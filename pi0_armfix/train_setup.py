@@ -29,7 +29,7 @@ from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.model import flow_model, pretrained
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.training import checkpoint, fingerprint, workdir_lock
+from pi0_armfix.training import checkpoint, fingerprint, freeze, workdir_lock
 from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
@@ -44,15 +44,16 @@ class ConfigurationError(ValueError):
 
 
 def _create_state(spec: RunSpec, params: Any) -> state_lib.TrainState:
-    return state_lib.create_train_state(params, tx=spec.tx, loss_cfg=spec.loss,
-                                        layout=spec.layout, ema_decay=spec.optim["ema_decay"])
+    return state_lib.create_train_state(params, model_config=spec.model, tx=spec.tx,
+                                        loss_cfg=spec.loss, layout=spec.layout,
+                                        ema_decay=spec.optim["ema_decay"])
 
 
 def _init_state(spec: RunSpec, state_shardings, params_shardings) -> state_lib.TrainState:
     """The step-0 state: pretrained params (`model.pretrained`) or a random init, sharded."""
     if spec.model_section["pretrained"]:
         params = pretrained.load_pretrained(spec.model_section["pretrained"], spec.model,
-                                            shardings=params_shardings)
+                                            shardings=params_shardings, seed=spec.seed)
         return jax.jit(functools.partial(_create_state, spec), in_shardings=(params_shardings,),
                        out_shardings=state_shardings)(params)
     init = lambda rng: _create_state(spec, flow_model.init_params(spec.model, rng))  # noqa: E731
@@ -87,8 +88,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                          "run folder")
     spec = RunSpec.resolve(config)
     layout, model_config, data = spec.layout, spec.model, spec.data
-    if spec.warmup_note:
-        say(f"note: {spec.warmup_note}")
+    for note in spec.notes:
+        say(f"note: {note}")
     mesh = sharding_lib.make_mesh(spec.fsdp)
     sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size")
     batch_sharding = sharding_lib.batch_sharding(mesh)
@@ -201,8 +202,12 @@ def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
     """What a run is, in a few lines, before it starts on its long work (`video`: how its
     camera frames are read, and why)."""
     model_config, layout, data = spec.model, spec.layout, spec.data
-    num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
-        flow_model.param_shapes(model_config)))
+    shapes = flow_model.param_shapes(model_config)
+    num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))
+    trained = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(
+        freeze.split(shapes, model_config)[0]))
+    lora = ("" if not model_config.lora_experts else
+            f" (LoRA on {', '.join(model_config.lora_experts)}: {trained / 1e6:.1f} M trained)")
     held_out = source.num_episodes - len(dataset_lib.training_episodes(data, source))
     frames = int(np.sum(source.episode_lengths))
     root = getattr(source, "root", data.get("root"))
@@ -221,9 +226,8 @@ def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
         f"run       {workdir}",
         f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "
         f"process(es); mesh {axes}",
-        f"model     {spec.model_section['preset']}: {num_params / 1e6:.1f} M params, "
-        f"{model_config.dtype} "
-        f"activations, {model_config.action_horizon}-step chunks of {layout.action_dim} dims",
+        f"model     {spec.model_section['preset']}: {num_params / 1e6:.1f} M params{lora}, "
+        f"{model_config.dtype} activations, {model_config.action_horizon}-step chunks of {layout.action_dim} dims",
         f"data      {root}{' (the embedded demo)' if not data.get('root') else ''}: "
         f"{source.num_episodes} episodes ({held_out} held out), {frames:,} frames at "
         f"{source.fps:g} fps, cameras {dict(source.cameras) or 'none'}",

@@ -25,7 +25,7 @@ CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "
            "arm_delta_focused", "arm_delta_per_timestep", "arm_delta_correlated_noise",
            "arm_delta_flow_samples", "gripper_switch", "arm_recipe", "arm_weights_3x",
            "state_dropout", "state_noise", "no_state", "arm_focused_openpi_augment",
-           "arm_focused_delta_base", "arm_focused_previous_action")
+           "arm_focused_delta_base", "arm_focused_previous_action", "arm_focused_lora")
 # Trained at tiny scale: every strategy, and every lever (arm_recipe holds delta actions,
 # per-timestep stats, correlated noise and switch emphasis; K flow samples on its own).
 TRAINED = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -94,7 +94,8 @@ def test_simple_arm_focused_spells_the_3x_weights_dim_by_dim():
 
 DELTA_CONFIGS = {"arm_delta", "arm_delta_focused", "arm_delta_per_timestep",
                  "arm_delta_correlated_noise", "arm_delta_flow_samples", "arm_recipe",
-                 "arm_focused", "arm_focused_openpi_augment", "arm_focused_previous_action"}
+                 "arm_focused", "arm_focused_openpi_augment", "arm_focused_previous_action",
+                 "arm_focused_lora"}
 STATE_LEVERS = {"state_dropout": ("state_dropout", 0.5), "state_noise": ("state_noise", 0.3),
                 "no_state": ("use_state", False)}
 

@@ -42,7 +42,8 @@ def _flat(tree):
 
 def _write_run_checkpoint(workdir, params, step=5):
     """A run checkpoint as the trainer writes it: TrainState (with optimizer and EMA), config, stats."""
-    state = create_train_state(params, tx=optax.adamw(1e-3), loss_cfg={"strategy": "per_group"},
+    state = create_train_state(params, model_config=CONFIG, tx=optax.adamw(1e-3),
+                               loss_cfg={"strategy": "per_group"},
                                layout=ActionLayout.preset("b1k_r1pro"), ema_decay=0.99)
     state = state.replace(ema_params=jax.tree.map(lambda x: 0.5 * x, params))
     config = {"model": {"preset": "tiny", "dtype": "", "action_horizon": 0}}

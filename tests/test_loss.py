@@ -324,10 +324,12 @@ def test_switch_emphasis_scales_the_loss_of_the_emphasized_steps():
 def test_train_state_carries_the_log_variances_and_ema_its_strategy_declares(strategy):
     import optax
 
+    from pi0_armfix.model.config import get_preset
     from pi0_armfix.training.state import create_train_state
 
     spec = L.loss_strategy(strategy)
-    state = create_train_state({"w": jnp.zeros(3)}, tx=optax.sgd(0.1), loss_cfg={"strategy": strategy},
+    state = create_train_state({"w": jnp.zeros(3)}, model_config=get_preset("tiny"),
+                               tx=optax.sgd(0.1), loss_cfg={"strategy": strategy},
                                layout=B1K, ema_decay=0.0)
     assert ("log_vars" in state.loss_params) == spec.learns_log_vars
     assert ("ema" in state.balancer) == spec.balances

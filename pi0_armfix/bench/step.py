@@ -1,7 +1,8 @@
 """The project's train step at full speed: `python -m pi0_armfix.bench step [flags]`.
 
     python -m pi0_armfix.bench step [--config=arm_focused:b1k] [--preset=pi0] [--batch=32] \
-        [--flow_samples=4] [--remat=config|on|off] [--steps=10] [--peak_tflops=X] [--no_flops]
+        [--flow_samples=4] [--remat=config|on|off] [--steps=10] [--peak_tflops=X] [--no_flops] \
+        [--compile_only]
 
 The real step (`training.step.train_step`, jitted as `train` jits it: the config's loss, its
 levers, AdamW with the config's EMA, the state and batch sharded over every device JAX sees with
@@ -19,6 +20,10 @@ line per measurement:
                 bf16 8192^3 matrix product measured on the same device;
   memory        the device's peak bytes in use (`memory_stats`, where it keeps them) and the
                 compiled step's memory analysis (arguments + outputs - donated + temporaries).
+
+`--compile_only` stops after the compile and prints its memory analysis: whether a config fits a
+card, asked of the compiler without running a step (on the card's platform; another platform's
+compiler plans its buffers differently, so a CPU's answer is an estimate).
 
 On a CPU it runs small presets (`tests/test_bench.py` runs `tiny`); the full-size presets are for
 a GPU (README, "GPU").
@@ -71,6 +76,8 @@ def _parse(argv: list[str]) -> argparse.Namespace:
                         help="the device's peak dense bf16 TFLOP/s (0 = from PEAK_TFLOPS)")
     parser.add_argument("--no_flops", action="store_true",
                         help="skip the cost analysis (lowering the unrolled program is slow)")
+    parser.add_argument("--compile_only", action="store_true",
+                        help="compile and print the memory analysis, run no step")
     args = parser.parse_args(argv[1:])
     if args.steps < 1 or args.batch < 1 or args.flow_samples < 0:
         parser.error("--steps and --batch must be >= 1, --flow_samples >= 0")
@@ -106,7 +113,8 @@ def _norm_stats(real_dim: int, state_dim: int) -> dict[str, NormStats]:
 
 
 class Step:
-    """The jitted train step of a config, its sharded state and a synthetic batch."""
+    """The train step of a config, its sharded state and a synthetic batch: `init(rng)` builds
+    the step-0 state (jitted), `step_fn(state, batch)` is the step before jit."""
 
     def __init__(self, config: Any, remat: str = "config"):
         self.spec = spec = RunSpec.resolve(config)
@@ -125,8 +133,9 @@ class Step:
             noise_factor = noise_lib.correlated_noise_factor(
                 np.eye(size), float(spec.loss["noise_beta"]), horizon=model.action_horizon,
                 real_dim=layout.real_dim, action_dim=layout.action_dim)
-        create = functools.partial(state_lib.create_train_state, tx=spec.tx, loss_cfg=spec.loss,
-                                   layout=layout, ema_decay=spec.optim["ema_decay"])
+        create = functools.partial(state_lib.create_train_state, model_config=model, tx=spec.tx,
+                                   loss_cfg=spec.loss, layout=layout,
+                                   ema_decay=spec.optim["ema_decay"])
         def initial_state(rng):
             return create(flow_model.init_params(model, rng))
 
@@ -138,8 +147,8 @@ class Step:
                          (batch_size, model.action_horizon, model.action_dim)).astype(np.float32),
                      action_is_pad=np.zeros((batch_size, model.action_horizon), bool))
         self.batch = jax.device_put(batch, self.batch_sharding)
-        self._init = jax.jit(initial_state, out_shardings=self.state_shardings)
-        self._step_fn = functools.partial(
+        self.init = jax.jit(initial_state, out_shardings=self.state_shardings)
+        self.step_fn = functools.partial(
             step_lib.train_step, base_rng=jax.random.key(spec.seed), model_config=model,
             loss_cfg=spec.loss, layout=layout, tx=spec.tx, schedule=spec.schedule,
             ema_decay=spec.optim["ema_decay"], noise_factor=noise_factor,
@@ -159,13 +168,13 @@ class Step:
         """`(the compiled step, seconds to lower and compile it)`."""
         start = time.perf_counter()
         with jax.set_mesh(self.mesh):
-            compiled = self._jit(self._step_fn).lower(self._abstract, self.batch).compile()
+            compiled = self._jit(self.step_fn).lower(self._abstract, self.batch).compile()
         return compiled, time.perf_counter() - start
 
     def time_steps(self, compiled: Any, steps: int) -> tuple[float, dict[str, float]]:
         """`(median seconds per step over `steps` after one warm-up step, the last metrics)`."""
         with jax.set_mesh(self.mesh):
-            state = self._init(jax.random.key(self.spec.seed))
+            state = self.init(jax.random.key(self.spec.seed))
             state, metrics = compiled(state, self.batch)
             jax.block_until_ready(metrics)
             times = []
@@ -180,7 +189,7 @@ class Step:
         """FLOPs of one step from the cost analysis of the whole program, layer scans unrolled,
         with or without rematerialization."""
         model = self.model.replace(unroll_layers=True, remat=remat)
-        step_fn = functools.partial(self._step_fn, model_config=model)
+        step_fn = functools.partial(self.step_fn, model_config=model)
         with jax.set_mesh(self.mesh):
             lowered = self._jit(step_fn).lower(self._abstract, self.batch)
         return float(lowered.cost_analysis()["flops"])
@@ -214,26 +223,33 @@ def device_peak_memory() -> float | None:
     return float(max(peaks)) if peaks else None
 
 
-def compiled_memory(compiled: Any) -> float:
-    """Bytes per device of the compiled step: arguments + outputs - donated + temporaries."""
+def compiled_memory(compiled: Any) -> dict[str, float]:
+    """Bytes per device of the compiled step: `total` = arguments + outputs - donated +
+    temporaries; `state` = its arguments (the train state and the batch); `temporaries`."""
     stats = compiled.memory_analysis()
-    return float(stats.argument_size_in_bytes + stats.output_size_in_bytes
-                 - stats.alias_size_in_bytes + stats.temp_size_in_bytes)
+    return {"total": float(stats.argument_size_in_bytes + stats.output_size_in_bytes
+                           - stats.alias_size_in_bytes + stats.temp_size_in_bytes),
+            "state": float(stats.argument_size_in_bytes),
+            "temporaries": float(stats.temp_size_in_bytes)}
 
 
 def measure(config: Any, *, remat: str = "config", steps: int = 10, peak: float = 0.0,
-            flops: bool = True, matmul_size: int = _MATMUL) -> dict[str, Any]:
-    """Every number of the module docstring, for one config (see `load_config`)."""
+            flops: bool = True, matmul_size: int = _MATMUL, run: bool = True) -> dict[str, Any]:
+    """Every number of the module docstring, for one config (see `load_config`); `run=False`
+    stops after the compile (its time and memory analysis)."""
     bench = Step(config, remat)
     compiled, compile_s = bench.compile()
-    step_s, metrics = bench.time_steps(compiled, steps)
-    batch = bench.spec.train["batch_size"]
     device = jax.devices()[0]
+    memory = compiled_memory(compiled)
     result = {"device": f"{jax.device_count()} x {device.device_kind}",
-              "preset": config.model.preset, "batch": batch,
+              "preset": config.model.preset, "lora": bench.model.lora_experts,
+              "batch": bench.spec.train["batch_size"],
               "flow_samples": int(bench.spec.loss["flow_samples"]), "remat": bench.model.remat,
-              "compile_s": compile_s, "step_s": step_s, "samples_per_s": batch / step_s,
-              "loss": metrics["loss"], "compiled_memory_gib": compiled_memory(compiled) / _GIB}
+              "compile_s": compile_s, **{f"compiled_{k}_gib": v / _GIB for k, v in memory.items()}}
+    if not run:
+        return result
+    step_s, metrics = bench.time_steps(compiled, steps)
+    result.update(step_s=step_s, samples_per_s=result["batch"] / step_s, loss=metrics["loss"])
     peak_bytes = device_peak_memory()
     result["peak_memory_gib"] = None if peak_bytes is None else peak_bytes / _GIB
     if flops:
@@ -253,12 +269,19 @@ def measure(config: Any, *, remat: str = "config", steps: int = 10, peak: float 
 
 def format_result(r: dict[str, Any]) -> str:
     """The benchmark's lines."""
+    step = (f"step         {r['preset']}" + (f" with LoRA on {', '.join(r['lora'])}" if r["lora"]
+                                             else "")
+            + f", batch {r['batch']}, K = {r['flow_samples']}, remat "
+            f"{'on' if r['remat'] else 'off'}: compile {r['compile_s']:.1f} s")
+    memory = (f"memory       compiled {r['compiled_total_gib']:.2f} GiB per device (state and "
+              f"batch {r['compiled_state_gib']:.2f}, temporaries "
+              f"{r['compiled_temporaries_gib']:.2f})")
+    if "step_s" not in r:
+        return "\n".join([f"device       {r['device']}", step, memory])
     lines = [f"device       {r['device']}",
-             f"step         {r['preset']}, batch {r['batch']}, K = {r['flow_samples']}, remat "
-             f"{'on' if r['remat'] else 'off'}: compile {r['compile_s']:.1f} s, median "
-             f"{r['step_s'] * 1e3:.1f} ms, {r['samples_per_s']:.1f} samples/s, loss "
-             f"{r['loss']:.4f}",
-             f"memory       compiled {r['compiled_memory_gib']:.2f} GiB per device; peak in use "
+             step + f", median {r['step_s'] * 1e3:.1f} ms, {r['samples_per_s']:.1f} samples/s, "
+             f"loss {r['loss']:.4f}",
+             memory + "; peak in use "
              + ("n/a (the device keeps no statistic)" if r["peak_memory_gib"] is None
                 else f"{r['peak_memory_gib']:.2f} GiB")]
     if "model_tflop_per_step" in r:
@@ -276,4 +299,5 @@ def main(argv: list[str]) -> None:
     args = _parse(argv)
     config = load_config(args.config, args.preset, args.batch, args.flow_samples)
     print(format_result(measure(config, remat=args.remat, steps=args.steps,
-                                peak=args.peak_tflops, flops=not args.no_flops)))
+                                peak=args.peak_tflops, flops=not args.no_flops,
+                                run=not args.compile_only)))

@@ -80,8 +80,8 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     with jax.set_mesh(mesh):
         for name, loss_cfg in losses.items():
             init = lambda rng, loss_cfg=loss_cfg: state_lib.create_train_state(  # noqa: E731
-                flow_model.init_params(model_config, rng), tx=tx, loss_cfg=loss_cfg, layout=layout,
-                ema_decay=0.0)
+                flow_model.init_params(model_config, rng), model_config=model_config, tx=tx,
+                loss_cfg=loss_cfg, layout=layout, ema_decay=0.0)
             shardings = sharding_lib.tree_shardings(jax.eval_shape(init, jax.random.key(0)), mesh)
             state = jax.jit(init, out_shardings=shardings)(jax.random.key(0))
             step = jax.jit(

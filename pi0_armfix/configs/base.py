@@ -95,6 +95,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         action_expert=dict(width=0, mlp_dim=0),
         attention=dict(depth=0, num_heads=0, num_kv_heads=0, head_dim=0)))
     # Levers against copying the state (pi0 only; pi0.5 writes the state into its prompt):
+    # openpi's LoRA fine-tuning: the experts named here ("paligemma", "action_expert") get its
+    # adapters (rank 16 / 32) and keep their own weights frozen in bfloat16; () = all weights train.
+    config.model.lora = ()
     config.model.use_state = True  # False: the no-state ablation (a zero state, train and sample)
     config.model.state_dropout = 0.0  # P(a training sample's state is zeroed)
     config.model.state_noise = 0.0  # std of noise on the normalized state in training (DART-style)

@@ -22,11 +22,17 @@ IMAGE_KEYS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 # PaliGemma's sentencepiece vocabulary (openpi's PALIGEMMA_VOCAB_SIZE).
 PALIGEMMA_VOCAB_SIZE = 257_152
 DTYPES = ("float32", "bfloat16")
+# openpi's LoRA variants by expert: gemma_2b_lora (rank 16) for the prefix, gemma_300m_lora (rank 32)
+# for the action expert; both with alpha = rank, on every attention and MLP weight.
+LORA_RANKS = {"paligemma": 16, "action_expert": 32}
 
 
 @dataclasses.dataclass(frozen=True)
 class GemmaConfig:
-    """One expert of the Gemma transformer (attention is shared across experts, MLPs are not)."""
+    """One expert of the Gemma transformer (attention is shared across experts, MLPs are not).
+
+    `lora_rank` > 0 gives every attention and MLP weight of the expert LoRA adapters of that rank
+    (`gemma.py`); 0 = none."""
 
     width: int
     depth: int
@@ -34,6 +40,7 @@ class GemmaConfig:
     num_heads: int
     num_kv_heads: int
     head_dim: int
+    lora_rank: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,6 +161,9 @@ class Pi0Config:
             raise ValueError(f"head_dim={p.head_dim} must be even (RoPE rotates pairs)")
         if a.width % 2:
             raise ValueError(f"action_expert.width={a.width} must be even (sin-cos time embedding)")
+        if p.lora_rank < 0 or a.lora_rank < 0:
+            raise ValueError(f"lora_rank ({p.lora_rank}, {a.lora_rank}) must be >= 0 (0 = no "
+                             "adapters)")
         if s.conv_stem < 0 or s.patch_size % 2 ** s.conv_stem:
             raise ValueError(f"siglip.conv_stem={s.conv_stem} must be >= 0 with 2**conv_stem "
                              f"dividing siglip.patch_size={s.patch_size} (each convolution halves "
@@ -196,6 +206,11 @@ class Pi0Config:
             raise ValueError(f"augment.jitter_p={aug.jitter_p} must be a probability in [0, 1]")
 
     @property
+    def lora_experts(self) -> tuple[str, ...]:
+        """The experts with LoRA adapters ("paligemma", "action_expert"), in that order."""
+        return tuple(name for name in LORA_RANKS if getattr(self, name).lora_rank)
+
+    @property
     def num_image_tokens(self) -> int:
         """Tokens per camera: (height / patch) * (width / patch)."""
         h, w = self.image_resolution
@@ -217,6 +232,11 @@ class Pi0Config:
 
     def replace(self, **changes) -> Pi0Config:
         return dataclasses.replace(self, **changes)
+
+    def without_lora(self) -> Pi0Config:
+        """The same model with its adapters folded into the weights (`gemma.merge_lora`)."""
+        return self.replace(**{name: dataclasses.replace(getattr(self, name), lora_rank=0)
+                               for name in LORA_RANKS})
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready nested dict (tuples become lists)."""
@@ -308,7 +328,8 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
 
     Reads `preset`; `dtype`, `action_horizon` and `action_dim` override the preset when set
     (non-empty / > 0); `augment` (its fields), `use_state`, `state_dropout` and `state_noise`
-    when present; `sizes` changes the towers (`_resized`).
+    when present; `sizes` changes the towers (`_resized`); `lora` names the experts that get
+    openpi's adapters (`LORA_RANKS`).
     """
     changes = {}
     if model_cfg.get("augment"):
@@ -324,6 +345,14 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
         changes["action_horizon"] = int(model_cfg["action_horizon"])
     preset = get_preset(model_cfg["preset"])
     changes.update(_resized(preset, model_cfg.get("sizes") or {}))
+    lora = model_cfg.get("lora") or ()
+    if isinstance(lora, str) or not set(lora) <= set(LORA_RANKS):
+        raise ValueError(f"model.lora = {lora!r} must be a tuple of experts among "
+                         f"{tuple(LORA_RANKS)}, e.g. --config.model.lora=\"{tuple(LORA_RANKS)}\" "
+                         "(openpi's LoRA fine-tuning); () = every weight trains")
+    for name in lora:
+        changes[name] = dataclasses.replace(changes.get(name, getattr(preset, name)),
+                                            lora_rank=LORA_RANKS[name])
     return preset.replace(**changes)
 
 

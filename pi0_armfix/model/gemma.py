@@ -10,11 +10,19 @@ tree (`layers/attn/q_einsum/w` with shape [depth, ...]) directly as a plain nest
 
 Einsum axis names: B batch, T query length, S key length, N query heads, K kv heads,
 G query heads per kv head, H head dim, D width.
+
+LoRA (openpi's `gemma_2b_lora` / `gemma_300m_lora`, an expert's `lora_rank` > 0): every attention
+and MLP weight of the expert gets two low-rank factors beside it, `lora_a` / `lora_b` (`<name>_lora_a`
+/ `_lora_b` in the MLP), with openpi's shapes, equations and N(0, 0.01^2) init, and alpha = rank so
+that the product is added unscaled. `training/freeze.py` decides which weights train.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import re
 
 import flax.linen as nn
 import jax
@@ -25,6 +33,12 @@ from pi0_armfix.model.config import GemmaConfig
 # Gemma's masked-logit value (finite, so fully masked rows stay NaN-free).
 _BIG_NEG = -2.3819763e38
 _ROPE_MAX_WAVELENGTH = 10_000
+_LORA_INIT = nn.initializers.normal(stddev=0.01)  # openpi's LoRAConfig.init_fn, for both factors
+_LORA_LABEL = "L"  # the rank's axis in the adapters' einsum equations
+# Each weight's einsum, by parameter name (the MLP's as the einsums its dots are).
+EQUATIONS = {"q_einsum": "BTD,NDH->BTNH", "kv_einsum": "BSD,2KDH->2BSKH",
+             "attn_vec_einsum": "BTNH,NHD->BTD", "gating_einsum": "BTD,2DF->2BTF",
+             "linear": "BTF,FD->BTD"}
 
 
 def _name(name: str, expert: int) -> str:
@@ -78,16 +92,75 @@ class Embedder(nn.Module):
         return self.input_embedding[(tokens,)] * jnp.sqrt(self.width).astype(jnp.float32)
 
 
+def lora_equations(eqn: str) -> tuple[str, str]:
+    """An einsum `"x,w->y"` of a weight whose last two axes are (in, out) -> the equations of its
+    adapters: `x, lora_a -> z` (the out axis replaced by the rank) and `z, lora_b -> y` (the in axis
+    replaced by the rank), as openpi writes them."""
+    match = re.fullmatch(r"(.*),(.*)->(.*)", eqn)
+    if match is None or _LORA_LABEL in eqn:
+        raise ValueError(f"einsum {eqn!r} has no 'x,w->y' form free of {_LORA_LABEL!r}")
+    lhs, rhs, out = match.groups()
+    in_label, out_label = rhs[-2], rhs[-1]
+    low = out.replace(out_label, _LORA_LABEL)
+    return (f"{lhs},{rhs.replace(out_label, _LORA_LABEL)}->{low}",
+            f"{low},{rhs.replace(in_label, _LORA_LABEL)}->{out}")
+
+
+def lora_delta(eqn: str, a: jax.Array, b: jax.Array) -> jax.Array:
+    """The change of the weight that the adapters `a`, `b` of an einsum `eqn` make: `einsum(eqn,
+    x, w + delta)` equals `x`'s path through `w` plus its path through the adapters. An axis of
+    `b` that the first product drops (the heads of `attn_vec_einsum`) is summed over `b` alone,
+    as the adapters' equations sum it. A leading axis beyond the equation's (the layers') is
+    shared."""
+    eqn_a, eqn_b = lora_equations(eqn)
+    a_rhs, low = eqn_a.split(",")[1].split("->")
+    b_rhs = eqn_b.split(",")[1].split("->")[0]
+    rhs, out = eqn.split(",")[1].split("->")
+    alone = iter(c for c in "MPQRUVWXY" if c not in eqn)
+    b_rhs = "".join(c if c in low or c in out else next(alone) for c in b_rhs)
+    lead = "Z" * (a.ndim - len(a_rhs))
+    return jnp.einsum(f"{lead}{a_rhs},{lead}{b_rhs}->{lead}{rhs}", a, b)
+
+
+def merge_lora(params: Mapping[str, Any]) -> dict[str, Any]:
+    """`{"a/b/name": array}` with LoRA adapters -> the same function without them: every adapted
+    weight plus its `lora_delta` (float32), the adapters dropped."""
+    merged = {k: v for k, v in params.items() if "lora" not in k.rsplit("/", 1)[-1]}
+    for key in params:
+        folder, _, leaf = key.rpartition("/")
+        if not leaf.endswith("lora_a"):
+            continue
+        if leaf == "lora_a":  # an Einsum's: <name>/lora_a beside <name>/w
+            weight, name = f"{folder}/w", folder.rpartition("/")[2]
+        else:  # the MLP's: <name>_lora_a beside <name>
+            weight = key.removesuffix("_lora_a")
+            name = weight.rpartition("/")[2]
+        eqn = EQUATIONS[re.sub(r"_\d+$", "", name)]
+        delta = lora_delta(eqn, jnp.asarray(params[key], jnp.float32),
+                           jnp.asarray(params[key[:-1] + "b"], jnp.float32))
+        merged[weight] = jnp.asarray(params[weight], jnp.float32) + delta
+    return merged
+
+
 class Einsum(nn.Module):
-    """One weight `w` of a fixed shape, applied with an einsum in the input's dtype."""
+    """One weight `w` of a fixed shape, applied with an einsum in the input's dtype; with
+    `lora_rank` > 0 its adapters `lora_a` ([..., in, rank]) and `lora_b` ([..., rank, out]) add
+    their product's einsum."""
 
     shape: tuple[int, ...]
     init_fn: nn.initializers.Initializer
+    lora_rank: int = 0
 
     @nn.compact
     def __call__(self, eqn: str, x):
         w = self.param("w", self.init_fn, self.shape)
-        return jnp.einsum(eqn, x, w.astype(x.dtype))
+        y = jnp.einsum(eqn, x, w.astype(x.dtype))
+        if self.lora_rank:
+            a = self.param("lora_a", _LORA_INIT, (*self.shape[:-1], self.lora_rank))
+            b = self.param("lora_b", _LORA_INIT, (*self.shape[:-2], self.lora_rank, self.shape[-1]))
+            eqn_a, eqn_b = lora_equations(eqn)
+            y = y + jnp.einsum(eqn_b, jnp.einsum(eqn_a, x, a.astype(x.dtype)), b.astype(x.dtype))
+        return y
 
 
 def apply_rope(x, positions):
@@ -127,12 +200,14 @@ class Attention(nn.Module):
             q = Einsum(
                 shape=(config.num_heads, config.width, config.head_dim), name=_name("q_einsum", i),
                 init_fn=nn.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=(0,)),
-            )("BTD,NDH->BTNH", x)
+                lora_rank=config.lora_rank,
+            )(EQUATIONS["q_einsum"], x)
             k, v = Einsum(
                 shape=(2, config.num_kv_heads, config.width, config.head_dim),
                 name=_name("kv_einsum", i),
                 init_fn=nn.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=(0, 1)),
-            )("BSD,2KDH->2BSKH", x)
+                lora_rank=config.lora_rank,
+            )(EQUATIONS["kv_einsum"], x)
             qs.append(q), ks.append(k), vs.append(v)
         q, k, v = (jnp.concatenate(y, axis=1) for y in (qs, ks, vs))
 
@@ -160,27 +235,48 @@ class Attention(nn.Module):
                 shape=(config.num_heads, config.head_dim, config.width),
                 name=_name("attn_vec_einsum", i),
                 init_fn=nn.initializers.lecun_normal(in_axis=(-3, -2), out_axis=-1),
-            )("BTNH,NHD->BTD", encoded[:, start:end]))
+                lora_rank=config.lora_rank,
+            )(EQUATIONS["attn_vec_einsum"], encoded[:, start:end]))
             start = end
         return out, (k, v)
 
 
 class FeedForward(nn.Module):
-    """Gated GELU: `(gelu_tanh(x @ gating[0]) * (x @ gating[1])) @ linear`."""
+    """Gated GELU: `(gelu_tanh(x @ gating[0]) * (x @ gating[1])) @ linear`; with `lora_rank` > 0
+    each product adds its adapters' (`gating_einsum_lora_a` [2, D, r] / `_b` [2, r, F],
+    `linear_lora_a` [F, r] / `_b` [r, D])."""
 
     width: int
     mlp_dim: int
+    lora_rank: int = 0
 
     @nn.compact
     def __call__(self, x):
         gating = self.param(
             "gating_einsum", nn.initializers.lecun_normal(in_axis=-2, out_axis=-1, batch_axis=(0,)),
-            (2, self.width, self.mlp_dim)).astype(x.dtype)
+            (2, self.width, self.mlp_dim))
         linear = self.param(
             "linear", nn.initializers.lecun_normal(in_axis=-2, out_axis=-1),
-            (self.mlp_dim, self.width)).astype(x.dtype)
-        hidden = nn.gelu(jnp.dot(x, gating[0]), approximate=True) * jnp.dot(x, gating[1])
-        return jnp.dot(hidden, linear)
+            (self.mlp_dim, self.width))
+        adapters = [(None, None)] * 3
+        if self.lora_rank:
+            rank = self.lora_rank
+            gate_a = self.param("gating_einsum_lora_a", _LORA_INIT, (2, self.width, rank))
+            gate_b = self.param("gating_einsum_lora_b", _LORA_INIT, (2, rank, self.mlp_dim))
+            adapters = [(gate_a[0], gate_b[0]), (gate_a[1], gate_b[1]),
+                        (self.param("linear_lora_a", _LORA_INIT, (self.mlp_dim, rank)),
+                         self.param("linear_lora_b", _LORA_INIT, (rank, self.width)))]
+
+        def dot(y, w, adapter):
+            out = jnp.dot(y, w.astype(y.dtype))
+            a, b = adapter
+            if a is not None:
+                out = out + jnp.dot(jnp.dot(y, a.astype(y.dtype)), b.astype(y.dtype))
+            return out
+
+        hidden = (nn.gelu(dot(x, gating[0], adapters[0]), approximate=True)
+                  * dot(x, gating[1], adapters[1]))
+        return dot(hidden, linear, adapters[2])
 
 
 class Block(nn.Module):
@@ -202,7 +298,7 @@ class Block(nn.Module):
         for i, (x, config, cond) in enumerate(zip(xs, self.configs, conds)):
             if x is not None:
                 y, gate = RMSNorm(name=_name("pre_ffw_norm", i))(x, cond)
-                x = gated_residual(x, FeedForward(config.width, config.mlp_dim,
+                x = gated_residual(x, FeedForward(config.width, config.mlp_dim, config.lora_rank,
                                                   name=_name("mlp", i))(y), gate)
             out.append(x)
         return out, kv_cache

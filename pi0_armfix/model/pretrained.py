@@ -4,7 +4,9 @@ openpi writes params with `orbax.checkpoint.PyTreeCheckpointer` as `{"params": n
 checkpoints saved during openpi training carry NNX's extra `value` level on every leaf. Both are
 read here. The checkpoint's tree is compared against the preset's parameter tree from the orbax
 metadata, before any array is read: every missing, unexpected or mis-shaped key is listed in one
-ValueError. Arrays are restored as float32.
+ValueError. Arrays are restored as float32. A model with LoRA adapters (`model.lora`) reads a
+checkpoint with them (a LoRA fine-tune) or without any (the base model, openpi's way to start a
+LoRA fine-tune): then the adapters start from their random init.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from pi0_armfix.model.config import Pi0Config
-from pi0_armfix.model.flow_model import Params, param_shapes
+from pi0_armfix.model.flow_model import Params, init_params, param_shapes
 
 _SEP = "/"
 
@@ -87,8 +89,15 @@ def _checkpoint_paths(directory: pathlib.Path, checkpointer: ocp.PyTreeCheckpoin
     # Checkpoint path -> model path: drop the "params" root (and the "value" level).
     to_model = {p: p[1:-1] if strip_value else p[1:] for p in flat_meta}
     expected = {p: leaf.shape for p, leaf in _flatten(param_shapes(config)).items()}
-    check_tree({to_model[p]: leaf.shape for p, leaf in flat_meta.items()}, expected, source)
+    found = {to_model[p]: leaf.shape for p, leaf in flat_meta.items()}
+    if not any(_is_adapter(p) for p in found):
+        expected = {p: shape for p, shape in expected.items() if not _is_adapter(p)}
+    check_tree(found, expected, source)
     return to_model
+
+
+def _is_adapter(path: tuple[str, ...]) -> bool:
+    return "lora" in path[-1]
 
 
 def check_pretrained(path: str | os.PathLike, config: Pi0Config) -> None:
@@ -99,7 +108,7 @@ def check_pretrained(path: str | os.PathLike, config: Pi0Config) -> None:
 
 
 def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
-                    shardings: Mapping[str, Any] | None = None) -> Params:
+                    shardings: Mapping[str, Any] | None = None, seed: int = 0) -> Params:
     """Restores an openpi params checkpoint whose tree equals `config`'s parameter tree.
 
     Args:
@@ -107,6 +116,7 @@ def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
       config: the preset the params must fit (names and shapes, exactly).
       shardings: optional tree of `jax.sharding.Sharding` like the params: restore each leaf as a
         jax.Array with that sharding (each process reads only its shards). Default: numpy arrays.
+      seed: the init of LoRA adapters the checkpoint lacks.
     Returns:
       the nested params dict, float32 leaves.
     """
@@ -123,4 +133,16 @@ def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
 
         args = _unflatten({p: restore_args(p) for p in to_model})
         restored = checkpointer.restore(directory, ocp.args.PyTreeRestore(restore_args=args))
-    return _unflatten({to_model[p]: leaf for p, leaf in _flatten(restored).items()})
+    params = {to_model[p]: leaf for p, leaf in _flatten(restored).items()}
+    missing = [p for p in _flatten(param_shapes(config)) if p not in params]
+    if missing:  # the adapters of a base checkpoint, from their init
+        def adapters(rng):
+            flat = _flatten(init_params(config, rng))
+            return {_SEP.join(p): flat[p] for p in missing}
+
+        out_shardings = (None if shardings is None
+                         else {_SEP.join(p): flat_shardings[p] for p in missing})
+        initialized = jax.jit(adapters, out_shardings=out_shardings)(jax.random.key(seed))
+        params.update({tuple(k.split(_SEP)): v if shardings is not None else np.asarray(v)
+                       for k, v in initialized.items()})
+    return _unflatten(params)

@@ -21,6 +21,8 @@ run whose policy needs what openpi cannot do: a model size openpi does not build
 normalization, correlated sampling noise, a zeroed state, an offline tokenizer. `--force` writes
 the export anyway, its caveats in `pi0_armfix_export.json`. Training-only levers (loss weights,
 curriculum, K flow samples, state noise or dropout, augmentation) need nothing at inference.
+A LoRA run (`model.lora`) keeps its adapters under openpi's names; the pairing names openpi's
+`gemma_2b_lora` / `gemma_300m_lora` variants for the adapted experts.
 
 Constant dims (`NormStats.constant`): the run normalizes them to 0 and returns their mean as the
 action, whatever the model samples there; openpi's formula would divide by their tiny spread.
@@ -57,6 +59,7 @@ from pi0_armfix.policies import inference
 
 EXPORT_FILE = "pi0_armfix_export.json"
 OPENPI_PRESETS = {"pi0": "pi0", "pi05": "pi05"}  # our preset -> openpi's model of that size
+OPENPI_VARIANTS = {"paligemma": "gemma_2b", "action_expert": "gemma_300m"}  # openpi's expert sizes
 DTYPES = ("float32", "bfloat16")
 CONSTANT_STATE_SPREAD = 1e12  # a constant state dim's exported spread (normalizes to ~0)
 
@@ -180,7 +183,10 @@ def openpi_config(run: inference.RestoredRun, asset_id: str) -> dict[str, Any]:
     return {
         "style": "pi05_b1k" if model.pi05 else "pi0_b1k",
         "model": {"pi05": model.pi05, "action_horizon": model.action_horizon,
-                  "action_dim": model.action_dim, "max_token_len": model.max_token_len},
+                  "action_dim": model.action_dim, "max_token_len": model.max_token_len,
+                  # openpi's names of the experts' sizes; "_lora" where the params hold adapters
+                  **{f"{name}_variant": variant + ("_lora" if name in model.lora_experts else "")
+                     for name, variant in OPENPI_VARIANTS.items()}},
         "use_quantile_norm": model_config_lib.norm_mode(config) == "quantile",
         "delta_action_mask": None if mask is None else list(bool_mask_runs(mask)),
         "state": state,
@@ -198,7 +204,8 @@ def describe(pairing: Mapping[str, Any]) -> str:
     lines = [f"openpi config to serve it with ({pairing['style']} style):",
              f"  model: pi0_config.Pi0Config(pi05={model['pi05']}, action_horizon="
              f"{model['action_horizon']}, action_dim={model['action_dim']}, max_token_len="
-             f"{model['max_token_len']})",
+             f"{model['max_token_len']}, paligemma_variant={model['paligemma_variant']!r}, "
+             f"action_expert_variant={model['action_expert_variant']!r})",
              f"  normalization: {'quantile' if pairing['use_quantile_norm'] else 'z-score'} "
              f"(use_quantile_norm={pairing['use_quantile_norm']}), stats of asset_id "
              f"{pairing['asset_id']!r}"]

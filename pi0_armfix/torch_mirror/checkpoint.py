@@ -17,6 +17,8 @@ The output folder gets
                      "/" -> ".", depth axes stacked, flax layouts), exactly `Pi0(config).state_dict()`;
   config.json        `Pi0Config.to_dict()`;
   norm_stats.json    the checkpoint's normalization stats in openpi's format, when it has any.
+LoRA adapters (a run with `model.lora`, or its openpi export) are folded into their weights
+(`gemma.merge_lora`): the mirror holds the plain tree, and its config no adapters.
 Parameters are checked strictly against the config before anything is written: a missing,
 unexpected or mis-shaped name is a ValueError listing all of them. Only safetensors and JSON are
 read and written (no pickle). `load_converted(dir)` loads the result back.
@@ -34,6 +36,7 @@ import tqdm
 from etils import epath
 from safetensors.torch import load_file, save_file
 
+from pi0_armfix.model import gemma
 from pi0_armfix.model.config import Pi0Config, from_model_config, get_preset
 from pi0_armfix.torch_mirror.model import Pi0
 from pi0_armfix.model.tree import flatten_tree
@@ -230,6 +233,10 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
         if all(name.endswith("/value") for name in arrays):
             arrays = {name.removesuffix("/value"): value for name, value in arrays.items()}
         stats = _openpi_norm_stats(folder)
+    if any("lora" in name.rpartition("/")[2] for name in arrays):
+        arrays = {name: np.asarray(value) for name, value in gemma.merge_lora(arrays).items()}
+        config = config.without_lora()
+        say("folded the LoRA adapters into their weights")
     if norm_stats:
         stats = json.loads(epath.Path(norm_stats).read_text())
     source = norm_stats or str(folder)

@@ -49,7 +49,7 @@ class RunSpec:
     optim: dict[str, Any]
     tx: optax.GradientTransformation
     schedule: optax.Schedule
-    warmup_note: str | None
+    notes: tuple[str, ...]  # lines the run says before it starts (a shortened warmup, ...)
     train: dict[str, Any]
     eval: dict[str, Any]
     fsdp: int
@@ -84,11 +84,16 @@ class RunSpec:
         optim = config.optim.to_dict()
         tx, schedule = optimizer_lib.make_optimizer(optim, train["total_steps"])
         _, warmup_note = optimizer_lib.effective_warmup(optim, train["total_steps"])
+        notes = (warmup_note,) if warmup_note else ()
+        if model.lora_experts and not config.model.pretrained:
+            notes += (f"model.lora = {model.lora_experts} without model.pretrained: the adapters "
+                      "fine-tune frozen random weights; point model.pretrained at the base "
+                      "model's params (openpi's pi0_base / pi05_base)",)
         data = DataSpec.from_config(config, layout, norm=config.data.norm)
         return cls(
             config_json=json.loads(config.to_json_best_effort()), layout=layout, model=model,
             model_section=config.model.to_dict(), data=data, loss=loss, optim=optim, tx=tx,
-            schedule=schedule, warmup_note=warmup_note, train=train,
+            schedule=schedule, notes=notes, train=train,
             eval=config.eval.to_dict(), fsdp=int(config.sharding.fsdp), seed=int(config.seed),
             uses_chunk_stats=bool(config.data.norm_per_timestep) or loss["noise_beta"] < 1.0)
 

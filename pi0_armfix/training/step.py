@@ -26,6 +26,7 @@ from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import flow_model
 from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.training import freeze
 from pi0_armfix.training.state import TrainState
 
 
@@ -119,34 +120,39 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
 
     `noise_factor`: the correlated noise's Cholesky factor (`loss.noise_beta < 1`), else None;
     `switch_threshold`: see `loss_kwargs`; `loss_mask`: see `flow_model.compute_loss`.
-    `loss.flow_samples` draws per sample share one prefix
-    pass.
+    `loss.flow_samples` draws per sample share one prefix pass. Under LoRA only the adapters and
+    the weights outside the adapted experts get gradients (`training/freeze.py`).
 
     Returns:
-      the new state and scalar metrics: `loss`, `grad_norm`, `lr`, `loss/<group>` (unweighted
-      group error over the valid timesteps), `weight/<group>` (see `effective_group_weights`).
+      the new state and scalar metrics: `loss`, `grad_norm` (of the trained params), `lr`,
+      `loss/<group>` (unweighted group error over the valid timesteps), `weight/<group>` (see
+      `effective_group_weights`).
     """
     rng = jax.random.fold_in(base_rng, state.step)
+    frozen = freeze.split(state.params, model_config)[1]
 
     def loss_fn(trainable):
         kwargs = loss_kwargs(loss_cfg, layout, state.step, trainable["loss_params"],
                              state.balancer, switch_threshold)
-        loss, aux = flow_model.compute_loss(trainable["params"], rng, batch, config=model_config,
-                                        layout=layout, train=True,
-                                        flow_samples=loss_cfg["flow_samples"],
-                                        noise_factor=noise_factor, loss_mask=loss_mask,
-                                        **kwargs)
+        params = freeze.merge(trainable["params"], frozen)
+        loss, aux = flow_model.compute_loss(params, rng, batch, config=model_config,
+                                            layout=layout, train=True,
+                                            flow_samples=loss_cfg["flow_samples"],
+                                            noise_factor=noise_factor, loss_mask=loss_mask,
+                                            **kwargs)
         return loss, (aux, effective_group_weights(kwargs, layout))
 
-    (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)
-    updates, opt_state = tx.update(grads, state.opt_state, state.trainable)
-    trainable = optax.apply_updates(state.trainable, updates)
+    before = state.trainable(model_config)
+    (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(before)
+    updates, opt_state = tx.update(grads, state.opt_state, before)
+    trainable = optax.apply_updates(before, updates)
 
     group_loss = jnp.stack([aux["group_loss"][g] for g in layout.group_names])
     ema_params = state.ema_params
     if ema_params is not None:
-        ema_params = jax.tree.map(lambda e, p: ema_decay * e + (1.0 - ema_decay) * p,
-                                  ema_params, trainable["params"])
+        ema_trained = jax.tree.map(lambda e, p: ema_decay * e + (1.0 - ema_decay) * p,
+                                   freeze.split(ema_params, model_config)[0], trainable["params"])
+        ema_params = freeze.merge(ema_trained, frozen)
     balancer = state.balancer
     if balancer:
         ema, count = loss_lib.update_group_loss_ema(balancer["ema"], balancer["count"], group_loss,
@@ -157,7 +163,8 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
     for i, g in enumerate(layout.group_names):
         metrics[f"loss/{g}"] = group_loss[i]
         metrics[f"weight/{g}"] = weights[i]
-    new_state = state.replace(step=state.step + 1, params=trainable["params"],
+    new_state = state.replace(step=state.step + 1,
+                              params=freeze.merge(trainable["params"], frozen),
                               loss_params=trainable["loss_params"], opt_state=opt_state,
                               ema_params=ema_params, balancer=balancer)
     return new_state, metrics
