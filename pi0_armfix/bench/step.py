@@ -2,7 +2,7 @@
 
     python -m pi0_armfix.bench step [--config=arm_focused:b1k] [--preset=pi0] [--batch=32] \
         [--flow_samples=4] [--remat=config|on|off] [--steps=10] [--peak_tflops=X] [--no_flops] \
-        [--compile_only]
+        [--compile_only] [--set=model.attention=fused ...]
 
 The real step (`training.step.train_step`, jitted as `train` jits it: the config's loss, its
 levers, AdamW with the config's EMA, the state and batch sharded over every device JAX sees with
@@ -32,14 +32,18 @@ a GPU (README, "GPU").
 from __future__ import annotations
 
 import argparse
+import ast
 import functools
 import importlib
 import statistics
+import sys
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 
 from pi0_armfix.data.pipeline import batching
@@ -78,15 +82,20 @@ def _parse(argv: list[str]) -> argparse.Namespace:
                         help="skip the cost analysis (lowering the unrolled program is slow)")
     parser.add_argument("--compile_only", action="store_true",
                         help="compile and print the memory analysis, run no step")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a config key to change (repeatable), e.g. model.attention=fused, "
+                             "model.remat_policy=dots_saveable, optim.ema_decay=0")
     args = parser.parse_args(argv[1:])
     if args.steps < 1 or args.batch < 1 or args.flow_samples < 0:
         parser.error("--steps and --batch must be >= 1, --flow_samples >= 0")
     return args
 
 
-def load_config(name: str, preset: str = "", batch: int = 32, flow_samples: int = 0) -> Any:
-    """A config file of `pi0_armfix/configs/` (`name[:arg]`) with the benchmark's settings; the
-    data it never reads (a synthetic batch stands in)."""
+def load_config(name: str, preset: str = "", batch: int = 32, flow_samples: int = 0,
+                changes: Sequence[str] = ()) -> Any:
+    """A config file of `pi0_armfix/configs/` (`name[:arg]`) with the benchmark's settings and
+    `changes` ("key=value", the value a Python literal or else a string); the data it never
+    reads (a synthetic batch stands in)."""
     file, _, arg = name.partition(":")
     try:
         module = importlib.import_module(f"pi0_armfix.configs.{file}")
@@ -100,6 +109,23 @@ def load_config(name: str, preset: str = "", batch: int = 32, flow_samples: int 
     config.train.batch_size = batch
     if flow_samples:
         config.loss.flow_samples = flow_samples
+    for change in changes:
+        key, sep, text = change.partition("=")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text
+        *path, field = key.split(".")
+        section = config
+        for part in path:
+            section = section.get(part) if isinstance(section, ml_collections.ConfigDict) else None
+        if not sep or not isinstance(section, ml_collections.ConfigDict) or field not in section:
+            raise ValueError(f"--set={change}: name a config key and its value, e.g. "
+                             "--set=model.attention=fused (pi0_armfix/configs/base.py has them)")
+        try:
+            section[field] = value
+        except TypeError as e:
+            raise ValueError(f"--set={change}: {e}") from None
     return config
 
 
@@ -297,7 +323,11 @@ def format_result(r: dict[str, Any]) -> str:
 
 def main(argv: list[str]) -> None:
     args = _parse(argv)
-    config = load_config(args.config, args.preset, args.batch, args.flow_samples)
-    print(format_result(measure(config, remat=args.remat, steps=args.steps,
-                                peak=args.peak_tflops, flops=not args.no_flops,
-                                run=not args.compile_only)))
+    try:
+        config = load_config(args.config, args.preset, args.batch, args.flow_samples, args.set)
+        print(f"config       {args.config}" + "".join(f", {change}" for change in args.set))
+        result = measure(config, remat=args.remat, steps=args.steps, peak=args.peak_tflops,
+                         flops=not args.no_flops, run=not args.compile_only)
+    except ValueError as e:  # a config the step cannot build: one line naming the key
+        sys.exit(f"pi0_armfix.bench step: {e}")
+    print(format_result(result))

@@ -98,6 +98,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # openpi's LoRA fine-tuning: the experts named here ("paligemma", "action_expert") get its
     # adapters (rank 16 / 32) and keep their own weights frozen in bfloat16; () = all weights train.
     config.model.lora = ()
+    # Speed and memory of the step, the same function (README, "GPU"): what a rematerialized layer
+    # keeps for the backward pass (model.config.REMAT_POLICIES), and the attention's kernel
+    # ("einsum": XLA's; "fused": jax.nn.dot_product_attention, cuDNN's where it takes the shapes).
+    config.model.remat_policy = "nothing_saveable"
+    config.model.attention = "einsum"
     config.model.use_state = True  # False: the no-state ablation (a zero state, train and sample)
     config.model.state_dropout = 0.0  # P(a training sample's state is zeroed)
     config.model.state_noise = 0.0  # std of noise on the normalized state in training (DART-style)

@@ -22,6 +22,12 @@ IMAGE_KEYS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 # PaliGemma's sentencepiece vocabulary (openpi's PALIGEMMA_VOCAB_SIZE).
 PALIGEMMA_VOCAB_SIZE = 257_152
 DTYPES = ("float32", "bfloat16")
+# What a rematerialized layer keeps for the backward pass (`jax.checkpoint_policies` by name):
+# nothing (the least memory), or the outputs of its matrix products (less recompute).
+REMAT_POLICIES = ("nothing_saveable", "dots_with_no_batch_dims_saveable", "dots_saveable")
+# The attention's inner product: XLA's einsums and softmax, or `jax.nn.dot_product_attention` (a
+# fused kernel, cuDNN's where JAX finds one for the shapes; XLA's otherwise).
+ATTENTION = ("einsum", "fused")
 # openpi's LoRA variants by expert: gemma_2b_lora (rank 16) for the prefix, gemma_300m_lora (rank 32)
 # for the action expert; both with alpha = rank, on every attention and MLP weight.
 LORA_RANKS = {"paligemma": 16, "action_expert": 32}
@@ -105,6 +111,8 @@ class Pi0Config:
       image_keys: camera slots, in token order.
       dtype: activation dtype, "float32" or "bfloat16". Parameters are always float32.
       remat: rematerialize each scanned layer in the backward pass (saves activation memory).
+      remat_policy: what a rematerialized layer keeps (`REMAT_POLICIES`).
+      attention: how the Gemma layers compute attention (`ATTENTION`); the same function.
       pi05: pi0.5 instead of pi0: no state token (the state is written into the prompt, see
         `tokenizer`), the flow time conditions every action-expert norm through adaptive RMSNorm
         (`time_mlp_in -> swish -> time_mlp_out -> swish`), and the data default is quantile
@@ -132,6 +140,8 @@ class Pi0Config:
     image_keys: tuple[str, ...] = IMAGE_KEYS
     dtype: str = "bfloat16"
     remat: bool = True
+    remat_policy: str = "nothing_saveable"
+    attention: str = "einsum"
     pi05: bool = False
     unroll_layers: bool = False
     augment: AugmentConfig = AugmentConfig()
@@ -181,6 +191,11 @@ class Pi0Config:
             raise ValueError("image_keys must name at least one camera")
         if self.dtype not in DTYPES:
             raise ValueError(f"dtype={self.dtype!r} must be one of {DTYPES}")
+        if self.remat_policy not in REMAT_POLICIES:
+            raise ValueError(f"model.remat_policy = {self.remat_policy!r} must be one of "
+                             f"{REMAT_POLICIES}")
+        if self.attention not in ATTENTION:
+            raise ValueError(f"model.attention = {self.attention!r} must be one of {ATTENTION}")
         for field in ("vocab_size", "action_dim", "action_horizon", "max_token_len"):
             if getattr(self, field) <= 0:
                 raise ValueError(f"{field}={getattr(self, field)} must be positive")
@@ -327,14 +342,14 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
     """Builds the model config from the training config's `model` section.
 
     Reads `preset`; `dtype`, `action_horizon` and `action_dim` override the preset when set
-    (non-empty / > 0); `augment` (its fields), `use_state`, `state_dropout` and `state_noise`
-    when present; `sizes` changes the towers (`_resized`); `lora` names the experts that get
+    (non-empty / > 0); `augment` (its fields), `use_state`, `state_dropout`, `state_noise`,
+    `remat_policy` and `attention` when present; `sizes` changes the towers (`_resized`); `lora` names the experts that get
     openpi's adapters (`LORA_RANKS`).
     """
     changes = {}
     if model_cfg.get("augment"):
         changes["augment"] = AugmentConfig(**dict(model_cfg["augment"]))
-    for field in ("use_state", "state_dropout", "state_noise"):
+    for field in ("use_state", "state_dropout", "state_noise", "remat_policy", "attention"):
         if model_cfg.get(field) is not None:
             changes[field] = model_cfg[field]
     if model_cfg.get("action_dim"):

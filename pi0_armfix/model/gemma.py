@@ -179,6 +179,7 @@ class Attention(nn.Module):
     """Joint grouped-query attention over the concatenated tokens of all present experts."""
 
     configs: Sequence[GemmaConfig]
+    attention: str = "einsum"
 
     @nn.compact
     def __call__(self, xs, positions, attn_mask, kv_cache):
@@ -218,12 +219,16 @@ class Attention(nn.Module):
             v = jnp.concatenate([kv_cache[1], v], axis=1)
 
         batch, length = q.shape[:2]
-        q = q.reshape(batch, length, cfg.num_kv_heads, cfg.num_heads // cfg.num_kv_heads, cfg.head_dim)
-        logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k, preferred_element_type=jnp.float32)
-        logits = jnp.where(attn_mask[:, :, None, :, :], logits, _BIG_NEG)
-        probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
-        encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v)
-        encoded = encoded.reshape(batch, length, cfg.num_heads, cfg.head_dim)
+        if self.attention == "fused":  # q is already scaled
+            encoded = jax.nn.dot_product_attention(q, k, v, mask=attn_mask, scale=1.0)
+        else:
+            q = q.reshape(batch, length, cfg.num_kv_heads, cfg.num_heads // cfg.num_kv_heads,
+                          cfg.head_dim)
+            logits = jnp.einsum("BTKGH,BSKH->BKGTS", q, k, preferred_element_type=jnp.float32)
+            logits = jnp.where(attn_mask[:, :, None, :, :], logits, _BIG_NEG)
+            probs = jax.nn.softmax(logits, axis=-1).astype(dtype)
+            encoded = jnp.einsum("BKGTS,BSKH->BTKGH", probs, v)
+            encoded = encoded.reshape(batch, length, cfg.num_heads, cfg.head_dim)
 
         out, start = [], 0
         for i, (x, config) in enumerate(zip(xs, self.configs)):
@@ -284,6 +289,7 @@ class Block(nn.Module):
     condition (`conds[i]` not None) has adaptive norms and gated residuals."""
 
     configs: Sequence[GemmaConfig]
+    attention: str = "einsum"
 
     @nn.compact
     def __call__(self, xs, kv_cache, positions, attn_mask, conds):
@@ -292,7 +298,8 @@ class Block(nn.Module):
             y, gate = (None, None) if x is None else RMSNorm(name=_name("pre_attention_norm", i))(
                 x, cond)
             normed.append(y), gates.append(gate)
-        attended, kv_cache = Attention(self.configs, name="attn")(normed, positions, attn_mask, kv_cache)
+        attended, kv_cache = Attention(self.configs, self.attention, name="attn")(
+            normed, positions, attn_mask, kv_cache)
         xs = [gated_residual(x, y, gate) for x, y, gate in zip(xs, attended, gates)]
         out = []
         for i, (x, config, cond) in enumerate(zip(xs, self.configs, conds)):
@@ -311,7 +318,9 @@ class Transformer(nn.Module):
       configs: one GemmaConfig per expert (equal depth / heads / head_dim).
       vocab_size: rows of the embedding table.
       dtype: activation dtype (params stay float32).
-      remat: rematerialize each layer in the backward pass.
+      remat: rematerialize each layer in the backward pass, keeping what this
+        `jax.checkpoint_policies` policy names ("" = no rematerialization).
+      attention: "einsum" or "fused" (`config.ATTENTION`).
       unroll: unroll the layer scan (for XLA's cost analysis, which counts a loop body once).
       adaptive: per expert, whether its norms are adaptive (pi0.5's action expert): such an
         expert takes a condition in every call.
@@ -320,20 +329,22 @@ class Transformer(nn.Module):
     configs: Sequence[GemmaConfig]
     vocab_size: int
     dtype: str
-    remat: bool
+    remat: str
     unroll: bool = False
     adaptive: Sequence[bool] = (False, False)
+    attention: str = "einsum"
 
     def setup(self):
         self.embedder = Embedder(self.vocab_size, self.configs[0].width, name="embedder")
         block = Block
         if self.remat:
-            block = nn.remat(Block, prevent_cse=False, policy=jax.checkpoint_policies.nothing_saveable)
+            block = nn.remat(Block, prevent_cse=False,
+                             policy=getattr(jax.checkpoint_policies, self.remat))
         self.layers = nn.scan(
             block, variable_axes={"params": 0}, split_rngs={"params": True},
             in_axes=(0, nn.broadcast, nn.broadcast, nn.broadcast), length=self.configs[0].depth,
             unroll=self.configs[0].depth if self.unroll else 1,
-        )(self.configs, name="layers")
+        )(self.configs, self.attention, name="layers")
         self.final_norms = [RMSNorm(name=_name("final_norm", i)) for i in range(len(self.configs))]
 
     def embed(self, tokens):

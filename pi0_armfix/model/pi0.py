@@ -32,14 +32,18 @@ TIME_MAX_PERIOD = 4.0
 
 def transformer(config: Pi0Config) -> Transformer:
     return Transformer(configs=(config.paligemma, config.action_expert), vocab_size=config.vocab_size,
-                       dtype=config.dtype, remat=config.remat, unroll=config.unroll_layers,
-                       adaptive=(False, config.pi05))
+                       dtype=config.dtype, remat=_remat(config), unroll=config.unroll_layers,
+                       adaptive=(False, config.pi05), attention=config.attention)
 
 
 def vision_tower(config: Pi0Config) -> SigLIP:
     return SigLIP(config=config.siglip, num_patches=config.num_image_tokens,
-                  out_width=config.paligemma.width, dtype=config.dtype, remat=config.remat,
+                  out_width=config.paligemma.width, dtype=config.dtype, remat=_remat(config),
                   unroll=config.unroll_layers)
+
+
+def _remat(config: Pi0Config) -> str:
+    return config.remat_policy if config.remat else ""
 
 
 def dense(params: Params, x: jax.Array) -> jax.Array:

@@ -55,14 +55,15 @@ class Encoder(nn.Module):
 
     config: SiglipConfig
     dtype: str
-    remat: bool
+    remat: str
     unroll: bool = False
 
     @nn.compact
     def __call__(self, x):
         block = Encoder1DBlock
         if self.remat:
-            block = nn.remat(block, prevent_cse=False, policy=jax.checkpoint_policies.nothing_saveable)
+            block = nn.remat(block, prevent_cse=False,
+                             policy=getattr(jax.checkpoint_policies, self.remat))
         x, _ = nn.scan(
             block, variable_axes={"params": 0}, split_rngs={"params": True},
             in_axes=nn.broadcast, length=self.config.depth,
@@ -79,7 +80,8 @@ class SigLIP(nn.Module):
       num_patches: (h/p) * (w/p), the length of the learned position embedding.
       out_width: width of the `head` projection (the language model's width).
       dtype: matmul / activation dtype of the encoder; the patch stem stays float32.
-      remat: rematerialize each block in the backward pass.
+      remat: rematerialize each block in the backward pass, keeping what this
+        `jax.checkpoint_policies` policy names ("" = no rematerialization).
       unroll: unroll the block scan (for XLA's cost analysis, which counts a loop body once).
     """
 
@@ -87,7 +89,7 @@ class SigLIP(nn.Module):
     num_patches: int
     out_width: int
     dtype: str
-    remat: bool
+    remat: str
     unroll: bool = False
 
     @nn.compact

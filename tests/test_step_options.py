@@ -1,0 +1,62 @@
+"""The step's speed and memory options compute the step they replace: the same loss, gradient
+norm and updated parameters as the default (einsum attention, each layer rematerialized keeping
+nothing), at the tiny preset in float32 (exactly, up to summation order) and bfloat16."""
+
+import functools
+
+import jax
+import numpy as np
+import pytest
+
+from pi0_armfix.bench import step as bench_step
+from pi0_armfix.model import config as model_config
+
+OPTIONS = [("model.attention=fused",),
+           *[(f"model.remat_policy={policy}",) for policy in model_config.REMAT_POLICIES[1:]]]
+
+
+@functools.cache
+def _step(dtype: str, changes: tuple[str, ...] = ()):
+    """(loss, grad norm, the gradients) of one step of `arm_focused` at tiny, remat on. AdamW
+    with an epsilon far above every gradient and the learning rate as large is a gradient step:
+    the update is the gradient, clipped (AdamW's own first step is its sign)."""
+    config = bench_step.load_config(
+        "arm_focused", preset="tiny", batch=4,
+        changes=(f"model.dtype={dtype}", "optim.warmup_steps=0", "optim.lr=1e4", "optim.eps=1e4",
+                 "optim.weight_decay=0.0", *changes))
+    bench = bench_step.Step(config, remat="on")
+    state = bench.init(jax.random.key(0))
+    before = jax.device_get(state.params)
+    with jax.set_mesh(bench.mesh):
+        state, metrics = jax.jit(bench.step_fn)(state, bench.batch)
+    gradients = jax.tree.map(lambda new, old: old - new, jax.device_get(state.params), before)
+    return float(metrics["loss"]), float(metrics["grad_norm"]), gradients
+
+
+@pytest.mark.parametrize("changes", OPTIONS, ids=lambda c: c[0].split("=")[1])
+def test_an_option_gives_the_default_steps_loss_and_gradients(changes):
+    loss, grad_norm, gradients = _step("float32", changes)
+    base_loss, base_grad_norm, base_gradients = _step("float32")
+    np.testing.assert_allclose([loss, grad_norm], [base_loss, base_grad_norm], rtol=1e-5)
+    jax.tree.map(functools.partial(np.testing.assert_allclose, rtol=1e-3, atol=1e-6), gradients,
+                 base_gradients)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("changes", OPTIONS, ids=lambda c: c[0].split("=")[1])
+def test_an_option_keeps_the_loss_within_bfloat16_tolerance(changes):
+    loss, grad_norm, _ = _step("bfloat16", changes)
+    base_loss, base_grad_norm, _ = _step("bfloat16")
+    np.testing.assert_allclose([loss, grad_norm], [base_loss, base_grad_norm], rtol=2e-2)
+
+
+def test_an_unknown_option_value_names_the_key_and_the_choices():
+    with pytest.raises(ValueError, match=r"model.attention = 'flash' must be one of \('einsum'"):
+        model_config.get_preset("tiny", attention="flash")
+    with pytest.raises(ValueError, match=r"model.remat_policy = 'all' must be one of"):
+        model_config.get_preset("tiny", remat_policy="all")
+
+
+def test_the_step_benchmark_refuses_a_change_that_names_no_key():
+    with pytest.raises(ValueError, match=r"--set=model.atention=fused: name a config key"):
+        bench_step.load_config("arm_focused", preset="tiny", changes=("model.atention=fused",))
