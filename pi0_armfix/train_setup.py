@@ -91,7 +91,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     for note in spec.notes:
         say(f"note: {note}")
     mesh = sharding_lib.make_mesh(spec.fsdp)
-    sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size")
+    sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size",
+                                  spec.train["microbatches"])
     batch_sharding = sharding_lib.batch_sharding(mesh)
     if spec.evaluates:
         evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)
@@ -184,7 +185,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                                   norm_stats, layout, data.norm,
                                   model_config.action_horizon),
                               loss_mask=batching.loss_mask(norm_stats, layout, data.norm,
-                                                           model_config.action_horizon)),
+                                                           model_config.action_horizon),
+                              microbatches=spec.train["microbatches"]),
             in_shardings=(state_shardings, batch_sharding),
             out_shardings=(state_shardings, sharding_lib.replicated(mesh)),
             donate_argnums=0)

@@ -10,6 +10,7 @@ import pytest
 
 from pi0_armfix.bench import step as bench_step
 from pi0_armfix.model import config as model_config
+from pi0_armfix.model import flow_model
 
 OPTIONS = [("model.attention=fused",),
            *[(f"model.remat_policy={policy}",) for policy in model_config.REMAT_POLICIES[1:]]]
@@ -60,3 +61,37 @@ def test_an_unknown_option_value_names_the_key_and_the_choices():
 def test_the_step_benchmark_refuses_a_change_that_names_no_key():
     with pytest.raises(ValueError, match=r"--set=model.atention=fused: name a config key"):
         bench_step.load_config("arm_focused", preset="tiny", changes=("model.atention=fused",))
+
+
+def test_a_step_over_microbatches_is_the_mean_of_its_strided_parts():
+    config = bench_step.load_config(
+        "uniform", preset="tiny", batch=4,
+        changes=("train.microbatches=2", "optim.warmup_steps=0", "optim.lr=1e4", "optim.eps=1e4",
+                 "optim.weight_decay=0.0", "optim.clip_norm=1e9"))
+    bench = bench_step.Step(config)
+    state = bench.init(jax.random.key(0))
+    params = jax.device_get(state.params)
+    kwargs = bench.step_fn.keywords
+    rng = jax.random.fold_in(kwargs["base_rng"], 0)
+
+    def part_loss(p, i):
+        rows = jax.tree.map(lambda x: x[i::2], bench.batch)
+        return flow_model.compute_loss(p, jax.random.fold_in(rng, i), rows, config=bench.model,
+                                       layout=kwargs["layout"], train=True,
+                                       loss_mask=kwargs["loss_mask"], strategy="uniform",
+                                       delta_weighting=False)[0]
+
+    losses, grads = zip(*(jax.value_and_grad(part_loss)(params, i) for i in range(2)))
+    with jax.set_mesh(bench.mesh):
+        state, metrics = jax.jit(bench.step_fn)(state, bench.batch)
+    np.testing.assert_allclose(float(metrics["loss"]), np.mean(losses), rtol=1e-6)
+    update = jax.tree.map(lambda old, new: old - new, params, jax.device_get(state.params))
+    jax.tree.map(functools.partial(np.testing.assert_allclose, rtol=1e-3, atol=1e-6), update,
+                 jax.tree.map(lambda a, b: (a + b) / 2, *grads))
+
+
+def test_microbatches_that_do_not_divide_a_devices_rows_are_refused_naming_the_key():
+    config = bench_step.load_config("uniform", preset="tiny", batch=4,
+                                    changes=("train.microbatches=3",))
+    with pytest.raises(ValueError, match=r"train.microbatches = 3 must be >= 1 and divide the 4"):
+        bench_step.Step(config)

@@ -150,7 +150,8 @@ class Step:
         self.model, layout = model, spec.layout
         self.mesh = sharding_lib.make_mesh(spec.fsdp)
         batch_size = spec.train["batch_size"]
-        sharding_lib.check_batch_size(batch_size, self.mesh, "--batch")
+        sharding_lib.check_batch_size(batch_size, self.mesh, "--batch",
+                                      spec.train["microbatches"])
         norm_stats = _norm_stats(layout.real_dim, layout.action_dim)
         norm = spec.data.norm
         noise_factor = None
@@ -180,7 +181,8 @@ class Step:
             ema_decay=spec.optim["ema_decay"], noise_factor=noise_factor,
             switch_threshold=batching.normalized_midpoints(norm_stats, layout, norm,
                                                            model.action_horizon),
-            loss_mask=batching.loss_mask(norm_stats, layout, norm, model.action_horizon))
+            loss_mask=batching.loss_mask(norm_stats, layout, norm, model.action_horizon),
+            microbatches=spec.train["microbatches"])
         self._abstract = jax.tree.map(
             lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), abstract,
             self.state_shardings)

@@ -206,6 +206,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # both grippers (README, "Results"); 1500 (0.7 epoch) is too short for any config to.
     config.train.total_steps = 4500
     config.train.batch_size = 32  # global, over all processes
+    # Gradients of the batch as the mean over this many strided parts computed one after another:
+    # the activation memory of batch_size / microbatches, one optimizer step per batch.
+    config.train.microbatches = 1
     config.train.log_every = 25
     config.train.checkpoint_every = 500
     config.train.keep_checkpoints = 3  # good checkpoints kept (the last good one never goes)

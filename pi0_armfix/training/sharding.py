@@ -110,10 +110,16 @@ def replicated(mesh: jax.sharding.Mesh) -> NamedSharding:
     return NamedSharding(mesh, P())
 
 
-def check_batch_size(batch_size: int, mesh: jax.sharding.Mesh, field: str) -> None:
+def check_batch_size(batch_size: int, mesh: jax.sharding.Mesh, field: str,
+                     microbatches: int = 1) -> None:
     """Raises ValueError unless the global batch divides evenly over the mesh's devices and
-    processes (each process feeds its own devices)."""
+    processes (each process feeds its own devices), and each device's rows over `microbatches`
+    (`training.step.microbatch`)."""
     devices, processes = mesh.size, jax.process_count()
     if batch_size <= 0 or batch_size % devices or batch_size % processes:
         raise ValueError(f"{field} = {batch_size} must be a positive multiple of the number of "
                          f"devices ({devices}) and of processes ({processes})")
+    if microbatches < 1 or (batch_size // devices) % microbatches:
+        raise ValueError(f"train.microbatches = {microbatches} must be >= 1 and divide the "
+                         f"{batch_size // devices} samples of each device ({field} = "
+                         f"{batch_size} over {devices} device(s))")

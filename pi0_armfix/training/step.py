@@ -111,17 +111,29 @@ def effective_group_weights(kwargs: Mapping[str, Any], layout: ActionLayout) -> 
     return dim_weights @ membership / membership.sum(0)
 
 
+def microbatch(batch: Mapping[str, Any], n: int) -> Any:
+    """`batch` (leaves `[B, ...]`) -> `[n, B / n, ...]`, part i the rows i, i + n, i + 2n, ...:
+    strided, so that every device's rows of a batch sharded over devices hold some of each
+    part (a device's block of B / devices rows, a multiple of n, splits evenly)."""
+    return jax.tree.map(
+        lambda x: jnp.swapaxes(x.reshape(x.shape[0] // n, n, *x.shape[1:]), 0, 1), batch)
+
+
 def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Array,
                model_config: Pi0Config, loss_cfg: Mapping[str, Any], layout: ActionLayout,
                tx: optax.GradientTransformation, schedule: optax.Schedule, ema_decay: float,
                noise_factor: jax.Array | None = None, switch_threshold: Any = None,
-               loss_mask: Any = None) -> tuple[TrainState, dict[str, jax.Array]]:
+               loss_mask: Any = None, microbatches: int = 1
+               ) -> tuple[TrainState, dict[str, jax.Array]]:
     """One optimizer step on the global `batch`.
 
     `noise_factor`: the correlated noise's Cholesky factor (`loss.noise_beta < 1`), else None;
     `switch_threshold`: see `loss_kwargs`; `loss_mask`: see `flow_model.compute_loss`.
     `loss.flow_samples` draws per sample share one prefix pass. Under LoRA only the adapters and
     the weights outside the adapted experts get gradients (`training/freeze.py`).
+    `microbatches` n > 1 (`train.microbatches`) computes the loss and gradients of the batch as
+    the mean over n strided parts (`microbatch`), one after another, each with its own noise
+    (`fold_in(rng, i)`): the activations of B / n samples at a time, one optimizer step.
 
     Returns:
       the new state and scalar metrics: `loss`, `grad_norm` (of the trained params), `lr`,
@@ -131,7 +143,7 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
     rng = jax.random.fold_in(base_rng, state.step)
     frozen = freeze.split(state.params, model_config)[1]
 
-    def loss_fn(trainable):
+    def loss_fn(trainable, rng, batch):
         kwargs = loss_kwargs(loss_cfg, layout, state.step, trainable["loss_params"],
                              state.balancer, switch_threshold)
         params = freeze.merge(trainable["params"], frozen)
@@ -143,7 +155,21 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
         return loss, (aux, effective_group_weights(kwargs, layout))
 
     before = state.trainable(model_config)
-    (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(before)
+    if microbatches == 1:
+        (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(before, rng,
+                                                                                   batch)
+    else:
+        def accumulate(total, part):
+            i, micro = part
+            out = jax.value_and_grad(loss_fn, has_aux=True)(before, jax.random.fold_in(rng, i),
+                                                            micro)
+            return jax.tree.map(lambda t, x: t + x / microbatches, total, out), None
+
+        parts = (jnp.arange(microbatches), microbatch(batch, microbatches))
+        zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(
+            lambda: jax.value_and_grad(loss_fn, has_aux=True)(
+                before, rng, jax.tree.map(lambda x: x[0], parts[1]))))
+        ((loss, (aux, weights)), grads), _ = jax.lax.scan(accumulate, zeros, parts)
     updates, opt_state = tx.update(grads, state.opt_state, before)
     trainable = optax.apply_updates(before, updates)
 
