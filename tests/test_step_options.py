@@ -34,7 +34,10 @@ def _step(dtype: str, changes: tuple[str, ...] = ()):
     return float(metrics["loss"]), float(metrics["grad_norm"]), gradients
 
 
-@pytest.mark.parametrize("changes", OPTIONS, ids=lambda c: c[0].split("=")[1])
+@pytest.mark.parametrize("changes", [
+    changes if changes[0].startswith("model.attention") else pytest.param(
+        changes, marks=pytest.mark.slow) for changes in OPTIONS],
+    ids=lambda c: c[0].split("=")[1])
 def test_an_option_gives_the_default_steps_loss_and_gradients(changes):
     loss, grad_norm, gradients = _step("float32", changes)
     base_loss, base_grad_norm, base_gradients = _step("float32")
