@@ -12,6 +12,7 @@ import re
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from absl import flags, logging
 
@@ -166,16 +167,23 @@ def _check_config_file(program: str, path: str) -> None:
                          f"name of an installed config: {', '.join(config_names())}")
 
 
+_LEVER_FLAGS = ("average_draws", "temperature", "gripper_hysteresis")
+
+
 def define_lever_flags() -> None:
-    """`--average_draws` and `--temperature`: the policy's inference levers for this command,
-    unset = the run's `eval.average_draws` / `eval.temperature` (`inference.restore_run`)."""
+    """`--average_draws`, `--temperature` and `--gripper_hysteresis`: the policy's levers for this
+    command (`policies.sampling.Sampling`), unset = the run's (`inference.restore_run`)."""
     flags.DEFINE_integer("average_draws", None, "each executed chunk the mean of this many draws "
                          "(unset: the run's eval.average_draws)")
     flags.DEFINE_float("temperature", None, "the initial noise scaled by this, in (0, 1] (unset: "
                        "the run's eval.temperature)")
+    flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
+                      "hysteresis (pi0_armfix.policies.hysteresis), in action units, for the "
+                      "executed chunks (closed loop, server); unset: the run's "
+                      "eval.gripper_hysteresis; empty: none")
 
 
-def lever_flags() -> dict[str, float]:
-    """The levers given on the command line (`define_lever_flags`), as `eval` keys."""
-    return {key: flags.FLAGS[key].value for key in ("average_draws", "temperature")
+def lever_flags() -> dict[str, Any]:
+    """The levers given on the command line (`define_lever_flags`), as `Sampling` fields."""
+    return {key: flags.FLAGS[key].value for key in _LEVER_FLAGS
             if flags.FLAGS[key].value is not None}

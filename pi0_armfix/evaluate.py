@@ -35,8 +35,7 @@ def main(argv: Sequence[str]) -> None:
             step, summary = closed_loop_lib.closed_loop(
                 FLAGS.workdir, FLAGS.step, FLAGS.params, episodes=FLAGS.episodes,
                 n_exec=FLAGS.n_exec, follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
-                gripper_hysteresis=FLAGS.gripper_hysteresis, tolerances=tolerances,
-                levers=console.lever_flags())
+                tolerances=tolerances, levers=console.lever_flags())
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
@@ -68,9 +67,6 @@ def cli() -> None:
                       "tail of the previous one (real-time chunking's soft inpainting)")
     flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
                          "episodes (the demo dataset is seed 0)")
-    flags.DEFINE_list("gripper_hysteresis", None, "closed loop: open_above,close_below of the "
-                      "grippers' hysteresis (pi0_armfix.policies.hysteresis), in action units; "
-                      "unset: the run's eval.gripper_hysteresis; empty: none")
     console.define_lever_flags()
     flags.DEFINE_list("tolerances", [], "closed loop: tolerance factors of a success curve "
                       "(e.g. 1,2,4: the same episodes with the world's tolerances doubled and "

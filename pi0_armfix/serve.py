@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from absl import app, flags
 
 from pi0_armfix import console
-from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.policies import inference
 from pi0_armfix.serving.server import MAX_MESSAGE_MB, PROTOCOLS, PolicyServer
 
 
@@ -49,7 +49,7 @@ def main(argv: Sequence[str]) -> None:
         policy = inference.RunPolicy.from_workdir(
             FLAGS.workdir, FLAGS.step, FLAGS.params, levers=console.lever_flags(),
             keys=inference.ObservationKeys.parse(FLAGS.keys))
-        latch = hysteresis.run_latch(policy.run.config, policy.layout, FLAGS.gripper_hysteresis)
+        latch = policy.sampling.latch(policy.layout)
         if FLAGS.n_exec < 0:
             raise ValueError(f"--n_exec = {FLAGS.n_exec} must be >= 0 (0: the whole chunk)")
         if FLAGS.rtc and FLAGS.protocol != "b1k":
@@ -85,9 +85,6 @@ def cli() -> None:
     flags.DEFINE_string("keys", "", "observation key mapping key=role,... (role: a batch camera "
                         "base_0_rgb / left_wrist_0_rgb / right_wrist_0_rgb, 'state', 'prompt' or "
                         "'previous_action'); '' = B1K's openpi keys")
-    flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
-                      "hysteresis (pi0_armfix.policies.hysteresis), in action units; "
-                      "unset: the run's eval.gripper_hysteresis; empty: none")
     flags.DEFINE_enum("protocol", "openpi", PROTOCOLS, "openpi: a chunk per request "
                       "({'actions': [H, A]}); b1k: BEHAVIOR-1K's evaluation harness (one action "
                       "per request from a server-side queue, resets, its keys; "

@@ -8,6 +8,7 @@ from pi0_armfix.configs import base
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.serving import server as server_lib
 from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.action_space import ActionLayout
 
 OPEN, CLOSE = 0.9, -0.98
@@ -55,12 +56,15 @@ def test_thresholds_that_are_not_open_above_close_below_are_refused_by_name(thre
 
 def test_a_runs_latch_filters_its_layouts_gripper_dims_flag_over_config():
     config = base.get_config()
-    assert hysteresis.run_latch(config, B1K, None) is None  # the demo's default: off
+    assert Sampling.from_eval(config.eval).latch(B1K) is None  # the demo's default: off
     config.eval.gripper_hysteresis = (0.5, -0.5)
-    latch = hysteresis.run_latch(config, B1K, None)
+    latch = Sampling.from_eval(config.eval).latch(B1K)
     assert list(latch.dims) == [14, 22] and (latch.open_above, latch.close_below) == (0.5, -0.5)
-    assert hysteresis.run_latch(config, B1K, []) is None  # an empty flag turns it off
-    assert hysteresis.run_latch(config, B1K, ["0.9", "-0.98"]).close_below == -0.98
+    # a command's flag: unset keeps the run's, empty turns it off, two numbers replace it
+    assert Sampling.from_eval(config.eval, gripper_hysteresis=None).latch(B1K) is not None
+    assert Sampling.from_eval(config.eval, gripper_hysteresis=[]).latch(B1K) is None
+    assert Sampling.from_eval(config.eval, gripper_hysteresis=["0.9", "-0.98"]).latch(
+        B1K).close_below == -0.98
 
 
 def test_an_invalid_hysteresis_key_fails_the_config_check_before_training():

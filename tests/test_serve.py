@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 
+import jax
 import msgpack
 import numpy as np
 import pyarrow.parquet as pq
@@ -25,11 +26,13 @@ from pi0_armfix.data.formats import sources
 from pi0_armfix.data.formats import video
 from pi0_armfix.data.pipeline import batching
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
+from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import outputs
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.policies import inference
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.serving import server as server_lib
 from pi0_armfix.sim import outcomes
 from pi0_armfix.sim.env import DemoWorldEnv
@@ -304,10 +307,10 @@ def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_
 
 
 def test_closed_loop_outputs_name_the_inference_levers():
-    tag = inference.lever_tag({"average_draws": 4, "temperature": 0.5})
+    tag = Sampling(average_draws=4, temperature=0.5).tag()
     path, _ = closed_loop_lib.closed_loop_paths("run", 5, episodes=20, levers=tag)
     assert path.name == "closed_loop_20ep_avg4_temp0.5.json"
-    assert inference.lever_tag({"average_draws": 1, "temperature": 1.0}) == ""
+    assert Sampling().tag() == ""
 
 
 def test_a_policy_with_levers_averages_its_draws_and_says_so(run):
@@ -327,9 +330,33 @@ def test_a_policy_with_levers_averages_its_draws_and_says_so(run):
     assert means.std(axis=0).mean() < singles.std(axis=0).mean()
 
 
+def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
+    restored = inference.restore_run(run, levers={"average_draws": 2, "temperature": 0.5})
+    policy = inference.RunPolicy(restored)
+    evaluator, mesh = evaluator_lib.run_evaluator(restored)
+    assert evaluator.sampling == policy.sampling
+    with jax.set_mesh(mesh):
+        evaluated = evaluator.sample(restored.params)  # [draws, N, H, A], each the mean of 2
+    batch, rows = evaluator.chunks.batches[0], evaluator.chunks.batch_rows[0]
+    observation = {k: v for k, v in batch.items() if k not in ("actions", "action_is_pad")}
+    noise = np.zeros((2, len(batch["actions"]), *evaluator.noise.shape[2:]), np.float32)
+    noise[:, :rows] = evaluator.noise[:2, :rows]  # the first draw's two noises
+    served = policy.sample(restored.params, None, observation, noise=noise.reshape(
+        -1, *noise.shape[2:]))
+    np.testing.assert_allclose(np.asarray(served)[:rows], evaluated[0, :rows], atol=1e-5)
+    # drawn from a key, the policy's noise is the levers' (`Sampling.noise`): scaled alike
+    key = jax.random.key(4)
+    np.testing.assert_allclose(
+        policy.sample(restored.params, key, observation),
+        policy.sample(restored.params, None, observation, noise=policy.sampling.noise(
+            key, (2 * len(batch["actions"]), *evaluator.noise.shape[2:]))), atol=1e-6)
+
+
 @pytest.mark.parametrize("levers, message", [
-    ({"temperature": 0.0}, r"--temperature = 0.0 must be in \(0, 1\]"),
-    ({"average_draws": 0}, "--average_draws = 0 must be >= 1"),
+    ({"temperature": 0.0}, r"temperature = 0.0 \(eval.temperature or --temperature\) must be "
+                           r"in \(0, 1\]"),
+    ({"average_draws": 0}, r"average_draws = 0 \(eval.average_draws or --average_draws\) must "
+                           "be a whole number >= 1"),
     ({"draws": 2}, r"unknown inference lever\(s\) \['draws'\]")])
 def test_bad_levers_are_refused_before_the_checkpoint_is_read(levers, message, tmp_path):
     with pytest.raises(ValueError, match=message):

@@ -689,8 +689,8 @@ def test_a_lever_out_of_range_is_refused_before_any_run_trains(tmp_path):
                           capture_output=True, text=True, timeout=300, cwd=tf.REPO_ROOT,
                           env=dict(os.environ, PYTHONPATH=str(tf.REPO_ROOT)))
     assert done.returncode != 0
-    assert ("--configs uniform@eval.average_draws=0: --average_draws = 0.0 must be >= 1"
-            in done.stderr)
+    assert ("--configs uniform@eval.average_draws=0: average_draws = 0.0 (eval.average_draws or "
+            "--average_draws) must be a whole number >= 1" in done.stderr)
     assert not (tmp_path / "study").exists()
 
 

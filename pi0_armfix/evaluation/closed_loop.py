@@ -19,7 +19,7 @@ from typing import Any
 import jax
 from etils import epath
 
-from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.policies import inference
 from pi0_armfix.data import json_files
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.sim import env as env_lib
@@ -39,20 +39,18 @@ def default_n_exec(horizon: int) -> int:
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
                 episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
                 sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
-                gripper_hysteresis: Sequence[float] | None = None,
-                tolerances: Sequence[float] = (), levers: Mapping[str, float] | None = None
+                tolerances: Sequence[float] = (), levers: Mapping[str, Any] | None = None
                 ) -> tuple[int, dict[str, Any]]:
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
     world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
-    each chunk following the last one's unexecuted tail when `follow_tail`, the grippers through
-    the hysteresis `gripper_hysteresis` ((open_above, close_below); None: the run's
-    `eval.gripper_hysteresis`; empty: none); writes `closed_loop_<episodes>ep[...].json` and
+    each chunk following the last one's unexecuted tail when `follow_tail`, sampled and its
+    grippers filtered with the run's levers (`policies.sampling.Sampling`; `levers`: a command's
+    in their place, `inference.restore_run`); writes `closed_loop_<episodes>ep[...].json` and
     `rollouts_<episodes>ep[...].png` (against the scripted expert; `closed_loop_paths`: named by
     their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
     `tolerances` (factors other than 1), the same episodes again in the world with its success
     tolerances times each factor: `success_curve` in the summary, `success_curve.png`. Returns
-    `(step, summary)` (`sim.rollout.summarize`). `levers`: the policy's inference levers in
-    place of the run's (`inference.restore_run`)."""
+    `(step, summary)` (`sim.rollout.summarize`)."""
     if episodes < 1:
         raise ValueError(f"--episodes = {episodes} must be >= 1")
     if sim_seed < 0:
@@ -63,7 +61,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
     policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name, levers))
     run = policy_.run
-    latch = hysteresis.run_latch(run.config, run.layout, gripper_hysteresis)
+    latch = policy_.sampling.latch(run.layout)
     results_path, figure_path = closed_loop_paths(
         run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
         hysteresis_on=latch is not None, sim_seed=sim_seed,
@@ -82,10 +80,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                   progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
                "follow_tail": follow_tail,
-               "gripper_hysteresis": None if latch is None else [latch.open_above,
-                                                                 latch.close_below],
-               "sim_seed": sim_seed,
-               **{key: run.config.eval[key] for key in inference.LEVERS},
+               "sim_seed": sim_seed, **policy_.sampling.describe(),
                "results": str(results_path), "figure": str(figure_path),
                **rollout_lib.summarize(records),
                "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,

@@ -38,10 +38,9 @@ from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import flow_model
-from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.policies import inference
+from pi0_armfix.policies.sampling import SAMPLED_LEVERS, Sampling
 from pi0_armfix.training import metrics_log
 from pi0_armfix.training import plots
 from pi0_armfix.training import sharding as sharding_lib
@@ -78,17 +77,10 @@ def check_eval_config(eval_cfg: Mapping[str, Any], layout: ActionLayout, num_dev
     if eval_cfg["batch_size"] <= 0 or eval_cfg["batch_size"] % num_devices:
         raise ValueError(f"eval.batch_size = {eval_cfg['batch_size']} must be a positive multiple "
                          f"of the number of devices ({num_devices})")
-    for key in ("max_chunks", "num_steps", "num_draws", "average_draws"):
+    for key in ("max_chunks", "num_draws"):
         if eval_cfg[key] <= 0:
             raise ValueError(f"eval.{key} = {eval_cfg[key]} must be positive")
-    if not 0.0 < eval_cfg["temperature"] <= 1.0:
-        raise ValueError(f"eval.temperature = {eval_cfg['temperature']} must be in (0, 1] (the "
-                         "initial noise's scale; 1 = the flow as trained)")
-    if hysteresis.check_thresholds(eval_cfg.get("gripper_hysteresis", ()),
-                                   "eval.gripper_hysteresis") and not layout.groups_with_role(
-                                       "gripper"):
-        raise ValueError("eval.gripper_hysteresis is set but the layout has no group of role "
-                         "gripper (layout.roles); set it to ()")
+    Sampling.from_eval(eval_cfg).latch(layout)  # the policy's levers, each in its range
     tolerance = eval_cfg.get("switch_tolerance", 2)
     if tolerance < 0:
         raise ValueError(f"eval.switch_tolerance = {tolerance} must be >= 0 (steps by which a "
@@ -139,13 +131,14 @@ class Evaluator:
       mesh: the run's mesh; params_sharding: NamedShardings of the params.
       source: the run's opened data source (None = open the one `spec` names).
       noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
+      sampling: the policy's levers (None: `eval_cfg`'s), as a served policy samples with them.
     """
 
     def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
                  model_config: model_config_lib.Pi0Config,
                  norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
                  mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
-                 noise_factor: np.ndarray | None = None):
+                 noise_factor: np.ndarray | None = None, sampling: Sampling | None = None):
         layout = spec.layout
         check_eval_config(eval_cfg, layout, mesh.size)
         self.layout = layout
@@ -153,16 +146,16 @@ class Evaluator:
         self.groups = eval_groups(eval_cfg, layout)
         self.chunks = heldout_chunks(spec, eval_cfg, model_config, norm_stats, tokenize, source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
-        self.draws, self.average = eval_cfg["num_draws"], eval_cfg["average_draws"]
+        self.sampling = sampling or Sampling.from_eval(eval_cfg)
+        self.draws, self.average = eval_cfg["num_draws"], self.sampling.average_draws
         # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on
         # the evaluation batch size nor on which batch it lands in.
         shape = (self.draws * self.average, len(self.chunks.frames), model_config.action_horizon,
                  model_config.action_dim)
-        self.noise = eval_cfg["temperature"] * np.asarray(noise_lib.flow_noise(
+        self.noise = np.asarray(self.sampling.noise(
             jax.random.key(spec.seed), (shape[0] * shape[1], *shape[2:]), noise_factor)
         ).reshape(shape)
-        sample = functools.partial(flow_model.sample_actions, config=model_config,
-                                   num_steps=eval_cfg["num_steps"], num_draws=shape[0])
+        sample = self.sampling.sampler(model_config, num_draws=shape[0])
         self._sample = jax.jit(
             lambda params, noise, observation: sample(params, None, observation, noise=noise),
             in_shardings=(params_sharding, None, self.batch_sharding),
@@ -274,7 +267,8 @@ def run_evaluator(run: inference.RestoredRun) -> tuple[Evaluator, jax.sharding.M
         evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
                               params_sharding=sharding_lib.tree_shardings(run.params, mesh),
                               source=source, noise_factor=inference.run_noise_factor(
-                                  run.workdir, config, layout, model_config))
+                                  run.workdir, config, layout, model_config),
+                              sampling=run.sampling)
     return evaluator, mesh
 
 
@@ -290,7 +284,7 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     Returns `(step, metrics, layout, metrics path)`."""
     run = inference.restore_run(workdir, step, params_name, levers)
     tag = run.result_tag()
-    workdir, step, config, layout = run.workdir, run.step, run.config, run.layout
+    workdir, step, layout = run.workdir, run.step, run.layout
     out = workdir / "eval" / f"step_{step}"
     writable_folder(out)  # before the sampling, not after
     evaluator, mesh = run_evaluator(run)
@@ -301,7 +295,7 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     # Strict JSON: a metric with nothing to measure (NaN) is null.
     metrics_path.write_text(json.dumps(
         {"step": step, "params": run.params_name,
-         **{key: config.eval[key] for key in inference.LEVERS},
+         **{key: getattr(run.sampling, key) for key in SAMPLED_LEVERS},
          **strict_json({k: float(v) for k, v in metrics.items()})},
         indent=2, allow_nan=False) + "\n")
     evaluator.plot(predicted, true, out / f"trajectories{tag}.png", f"step {step}: predicted "
@@ -315,7 +309,7 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
 def heldout_paths(workdir: epath.PathLike, step: int, levers: str = ""
                   ) -> tuple[epath.Path, epath.Path]:
     """An offline evaluation's `eval/step_<N>/metrics[levers].json` and its per-chunk sums
-    (`heldout.CHUNK_SUMS_FILE`, tagged the same): `levers` is `inference.lever_tag` of the
+    (`heldout.CHUNK_SUMS_FILE`, tagged the same): `levers` is `Sampling.tag` of the
     sampler, so that another setting never replaces the plain sampler's files."""
     out = epath.Path(workdir) / "eval" / f"step_{step}"
     sums = epath.Path(heldout_lib.CHUNK_SUMS_FILE)

@@ -11,17 +11,14 @@ this way (open above about 0.9, closed below about -0.98 of a [-1, 1] command).
     chunk = latch(stream, chunk, executed=n_exec)   # per robot (stream): [H, A] -> [H, A]
 
 Used by the closed-loop evaluation (`evaluate --closed_loop`) and the policy server, with the run's
-`eval.gripper_hysteresis` or their `--gripper_hysteresis` flag.
+`eval.gripper_hysteresis` or their `--gripper_hysteresis` flag (`policies.sampling.Sampling.latch`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 
-import ml_collections
 import numpy as np
-
-from pi0_armfix.action_space import ActionLayout
 
 
 def check_thresholds(thresholds: Sequence[float], what: str) -> tuple[float, float] | None:
@@ -83,21 +80,3 @@ class GripperLatch:
         out[executed:, self.dims], _ = gripper_hysteresis(
             chunk[executed:, self.dims], self._held[stream], self.open_above, self.close_below)
         return out
-
-
-def run_latch(config: ml_collections.ConfigDict, layout: ActionLayout,
-              thresholds: Sequence[float] | None) -> GripperLatch | None:
-    """The latch on a run's gripper dims (its layout's gripper role) with `thresholds` (a flag),
-    or with the run's `eval.gripper_hysteresis` when None; None when they are empty."""
-    what = "--gripper_hysteresis"
-    if thresholds is None:
-        thresholds = config.eval.get("gripper_hysteresis", ())
-        what = "the run's eval.gripper_hysteresis"
-    checked = check_thresholds(thresholds, what)
-    if checked is None:
-        return None
-    dims = [int(d) for g in layout.groups_with_role("gripper") for d in layout.group_dims(g)]
-    if not dims:
-        raise ValueError(f"{what} is set but the run's layout has no group of role gripper "
-                         "(layout.roles)")
-    return GripperLatch(dims, *checked)

@@ -8,9 +8,9 @@ An observation is a dict with B1K's openpi keys by default (`B1K_KEYS`; any mapp
 stores it (e.g. the demo's 23-D baseline-order state, B1K's 256-D proprioception: the run's
 `data.state_preset` selects from it), and the prompt. The policy does what training did to a
 sample (state selection and normalization, the prompt tokenizer, pi0.5's state tokens), samples
-with the run's `eval.num_steps` Euler steps, its inference levers (`eval.average_draws`,
-`eval.temperature`) and the KV cache (`model.flow_model.sample_actions`, jit-compiled once per
-batch shape), and undoes the action normalization and delta actions: the
+with the run's levers (`policies.sampling.Sampling`: Euler steps, the mean of draws, the noise's
+temperature; a command's in their place) and the KV cache (`model.flow_model.sample_actions`,
+jit-compiled once per batch shape), and undoes the action normalization and delta actions: the
 result is absolute actions in the dataset's units. Used by the closed-loop evaluation and by the
 policy server.
 
@@ -44,11 +44,11 @@ from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
 from pi0_armfix.data.statistics import normalize
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.model import flow_model
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.policies import hysteresis
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import checkpoint
 from pi0_armfix.training import sharding as sharding_lib
 
@@ -131,29 +131,6 @@ def with_current_keys(config: ml_collections.ConfigDict) -> ml_collections.Confi
     return config
 
 
-LEVERS = ("average_draws", "temperature")  # the `eval` keys a command may set for a run
-
-
-def check_levers(levers: Mapping[str, float]) -> None:
-    """Raises ValueError naming a lever outside its range or an unknown one."""
-    unknown = sorted(set(levers) - set(LEVERS))
-    if unknown:
-        raise ValueError(f"unknown inference lever(s) {unknown}; the levers are {list(LEVERS)}")
-    if "average_draws" in levers and levers["average_draws"] < 1:
-        raise ValueError(f"--average_draws = {levers['average_draws']} must be >= 1")
-    if "temperature" in levers and not 0.0 < levers["temperature"] <= 1.0:
-        raise ValueError(f"--temperature = {levers['temperature']} must be in (0, 1] (the "
-                         "initial noise's scale; 1 = the flow as trained)")
-
-
-def lever_tag(eval_cfg: Mapping[str, Any]) -> str:
-    """`_avg<k>_temp<τ>` for levers other than the plain sampler (each part only when set), for
-    the names of result files that another setting must not replace; '' for the plain sampler."""
-    average, temperature = int(eval_cfg["average_draws"]), float(eval_cfg["temperature"])
-    return ((f"_avg{average}" if average != 1 else "")
-            + (f"_temp{temperature:g}" if temperature != 1.0 else ""))
-
-
 @dataclasses.dataclass(frozen=True)
 class RestoredRun:
     """A run's checkpoint with what it needs to run: its own config, layout and norm stats."""
@@ -166,27 +143,28 @@ class RestoredRun:
     params: Any
     params_name: str  # "ema_params" or "params"
     norm_stats: dict[str, stats_lib.NormStats]
+    sampling: Sampling  # the run's levers, a command's in their place
     ema_kept: bool = False  # the checkpoint holds EMA params (read unless "params" was asked)
 
     def result_tag(self) -> str:
-        """The suffix of this evaluation's result files: `lever_tag` of its sampler, and
+        """The suffix of this evaluation's result files: `Sampling.tag` of its sampler, and
         `_params` where the raw params were read although the run kept an EMA, so that neither
         replaces the default evaluation's files (the EMA's, plain sampler)."""
         raw = self.ema_kept and self.params_name == "params"
-        return lever_tag(self.config.eval) + ("_params" if raw else "")
+        return self.sampling.tag() + ("_params" if raw else "")
 
 
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",
-                levers: Mapping[str, float] | None = None) -> RestoredRun:
+                levers: Mapping[str, Any] | None = None) -> RestoredRun:
     """The checkpoint of `step` (latest if None) of a run folder, on one device. `params_name`:
-    "ema" (the EMA params when the run kept them, else the params) or "params"; `levers`: `eval`
-    keys of the inference levers (`average_draws`, `temperature`) that replace the run's, checked
-    before any checkpoint is read. Only the params are read. A damaged latest checkpoint falls back
+    "ema" (the EMA params when the run kept them, else the params) or "params"; `levers`: the
+    `Sampling` fields that replace the run's (None values: the run's), checked before any
+    checkpoint is read. Only the params are read. A damaged latest checkpoint falls back
     to the newest older one that reads (said on stderr); a damaged `step` asked for is a ValueError
     naming the steps that read."""
     workdir = epath.Path(workdir)
     levers = dict(levers or {})
-    check_levers(levers)
+    Sampling.from_eval({}, **levers)  # a bad lever fails before the checkpoint is read
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
     steps = ckpts.all_steps()
     if step is not None and step not in steps or not steps:
@@ -212,12 +190,11 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
                          "train on to write a new one")
     use_ema = params_name == "ema" and bool(state.get("ema_params"))
     config = with_current_keys(config)
-    config.eval.update(levers)
     return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
                        model_config_lib.from_model_config(config.model),
                        state["ema_params"] if use_ema else state["params"],
                        "ema_params" if use_ema else "params", norm_stats_from_json(norm_stats),
-                       bool(state.get("ema_params")))
+                       Sampling.from_eval(config.eval, **levers), bool(state.get("ema_params")))
 
 
 def soft_mask(horizon: int, overlap: int, delay: int = 0) -> np.ndarray:
@@ -241,7 +218,7 @@ class RunPolicy:
         (`data.run_inputs`), or, for a run trained before it kept them, opens the one
         `run.config.data` names.
       keys: where observations keep their inputs.
-      num_steps: Euler steps of the sampler (None: the run's `eval.num_steps`).
+      num_steps: Euler steps of the sampler (None: the run's `run.sampling`'s).
       seed: of the sampling noise (draw i of the policy uses fold_in(seed, i)).
     """
 
@@ -273,12 +250,10 @@ class RunPolicy:
         self.task_prompts = dict(getattr(source, "task_prompts", {}) or {})
         self.trained_prompts = frozenset(source.tasks)
         noise_factor = run_noise_factor(run.workdir, config, layout, run.model_config)
-        # The run's inference levers (`eval.average_draws`, `eval.temperature`).
-        self._sample = functools.partial(
-            flow_model.sample_actions, config=run.model_config,
-            num_steps=int(num_steps or config.eval.num_steps), noise_factor=noise_factor,
-            average_draws=int(config.eval.average_draws),
-            temperature=float(config.eval.temperature))
+        self.sampling = (run.sampling if num_steps is None
+                         else dataclasses.replace(run.sampling, num_steps=num_steps))
+        # (params, rng, model observation, **kw) -> normalized chunks: what `infer` samples with.
+        self.sample = self.sampling.sampler(run.model_config, noise_factor)
         self._key = jax.random.key(seed)
         self._draws = 0
         # Images of any size become the model's float images here, so the sampler compiles once
@@ -318,7 +293,7 @@ class RunPolicy:
         run = self.run
         return {"workdir": str(run.workdir), "step": run.step, "params": run.params_name,
                 "model": run.config.model.preset, "action_horizon": self.horizon,
-                **{key: run.config.eval[key] for key in LEVERS},
+                **self.sampling.describe(),
                 "action_dim": self.layout.real_dim,
                 "action_groups": {g: list(map(int, v)) for g, v in self.layout.groups.items()},
                 "state_width": self.stored_state_width,
@@ -351,7 +326,7 @@ class RunPolicy:
         kwargs = {}
         if follow is not None:
             kwargs = self._inpaint(np.asarray(follow, np.float32), reference)
-        return self.absolute(np.asarray(self._sample(self.run.params, rng, observation,
+        return self.absolute(np.asarray(self.sample(self.run.params, rng, observation,
                                                      **kwargs)), reference)
 
     def reference(self, observations: Sequence[Mapping[str, Any]], state: np.ndarray,

@@ -27,7 +27,7 @@ from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         closed_loop_outcomes, episode_replicates, group_keys)
-from pi0_armfix.policies import inference
+from pi0_armfix.policies.sampling import SAMPLED_LEVERS, Sampling
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -54,10 +54,10 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
 
 def inference_levers(config: str) -> dict[str, str]:
     """A study config's own inference levers: its `@eval.<lever>=<value>` overrides of
-    `inference.LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
+    `sampling.SAMPLED_LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
     own = (o.partition("=")[::2] for o in parse_config(config)[2])
     return {key.removeprefix("eval."): value for key, value in own
-            if key.startswith("eval.") and key.removeprefix("eval.") in inference.LEVERS}
+            if key.startswith("eval.") and key.removeprefix("eval.") in SAMPLED_LEVERS}
 
 
 def check_study_levers(configs: Sequence[str]) -> None:
@@ -68,7 +68,7 @@ def check_study_levers(configs: Sequence[str]) -> None:
     """
     for config in configs:
         try:
-            inference.check_levers({k: float(v) for k, v in inference_levers(config).items()})
+            Sampling.from_eval({}, **{k: float(v) for k, v in inference_levers(config).items()})
         except ValueError as err:
             raise ValueError(f"--configs {config}: {err}") from None
 
@@ -89,11 +89,11 @@ def lever_args(config: str) -> list[str]:
 
 
 def lever_tag(config: str, checkpoints: Path) -> str:
-    """`inference.lever_tag` of a config's sampler on its trained run (that run's `eval` with the
+    """`Sampling.tag` of a config's sampler on its trained run (that run's `eval` with the
     config's levers in place): the tag of the evaluation files its levers write."""
     saved = json.loads((checkpoints / "config.json").read_text())["eval"]
-    return inference.lever_tag({**saved, **{k: float(v) for k, v in
-                                            inference_levers(config).items()}})
+    return Sampling.from_eval(saved, **{k: float(v) for k, v in
+                                        inference_levers(config).items()}).tag()
 
 
 def run_steps(config: str, steps: int) -> int:
@@ -290,7 +290,7 @@ def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
     result = {"config": config, "seed": seed, "steps": base["steps"], "layout": base["layout"],
               "trained": trained, "metrics": {
                   k: v for k, v in saved.items()
-                  if k not in ("step", "params", *inference.LEVERS)},
+                  if k not in ("step", "params", *SAMPLED_LEVERS)},
               EPISODE_REPLICATES: episode_replicates(heldout_lib.load_chunk_sums(sums_path),
                                                      layout)}
     json_files.write_json_atomic(folder / RESULT_FILE, result)

@@ -107,23 +107,23 @@ def openpi_problems(run: inference.RestoredRun) -> list[str]:
 
 def openpi_caveats(run: inference.RestoredRun) -> list[str]:
     """What openpi does differently but the user can set on their side (not refused)."""
-    config = run.config
+    sampling = run.sampling
     caveats = []
-    if config.eval.get("gripper_hysteresis"):
-        caveats.append(f"eval.gripper_hysteresis = {tuple(config.eval.gripper_hysteresis)}: "
+    if sampling.gripper_hysteresis:
+        caveats.append(f"eval.gripper_hysteresis = {sampling.gripper_hysteresis}: "
                        "openpi serves the raw gripper commands; apply the hysteresis in the "
                        "client")
-    if int(config.eval.num_steps) != 10:
-        caveats.append(f"eval.num_steps = {config.eval.num_steps}: openpi samples with 10 Euler "
+    if sampling.num_steps != 10:
+        caveats.append(f"eval.num_steps = {sampling.num_steps}: openpi samples with 10 Euler "
                        "steps unless create_trained_policy gets sample_kwargs={'num_steps': "
-                       f"{config.eval.num_steps}}}")
-    if int(config.eval.average_draws) != 1:
-        caveats.append(f"eval.average_draws = {config.eval.average_draws}: this run executes the "
+                       f"{sampling.num_steps}}}")
+    if sampling.average_draws != 1:
+        caveats.append(f"eval.average_draws = {sampling.average_draws}: this run executes the "
                        "mean of that many draws per chunk; openpi executes one draw: call "
-                       f"infer {config.eval.average_draws} times and average the actions in the "
+                       f"infer {sampling.average_draws} times and average the actions in the "
                        "client (before any gripper hysteresis)")
-    if float(config.eval.temperature) != 1.0:
-        caveats.append(f"eval.temperature = {config.eval.temperature}: this run starts the flow "
+    if sampling.temperature != 1.0:
+        caveats.append(f"eval.temperature = {sampling.temperature:g}: this run starts the flow "
                        "from noise scaled by it; openpi starts from N(0, I): pass "
                        "sample_kwargs={'noise': temperature * noise} to its sample_actions")
     return caveats
@@ -194,7 +194,7 @@ def openpi_config(run: inference.RestoredRun, asset_id: str) -> dict[str, Any]:
         "actions_out": layout.real_dim,
         "cameras": dict(getattr(inputs, "cameras", {}) or {}),
         "asset_id": asset_id,
-        "num_steps": int(config.eval.num_steps),
+        "num_steps": run.sampling.num_steps,
     }
 
 
