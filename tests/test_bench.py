@@ -110,6 +110,7 @@ def test_the_step_benchmark_times_the_projects_train_step_and_counts_its_flops()
     assert "MFU" in step_bench.format_result(result)
 
 
+@pytest.mark.slow
 def test_the_step_benchmark_asks_the_compiler_for_memory_without_running_a_step():
     from pi0_armfix.bench import step as step_bench
 

@@ -87,6 +87,7 @@ def test_the_adapters_equations_are_openpis(eqn, a, b):
     assert gemma.lora_equations(eqn) == (a, b)
 
 
+@pytest.mark.slow
 def test_folding_the_adapters_into_the_weights_keeps_the_velocity():
     config = _config()
     flat = _flat(flow_model.init_params(config, jax.random.key(0)))
@@ -124,6 +125,7 @@ def _changed(before, after):
     return {k for k in a if not np.array_equal(a[k], b[k])}
 
 
+@pytest.mark.slow
 def test_a_lora_step_trains_the_adapters_and_everything_outside_the_experts_only():
     bench, before, after, metrics = _one_step(BOTH)
     params = _flat(before.params)
@@ -134,6 +136,7 @@ def test_a_lora_step_trains_the_adapters_and_everything_outside_the_experts_only
     assert np.isfinite(float(metrics["loss"]))
 
 
+@pytest.mark.slow
 def test_the_optimizer_keeps_moments_for_the_trained_weights_only():
     _, before, _, _ = _one_step(BOTH)
     trained = sum(v.size for k, v in _flat(before.params).items()

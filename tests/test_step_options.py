@@ -34,10 +34,8 @@ def _step(dtype: str, changes: tuple[str, ...] = ()):
     return float(metrics["loss"]), float(metrics["grad_norm"]), gradients
 
 
-@pytest.mark.parametrize("changes", [
-    changes if changes[0].startswith("model.attention") else pytest.param(
-        changes, marks=pytest.mark.slow) for changes in OPTIONS],
-    ids=lambda c: c[0].split("=")[1])
+@pytest.mark.slow
+@pytest.mark.parametrize("changes", OPTIONS, ids=lambda c: c[0].split("=")[1])
 def test_an_option_gives_the_default_steps_loss_and_gradients(changes):
     loss, grad_norm, gradients = _step("float32", changes)
     base_loss, base_grad_norm, base_gradients = _step("float32")
@@ -66,6 +64,7 @@ def test_the_step_benchmark_refuses_a_change_that_names_no_key():
         bench_step.load_config("arm_focused", preset="tiny", changes=("model.atention=fused",))
 
 
+@pytest.mark.slow
 def test_a_step_over_microbatches_is_the_mean_of_its_strided_parts():
     config = bench_step.load_config(
         "uniform", preset="tiny", batch=4,
