@@ -343,8 +343,8 @@ def from_model_config(model_cfg: Mapping[str, Any]) -> Pi0Config:
 
     Reads `preset`; `dtype`, `action_horizon` and `action_dim` override the preset when set
     (non-empty / > 0); `augment` (its fields), `use_state`, `state_dropout`, `state_noise`,
-    `remat_policy` and `attention` when present; `sizes` changes the towers (`_resized`); `lora` names the experts that get
-    openpi's adapters (`LORA_RANKS`).
+    `remat_policy` and `attention` when present; `sizes` changes the towers (`_resized`); `lora`
+    names the experts that get openpi's adapters (`LORA_RANKS`).
     """
     changes = {}
     if model_cfg.get("augment"):

@@ -19,10 +19,9 @@ that the product is added unscaled. `training/freeze.py` decides which weights t
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any
-
-import re
 
 import flax.linen as nn
 import jax
@@ -92,6 +91,12 @@ class Embedder(nn.Module):
         return self.input_embedding[(tokens,)] * jnp.sqrt(self.width).astype(jnp.float32)
 
 
+def is_adapter(name: str) -> bool:
+    """Whether the parameter named `name` (the last key of its path) is a LoRA factor: `lora_a`,
+    `lora_b` of an Einsum, `<name>_lora_a` / `_lora_b` of the MLP."""
+    return "lora" in name
+
+
 def lora_equations(eqn: str) -> tuple[str, str]:
     """An einsum `"x,w->y"` of a weight whose last two axes are (in, out) -> the equations of its
     adapters: `x, lora_a -> z` (the out axis replaced by the rank) and `z, lora_b -> y` (the in axis
@@ -125,7 +130,7 @@ def lora_delta(eqn: str, a: jax.Array, b: jax.Array) -> jax.Array:
 def merge_lora(params: Mapping[str, Any]) -> dict[str, Any]:
     """`{"a/b/name": array}` with LoRA adapters -> the same function without them: every adapted
     weight plus its `lora_delta` (float32), the adapters dropped."""
-    merged = {k: v for k, v in params.items() if "lora" not in k.rsplit("/", 1)[-1]}
+    merged = {k: v for k, v in params.items() if not is_adapter(k.rpartition("/")[2])}
     for key in params:
         folder, _, leaf = key.rpartition("/")
         if not leaf.endswith("lora_a"):

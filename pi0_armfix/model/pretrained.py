@@ -22,6 +22,7 @@ import orbax.checkpoint as ocp
 
 from pi0_armfix.model.config import Pi0Config
 from pi0_armfix.model.flow_model import Params, init_params, param_shapes
+from pi0_armfix.model.gemma import is_adapter
 
 _SEP = "/"
 
@@ -61,9 +62,11 @@ def check_tree(found: Mapping[tuple[str, ...], tuple[int, ...]],
 
 
 def _checkpoint_paths(directory: pathlib.Path, checkpointer: ocp.PyTreeCheckpointer,
-                      config: Pi0Config) -> dict[tuple[str, ...], tuple[str, ...]]:
+                      config: Pi0Config
+                      ) -> tuple[dict[tuple[str, ...], tuple[str, ...]], list[tuple[str, ...]]]:
     """Checkpoint path -> model path of every array of the openpi params checkpoint `directory`,
-    after checking its tree against `config`'s (only the orbax metadata is read)."""
+    after checking its tree against `config`'s (only the orbax metadata is read), and the model
+    paths of the LoRA adapters a base checkpoint lacks."""
     source = repr(str(directory))
     fix = ("point model.pretrained at an openpi params folder (e.g. <openpi checkpoint>/params, "
            "which holds _METADATA)")
@@ -90,14 +93,12 @@ def _checkpoint_paths(directory: pathlib.Path, checkpointer: ocp.PyTreeCheckpoin
     to_model = {p: p[1:-1] if strip_value else p[1:] for p in flat_meta}
     expected = {p: leaf.shape for p, leaf in _flatten(param_shapes(config)).items()}
     found = {to_model[p]: leaf.shape for p, leaf in flat_meta.items()}
-    if not any(_is_adapter(p) for p in found):
-        expected = {p: shape for p, shape in expected.items() if not _is_adapter(p)}
+    missing = []
+    if not any(is_adapter(p[-1]) for p in found):  # a base checkpoint: the adapters start anew
+        missing = [p for p in expected if is_adapter(p[-1])]
+        expected = {p: shape for p, shape in expected.items() if p not in missing}
     check_tree(found, expected, source)
-    return to_model
-
-
-def _is_adapter(path: tuple[str, ...]) -> bool:
-    return "lora" in path[-1]
+    return to_model, missing
 
 
 def check_pretrained(path: str | os.PathLike, config: Pi0Config) -> None:
@@ -122,7 +123,7 @@ def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
     """
     directory = pathlib.Path(path).expanduser().resolve()
     with ocp.PyTreeCheckpointer() as checkpointer:
-        to_model = _checkpoint_paths(directory, checkpointer, config)
+        to_model, missing = _checkpoint_paths(directory, checkpointer, config)
         flat_shardings = _flatten(shardings) if shardings is not None else {}
 
         def restore_args(p):
@@ -134,7 +135,6 @@ def load_pretrained(path: str | os.PathLike, config: Pi0Config, *,
         args = _unflatten({p: restore_args(p) for p in to_model})
         restored = checkpointer.restore(directory, ocp.args.PyTreeRestore(restore_args=args))
     params = {to_model[p]: leaf for p, leaf in _flatten(restored).items()}
-    missing = [p for p in _flatten(param_shapes(config)) if p not in params]
     if missing:  # the adapters of a base checkpoint, from their init
         def adapters(rng):
             flat = _flatten(init_params(config, rng))

@@ -96,8 +96,8 @@ class Sampling:
 
     def describe(self) -> dict[str, Any]:
         """The levers as JSON values (a server's metadata, a result file's settings)."""
-        return {"num_steps": int(self.num_steps), "average_draws": int(self.average_draws),
-                "temperature": float(self.temperature),
+        return {"num_steps": self.num_steps, "average_draws": self.average_draws,
+                "temperature": self.temperature,
                 "gripper_hysteresis": list(self.gripper_hysteresis) or None}
 
     def noise(self, rng: jax.Array, shape: Sequence[int],
@@ -112,9 +112,9 @@ class Sampling:
         [B, H, A]` (the mean of `average_draws` draws), or with `num_draws` M every draw
         `[M, B, H, A]` from the noise it is given (`noise`, already scaled)."""
         return functools.partial(
-            flow_model.sample_actions, config=model_config, num_steps=int(self.num_steps),
-            noise_factor=noise_factor, average_draws=int(self.average_draws),
-            temperature=float(self.temperature), num_draws=num_draws)
+            flow_model.sample_actions, config=model_config, num_steps=self.num_steps,
+            noise_factor=noise_factor, average_draws=self.average_draws,
+            temperature=self.temperature, num_draws=num_draws)
 
     def latch(self, layout: ActionLayout) -> hysteresis.GripperLatch | None:
         """The grippers' hysteresis on `layout`'s gripper dims, or None without one.

@@ -233,7 +233,7 @@ def read_checkpoint(checkpoint: str, *, step: int | None = None, ema: bool = Fal
         if all(name.endswith("/value") for name in arrays):
             arrays = {name.removesuffix("/value"): value for name, value in arrays.items()}
         stats = _openpi_norm_stats(folder)
-    if any("lora" in name.rpartition("/")[2] for name in arrays):
+    if any(gemma.is_adapter(name.rpartition("/")[2]) for name in arrays):
         arrays = {name: np.asarray(value) for name, value in gemma.merge_lora(arrays).items()}
         config = config.without_lora()
         say("folded the LoRA adapters into their weights")

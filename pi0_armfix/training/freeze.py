@@ -17,6 +17,7 @@ from typing import Any
 import jax.numpy as jnp
 from flax import traverse_util
 
+from pi0_armfix.model import gemma
 from pi0_armfix.model.config import Pi0Config
 
 FROZEN_DTYPE = jnp.bfloat16
@@ -25,7 +26,7 @@ _LANGUAGE_MODEL = ("PaliGemma", "llm")
 
 def is_frozen(path: tuple[str, ...], config: Pi0Config) -> bool:
     """Whether the parameter at `path` (a tuple of keys) stays fixed in training under `config`."""
-    if path[:2] != _LANGUAGE_MODEL or "lora" in path[-1]:  # lora_a, linear_lora_b, ...
+    if path[:2] != _LANGUAGE_MODEL or gemma.is_adapter(path[-1]):
         return False
     expert = "action_expert" if any(key.endswith("_1") for key in path) else "paligemma"
     return expert in config.lora_experts
