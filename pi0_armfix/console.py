@@ -167,16 +167,32 @@ def _check_config_file(program: str, path: str) -> None:
                          f"name of an installed config: {', '.join(config_names())}")
 
 
-_LEVER_FLAGS = ("average_draws", "temperature", "gripper_hysteresis")
+_LEVER_FLAGS = ("average_draws", "temperature", "group_draws", "n_exec", "rtc",
+                "temporal_ensemble", "stop_deadband", "gripper_hysteresis")
 
 
 def define_lever_flags() -> None:
-    """`--average_draws`, `--temperature` and `--gripper_hysteresis`: the policy's levers for this
-    command (`policies.sampling.Sampling`), unset = the run's (`inference.restore_run`)."""
+    """The policy's levers for this command (`policies.sampling.Sampling`, whose docstring says
+    what each does), unset = the run's `eval.<lever>` (`inference.restore_run`)."""
     flags.DEFINE_integer("average_draws", None, "each executed chunk the mean of this many draws "
                          "(unset: the run's eval.average_draws)")
     flags.DEFINE_float("temperature", None, "the initial noise scaled by this, in (0, 1] (unset: "
                        "the run's eval.temperature)")
+    flags.DEFINE_string("group_draws", None, "group=k+group=k: those groups the mean of k draws, "
+                        "the rest of --average_draws (e.g. base=4+torso=8; unset: the run's "
+                        "eval.group_draws)")
+    flags.DEFINE_integer("n_exec", None, "actions executed of each chunk before replanning (0: "
+                         "half the horizon; served to an openpi client: what it executes, for the "
+                         "gripper hysteresis, 0: all; unset: the run's eval.n_exec)")
+    flags.DEFINE_bool("rtc", None, "each new chunk softly follows the unexecuted tail of the last "
+                      "(real-time chunking's soft inpainting; closed loop, b1k harness; unset: the "
+                      "run's eval.rtc)")
+    flags.DEFINE_float("temporal_ensemble", None, "ACT's temporal ensembling of overlapping "
+                       "chunks, weight exp(-m i) for the i-th oldest (m > 0; 0: off; closed loop, "
+                       "b1k harness; unset: the run's eval.temporal_ensemble)")
+    flags.DEFINE_float("stop_deadband", None, "a base step whose every velocity command is below "
+                       "this many action stds is commanded 0 (0: off; unset: the run's "
+                       "eval.stop_deadband)")
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
                       "hysteresis (pi0_armfix.policies.hysteresis), in action units, for the "
                       "executed chunks (closed loop, server); unset: the run's "

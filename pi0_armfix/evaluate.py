@@ -34,8 +34,7 @@ def main(argv: Sequence[str]) -> None:
                                  "(tolerance factors, e.g. 1,2,4)") from None
             step, summary = closed_loop_lib.closed_loop(
                 FLAGS.workdir, FLAGS.step, FLAGS.params, episodes=FLAGS.episodes,
-                n_exec=FLAGS.n_exec, follow_tail=FLAGS.rtc, sim_seed=FLAGS.sim_seed,
-                tolerances=tolerances, levers=console.lever_flags())
+                sim_seed=FLAGS.sim_seed, tolerances=tolerances, levers=console.lever_flags())
         except ValueError as e:
             raise SystemExit(f"pi0_armfix.evaluate: {e}") from None
         print(f"step {step}, closed loop in the demo world (success rate):")
@@ -61,10 +60,6 @@ def cli() -> None:
     flags.DEFINE_bool("closed_loop", False, "run the policy in the demo world (pi0_armfix.sim) "
                       "instead of sampling held-out chunks")
     flags.DEFINE_integer("episodes", 50, "closed loop: episodes of the demo world")
-    flags.DEFINE_integer("n_exec", 0, "closed loop: actions executed per sampled chunk before "
-                         "replanning (0: half the action horizon)")
-    flags.DEFINE_bool("rtc", False, "closed loop: each new chunk softly follows the unexecuted "
-                      "tail of the previous one (real-time chunking's soft inpainting)")
     flags.DEFINE_integer("sim_seed", env_lib.EVAL_SEED, "closed loop: world seed of the "
                          "episodes (the demo dataset is seed 0)")
     console.define_lever_flags()

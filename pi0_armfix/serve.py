@@ -10,10 +10,11 @@ actions absolute and in the dataset's units (`pi0_armfix.policies.inference.RunP
 are msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
 read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
 message naming the problem (openpi's client raises it as a RuntimeError); the connection and the
-server stay up. `GET /healthz` answers 200 (openpi's health check). With `--gripper_hysteresis`
-(or the run's `eval.gripper_hysteresis`), each connection's gripper commands pass the hysteresis
-of `pi0_armfix.policies.hysteresis`, held across its requests as if the client executed
-`--n_exec` actions of every chunk.
+server stay up. `GET /healthz` answers 200 (openpi's health check). The run's levers (its `eval`
+section, the flags in their place: `policies.sampling.Sampling`) shape every chunk; of the
+execution levers an openpi connection gets the per-chunk ones (the base's stop deadband, the
+grippers' hysteresis held across its requests as if the client executed `--n_exec` actions of
+every chunk), a B1K harness connection all (`policies.execution`).
 """
 
 
@@ -49,27 +50,17 @@ def main(argv: Sequence[str]) -> None:
         policy = inference.RunPolicy.from_workdir(
             FLAGS.workdir, FLAGS.step, FLAGS.params, levers=console.lever_flags(),
             keys=inference.ObservationKeys.parse(FLAGS.keys))
-        latch = policy.sampling.latch(policy.layout)
-        if FLAGS.n_exec < 0:
-            raise ValueError(f"--n_exec = {FLAGS.n_exec} must be >= 0 (0: the whole chunk)")
-        if FLAGS.rtc and FLAGS.protocol != "b1k":
-            raise ValueError("--rtc needs --protocol=b1k (an openpi client executes the chunks "
-                             "itself)")
-        if FLAGS.rtc and FLAGS.n_exec >= policy.horizon:
-            raise ValueError(f"--rtc follows the unexecuted tail of a chunk: --n_exec = "
-                             f"{FLAGS.n_exec} must be below the horizon {policy.horizon}")
+        server = PolicyServer(policy, FLAGS.host, FLAGS.port, sock=sock,
+                              max_message_bytes=FLAGS.max_message_mb << 20,
+                              protocol=FLAGS.protocol, seed=FLAGS.seed, prompt=FLAGS.prompt)
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.serve: {e}") from None
-    server = PolicyServer(policy, FLAGS.host, FLAGS.port, latch, FLAGS.n_exec or None,
-                          sock=sock, max_message_bytes=FLAGS.max_message_mb << 20,
-                          protocol=FLAGS.protocol, seed=FLAGS.seed, prompt=FLAGS.prompt,
-                          rtc=FLAGS.rtc)
+    levers = policy.run.result_tag(closed_loop=True)
     meta = policy.metadata()
     print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
           f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "
           f"{meta['observation_keys']}"
-          + ("" if latch is None else f"; gripper hysteresis ({latch.open_above:g}, "
-             f"{latch.close_below:g})"), flush=True)
+          + (f"; levers {levers}" if levers else ""), flush=True)
     asyncio.run(server.serve())
 
 
@@ -90,15 +81,10 @@ def cli() -> None:
                       "per request from a server-side queue, resets, its keys; "
                       "pi0_armfix/serving/harness.py)")
     flags.DEFINE_integer("seed", 0, "b1k: noise seed of the first episode (episode e: seed + e)")
-    flags.DEFINE_bool("rtc", False, "b1k: each new chunk softly follows the unexecuted tail of "
-                      "the last (real-time chunking, as evaluate --closed_loop --rtc)")
     flags.DEFINE_string("prompt", "", "b1k: the prompt of every task ('' = the run's prompt of "
                         "the request's task_id)")
     flags.DEFINE_integer("max_message_mb", MAX_MESSAGE_MB, "largest request accepted, MiB (a "
                          "larger one closes that client's connection; the server keeps serving)")
-    flags.DEFINE_integer("n_exec", 0, "actions executed of each chunk: openpi, what a client "
-                         "executes (for the gripper hysteresis' held commands; 0: the whole "
-                         "chunk); b1k, the server-side queue's replanning (0: half the horizon)")
     app.run(main, flags_parser=console.flags_parser("pi0_armfix.serve"))
 
 

@@ -14,7 +14,8 @@ from pi0_armfix.configs import arm_focused, arm_focused_previous_action, arm_wei
 from pi0_armfix.data.formats.sources import open_source
 from pi0_armfix.data.formats.video import keyframe_interval
 from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import execution, inference
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.tools import analyze_action_magnitudes
 
 LAYOUT = ActionLayout.preset("g1_inspire")
@@ -158,7 +159,7 @@ class _Recording:
     """A previous-action policy that records what it was given."""
 
     delta_reference = "previous_action"
-    layout = LAYOUT
+    layout, horizon = LAYOUT, 4
 
     def __init__(self):
         self.given = []
@@ -171,7 +172,7 @@ class _Recording:
 
 def test_the_replanner_gives_the_policy_the_last_action_it_executed():
     policy = _Recording()
-    replanning = inference.Replanner(policy, n_exec=3, follow_tail=False)
+    replanning = execution.Replanner(policy, Sampling(n_exec=3))
     replanning.start()
     first = replanning([0, 1], [{}, {}])
     assert np.isnan(policy.given[0]).all()  # an episode's start: none yet

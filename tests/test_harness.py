@@ -23,7 +23,9 @@ import train_fixtures as tf
 from pi0_armfix import train
 from pi0_armfix.serving import server as server_lib
 from pi0_armfix.serving import harness
-from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.policies import inference
+from pi0_armfix.policies.sampling import Sampling
 
 CAMERAS = list(harness.CAMERAS)
 
@@ -188,6 +190,7 @@ class Recorder:
     data, so two draws from the same stream position are equal."""
 
     horizon = 4
+    layout = ActionLayout.preset("b1k_r1pro")
     stored_state_width = 256  # a B1K 2025 run
     keys = inference.B1K_KEYS
     task_prompts = {0: "trained task", 1: "listed, never trained"}
@@ -208,14 +211,14 @@ def _step(session, task_id=0):
 
 
 def test_a_batched_request_with_unequal_leading_sizes_is_one_line_naming_them():
-    session = harness.HarnessSession(Recorder(), n_exec=2)
+    session = harness.HarnessSession(Recorder(), sampling=Sampling(n_exec=2))
     message = _observation(np.zeros((3, 256)), task_id=0, side=8, envs=2)
     with pytest.raises(ValueError, match=r"leading sizes \{'robot_r1::proprio': 3, .*: 2"):
         session.answer(message)
 
 
 def test_the_other_releases_proprio_is_named_with_the_runs_release():
-    session = harness.HarnessSession(Recorder(), n_exec=2)
+    session = harness.HarnessSession(Recorder(), sampling=Sampling(n_exec=2))
     with pytest.raises(ValueError, match=r"'robot_r1::proprio' has 61 dims; this is a B1K 2025 "
                                          r"\(256-D proprio\) run"):
         session.answer(_observation(np.zeros(61), task_id=0, side=8))
@@ -223,7 +226,7 @@ def test_the_other_releases_proprio_is_named_with_the_runs_release():
 
 def test_rtc_follows_the_unexecuted_tail_from_the_second_chunk_of_an_episode():
     policy = Recorder()
-    session = harness.HarnessSession(policy, n_exec=2, rtc=True)
+    session = harness.HarnessSession(policy, sampling=Sampling(n_exec=2, rtc=True))
     for _ in range(4):
         _step(session)
     assert policy.calls[0]["follow"] is None
@@ -234,11 +237,11 @@ def test_rtc_follows_the_unexecuted_tail_from_the_second_chunk_of_an_episode():
 
 
 def test_each_connection_draws_its_own_noise_stream():
-    alone = harness.HarnessSession(Recorder(), n_exec=1, seed=3)
+    alone = harness.HarnessSession(Recorder(), seed=3, sampling=Sampling(n_exec=1))
     expected = [_step(alone) for _ in range(3)]
     shared = Recorder()
-    first = harness.HarnessSession(shared, n_exec=1, seed=3)
-    second = harness.HarnessSession(shared, n_exec=1, seed=3)
+    first = harness.HarnessSession(shared, seed=3, sampling=Sampling(n_exec=1))
+    second = harness.HarnessSession(shared, seed=3, sampling=Sampling(n_exec=1))
     got = []
     for _ in range(3):
         got.append(_step(first))
@@ -248,7 +251,7 @@ def test_each_connection_draws_its_own_noise_stream():
 
 def test_a_task_the_run_never_trained_on_is_served_with_one_warning(capsys):
     policy = Recorder()
-    session = harness.HarnessSession(policy, n_exec=1)
+    session = harness.HarnessSession(policy, sampling=Sampling(n_exec=1))
     for _ in range(3):
         _step(session, task_id=1)
     warnings = [line for line in capsys.readouterr().err.splitlines() if "task_id 1" in line]
@@ -264,8 +267,8 @@ def test_the_harness_grippers_commit_through_the_latch():
             chunk[0, :, 14] = [1.0, 0.3, -0.3, -1.0]  # left gripper: open, in-band, closed
             return chunk
 
-    session = harness.HarnessSession(Flicker(), n_exec=4,
-                                     latch=hysteresis.GripperLatch([14], 0.9, -0.98))
+    session = harness.HarnessSession(Flicker(), sampling=Sampling(
+        n_exec=4, gripper_hysteresis=(0.9, -0.98)))
     assert [float(_step(session)[14]) for _ in range(4)] == [1.0, 1.0, 1.0, -1.0]
 
 

@@ -7,7 +7,7 @@ import pytest
 from pi0_armfix.configs import base
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.serving import server as server_lib
-from pi0_armfix.policies import hysteresis, inference
+from pi0_armfix.policies import execution, hysteresis
 from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.action_space import ActionLayout
 
@@ -77,8 +77,11 @@ def test_an_invalid_hysteresis_key_fails_the_config_check_before_training():
 class _Undecided:
     """A policy whose first chunk closes the right gripper decisively, then dithers around 0."""
 
-    def __init__(self):
+    horizon, layout = 4, B1K
+
+    def __init__(self, **levers):
         self.calls = 0
+        self.sampling = Sampling(**levers)
 
     def infer(self, observations, follow=None):
         chunk = np.zeros((len(observations), 4, 23), np.float32)
@@ -91,16 +94,14 @@ class _Undecided:
 
 
 def test_the_closed_loop_policy_keeps_a_closed_gripper_closed_through_dithering():
-    latch = hysteresis.GripperLatch([14, 22], OPEN, CLOSE)
-    replanning = inference.Replanner(_Undecided(), n_exec=2, follow_tail=False,
-                                           latch=latch)
+    replanning = execution.Replanner(_Undecided(n_exec=2, gripper_hysteresis=(OPEN, CLOSE)))
     replanning.start([None])
     replanning([0], [{}])
     np.testing.assert_array_equal(replanning([0], [{}])[0, :, 22], [-1.0] * 4)
 
 
 def test_the_server_keeps_each_clients_gripper_held_across_its_requests():
-    server = server_lib.PolicyServer(_Undecided(), latch=hysteresis.GripperLatch([22], OPEN, CLOSE))
+    server = server_lib.PolicyServer(_Undecided(gripper_hysteresis=(OPEN, CLOSE)))
     request = server_lib.pack({"state": np.zeros(23)})
     server.answer(request, client="a")
     actions = server_lib.unpack(server.answer(request, client="a"))["actions"]

@@ -300,10 +300,17 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
 
 
 def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_path):
-    paths = {closed_loop_lib.closed_loop_paths(tmp_path, 5, episodes=e, n_exec=n, follow_tail=rtc)[0].name
-             for e, n, rtc in ((50, 0, False), (10, 0, False), (50, 4, False), (50, 0, True))}
-    assert paths == {"closed_loop_50ep.json", "closed_loop_10ep.json",
-                     "closed_loop_50ep_exec4.json", "closed_loop_50ep_rtc.json"}
+    settings = ({}, {"n_exec": 4}, {"rtc": True}, {"temporal_ensemble": 0.1},
+                {"stop_deadband": 0.2}, {"group_draws": "base=4"}, {"average_draws": 4})
+    names = [closed_loop_lib.closed_loop_paths(
+        tmp_path, 5, episodes=50, levers=Sampling(**levers).tag(closed_loop=True))[0].name
+        for levers in settings]
+    assert names == ["closed_loop_50ep.json", "closed_loop_50ep_exec4.json",
+                     "closed_loop_50ep_rtc.json", "closed_loop_50ep_ens0.1.json",
+                     "closed_loop_50ep_stop0.2.json", "closed_loop_50ep_draws-base4.json",
+                     "closed_loop_50ep_avg4.json"]
+    assert closed_loop_lib.closed_loop_paths(tmp_path, 5, episodes=10)[0].name == \
+        "closed_loop_10ep.json"
 
 
 def test_closed_loop_outputs_name_the_inference_levers():
@@ -331,16 +338,17 @@ def test_a_policy_with_levers_averages_its_draws_and_says_so(run):
 
 
 def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
-    restored = inference.restore_run(run, levers={"average_draws": 2, "temperature": 0.5})
+    restored = inference.restore_run(run, levers={"average_draws": 2, "temperature": 0.5,
+                                                  "group_draws": "base=3"})
     policy = inference.RunPolicy(restored)
     evaluator, mesh = evaluator_lib.run_evaluator(restored)
     assert evaluator.sampling == policy.sampling
     with jax.set_mesh(mesh):
-        evaluated = evaluator.sample(restored.params)  # [draws, N, H, A], each the mean of 2
+        evaluated = evaluator.sample(restored.params)  # [draws, N, H, A]: the base of 3, else 2
     batch, rows = evaluator.chunks.batches[0], evaluator.chunks.batch_rows[0]
     observation = {k: v for k, v in batch.items() if k not in ("actions", "action_is_pad")}
-    noise = np.zeros((2, len(batch["actions"]), *evaluator.noise.shape[2:]), np.float32)
-    noise[:, :rows] = evaluator.noise[:2, :rows]  # the first draw's two noises
+    noise = np.zeros((3, len(batch["actions"]), *evaluator.noise.shape[2:]), np.float32)
+    noise[:, :rows] = evaluator.noise[:3, :rows]  # the first draw's three noises
     served = policy.sample(restored.params, None, observation, noise=noise.reshape(
         -1, *noise.shape[2:]))
     np.testing.assert_allclose(np.asarray(served)[:rows], evaluated[0, :rows], atol=1e-5)
@@ -349,7 +357,7 @@ def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
     np.testing.assert_allclose(
         policy.sample(restored.params, key, observation),
         policy.sample(restored.params, None, observation, noise=policy.sampling.noise(
-            key, (2 * len(batch["actions"]), *evaluator.noise.shape[2:]))), atol=1e-6)
+            key, (3 * len(batch["actions"]), *evaluator.noise.shape[2:]))), atol=1e-6)
 
 
 @pytest.mark.parametrize("levers, message", [
@@ -396,11 +404,12 @@ def test_closed_loop_with_real_time_chunking_follows_the_tail(run, monkeypatch):
         return infer(self, observations, follow=follow)
 
     monkeypatch.setattr(inference.RunPolicy, "infer", recording_infer)
-    _, summary = closed_loop_lib.closed_loop(run, episodes=1, follow_tail=True, progress=False)
-    assert summary["follow_tail"] is True and summary["n_exec"] == 2
+    _, summary = closed_loop_lib.closed_loop(run, episodes=1, levers={"rtc": True},
+                                             progress=False)
+    assert summary["rtc"] is True and summary["n_exec"] == 2
     assert asked[0] is None and all(f.shape == (1, 2, 23) for f in asked[1:])
     saved = json.loads((run / "eval" / "step_2" / "closed_loop_1ep_rtc.json").read_text())
-    assert saved["follow_tail"] is True
+    assert saved["rtc"] is True
     assert (run / "eval" / "step_2" / "rollouts_1ep_rtc.png").exists()
 
 

@@ -85,6 +85,25 @@ def test_a_manipulation_phase_that_runs_out_of_time_fails_and_the_world_moves_on
     assert world.phase == phase + 1 and world.phase_step[0] == "nav"
 
 
+def test_a_base_that_creeps_at_the_target_fails_not_stopped_naming_its_slowest_command():
+    world = world_lib.World(dataclasses.replace(SPEC, navigation_seconds=30.0), GRASP_TASK)
+    expert = ScriptedTeleoperator(world)
+    while not world.results:
+        action = expert.act()
+        if np.hypot(*world.relative_target()) < SPEC.arrive_radius:  # arrived: creep sideways
+            action[world_lib.BASE] = [0.0, 0.0, 2 * SPEC.stop_speed]
+        world.step(action)
+    result = world.results[0]
+    assert (result.kind, result.success, result.reason) == ("navigation", False, "not_stopped")
+    assert result.slowest_dim == "yaw" and result.slowest_base >= SPEC.stop_speed
+
+
+def test_an_expert_navigation_records_a_slowest_base_command_below_the_stop_speed():
+    world = world_lib.World(SPEC, GRASP_TASK)
+    _to_manipulation(world)
+    assert world.results[0].success and world.results[0].slowest_base < SPEC.stop_speed
+
+
 def test_an_episode_is_deterministic_from_its_seed_and_the_same_for_every_policy():
     first, second = env_lib.DemoWorldEnv(SPEC), env_lib.DemoWorldEnv(SPEC)
     a, _ = first.reset(seed=7)

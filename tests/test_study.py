@@ -254,7 +254,7 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     overrides = {k: v for k, v in tf.tiny_overrides(demo_root).items()
                  if not k.startswith("train.total_steps") and k != "eval.every"}
     command = [sys.executable, "-m", "pi0_armfix.study",
-               "--configs=uniform,uniform@eval.average_draws=2", "--seeds=2",
+               "--configs=uniform,uniform@eval.average_draws=2,uniform@eval.n_exec=1", "--seeds=2",
                "--steps=2", f"--workdir={tmp_path}", "--closed_loop_episodes=1",
                *[f"--override={k}={v}" for k, v in overrides.items()]]
     first = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
@@ -262,7 +262,7 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     assert first.returncode == 0, first.stderr[-3000:]
     assert "| uniform |" in first.stdout
     results = json.loads((tmp_path / "study.json").read_text())["runs"]
-    assert [r["seed"] for r in results] == [0, 1, 0, 1]
+    assert [r["seed"] for r in results] == [0, 1, 0, 1, 0, 1]
     assert results[0]["metrics"] != results[1]["metrics"]  # the seed reaches the run
     assert all(r["metrics"]["closed_loop/episodes"] == 1 for r in results)
     # the lever variant: its trained config's checkpoints sampled as the mean of 2 draws
@@ -273,6 +273,10 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     assert (trained / "eval" / "step_2" / "closed_loop_1ep_avg2.json").exists()
     assert results[2]["trained"] == "uniform" and "episode_replicates" in results[2]
     assert results[2]["metrics"]["skill/base"] != results[0]["metrics"]["skill/base"]
+    # an execution lever samples the trained chunks: their held-out metrics, its own closed loop
+    assert not list((trained / "eval" / "step_2").glob("metrics_exec*"))
+    assert (trained / "eval" / "step_2" / "closed_loop_1ep_exec1.json").exists()
+    assert results[4]["metrics"]["skill/base"] == results[0]["metrics"]["skill/base"]
     assert "## Closed loop in the demo world" in first.stdout
     again = subprocess.run(command, capture_output=True, text=True, env=tf.env(cache_dir),
                            cwd=tf.REPO_ROOT)
@@ -537,10 +541,13 @@ def test_minutes_at_an_evaluation_between_log_records_are_interpolated():
 
 
 def test_a_lever_variant_is_its_config_less_the_inference_levers():
-    config = "arm_focused@eval.average_draws=4@model.augment.jitter_p=0@eval.temperature=0.5"
+    config = ("arm_focused@eval.average_draws=4@model.augment.jitter_p=0@eval.temperature=0.5"
+              "@eval.n_exec=4@eval.group_draws=base=4+torso=8")
     assert study_run.trained_config(config) == "arm_focused@model.augment.jitter_p=0"
-    assert study_run.inference_levers(config) == {"average_draws": "4", "temperature": "0.5"}
-    assert study_run.lever_args(config) == ["--average_draws=4", "--temperature=0.5"]
+    assert study_run.inference_levers(config) == {"average_draws": "4", "temperature": "0.5",
+                                                  "n_exec": "4", "group_draws": "base=4+torso=8"}
+    assert study_run.lever_args(config) == ["--average_draws=4", "--temperature=0.5",
+                                            "--n_exec=4", "--group_draws=base=4+torso=8"]
     assert study_run.trained_config("arm_focused@eval.every=100") == "arm_focused@eval.every=100"
     assert study_run.lever_args("arm_focused") == []
 
@@ -689,7 +696,7 @@ def test_a_lever_out_of_range_is_refused_before_any_run_trains(tmp_path):
                           capture_output=True, text=True, timeout=300, cwd=tf.REPO_ROOT,
                           env=dict(os.environ, PYTHONPATH=str(tf.REPO_ROOT)))
     assert done.returncode != 0
-    assert ("--configs uniform@eval.average_draws=0: average_draws = 0.0 (eval.average_draws or "
+    assert ("--configs uniform@eval.average_draws=0: average_draws = 0 (eval.average_draws or "
             "--average_draws) must be a whole number >= 1" in done.stderr)
     assert not (tmp_path / "study").exists()
 

@@ -1,10 +1,12 @@
 """A checkpoint's policy driving the demo world (`pi0_armfix.sim`): `evaluate --closed_loop`.
 
     python -m pi0_armfix.evaluate --workdir=RUN --closed_loop [--episodes=50] [--n_exec=K] [--rtc]
+        [--temporal_ensemble=M] [--stop_deadband=K] [--group_draws=base=4] \
         [--gripper_hysteresis=0.9,-0.98] [--tolerances=1,2,4] [--sim_seed=S]
 
-The policy samples a chunk, the world executes `n_exec` of it, the policy replans
-(`inference.Replanner`); the rollouts (`sim.rollout`) record every phase's success and, for a failed
+The policy samples a chunk, the world executes `n_exec` of it, the policy replans, with the run's
+execution levers or the command's (`policies.execution.Replanner`); the rollouts (`sim.rollout`)
+record every phase's success and, for a failed
 phase, the furthest stage it reached (its failure reason). What a success means physically:
 docs/evaluation.md. Results are named by their settings (`closed_loop_paths`), never replaced by
 another evaluation's.
@@ -19,7 +21,7 @@ from typing import Any
 import jax
 from etils import epath
 
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import execution, inference
 from pi0_armfix.data import json_files
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.sim import env as env_lib
@@ -30,22 +32,14 @@ CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_lo
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
 
 
-def default_n_exec(horizon: int) -> int:
-    """The actions executed per sampled chunk before replanning when `--n_exec` is 0: half the
-    horizon, so that each chunk's second half only shapes the next plan."""
-    return max(horizon // 2, 1)
-
-
 def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema", *,
-                episodes: int = 50, n_exec: int = 0, follow_tail: bool = False,
-                sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
+                episodes: int = 50, sim_seed: int = env_lib.EVAL_SEED, progress: bool = True,
                 tolerances: Sequence[float] = (), levers: Mapping[str, Any] | None = None
                 ) -> tuple[int, dict[str, Any]]:
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
-    world seed `sim_seed`, executing `n_exec` actions per sampled chunk (0: half the horizon),
-    each chunk following the last one's unexecuted tail when `follow_tail`, sampled and its
-    grippers filtered with the run's levers (`policies.sampling.Sampling`; `levers`: a command's
-    in their place, `inference.restore_run`); writes `closed_loop_<episodes>ep[...].json` and
+    world seed `sim_seed`, sampled and executed with the run's levers (`policies.sampling.
+    Sampling`, `policies.execution.Replanner`; `levers`: a command's in their place,
+    `inference.restore_run`); writes `closed_loop_<episodes>ep[...].json` and
     `rollouts_<episodes>ep[...].png` (against the scripted expert; `closed_loop_paths`: named by
     their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
     `tolerances` (factors other than 1), the same episodes again in the world with its success
@@ -55,32 +49,24 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--episodes = {episodes} must be >= 1")
     if sim_seed < 0:
         raise ValueError(f"--sim_seed = {sim_seed} must be >= 0 (a world seed)")
-    if n_exec < 0:
-        raise ValueError(f"--n_exec = {n_exec} must be >= 0 (0: half the action horizon)")
     if any(f <= 0 for f in tolerances):
         raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
     policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name, levers))
-    run = policy_.run
-    latch = policy_.sampling.latch(run.layout)
-    results_path, figure_path = closed_loop_paths(
-        run.workdir, run.step, episodes=episodes, n_exec=n_exec, follow_tail=follow_tail,
-        hysteresis_on=latch is not None, sim_seed=sim_seed,
-        levers=run.result_tag())
+    run, sampling = policy_.run, policy_.sampling
+    replanning = execution.Replanner(policy_)  # its levers checked before any rollout
+    n_exec = replanning.n_exec
+    results_path, figure_path = closed_loop_paths(run.workdir, run.step, episodes=episodes,
+                                                  sim_seed=sim_seed,
+                                                  levers=run.result_tag(closed_loop=True))
     writable_folder(results_path.parent)  # before the rollouts, not after
     if run.layout.real_dim != 23:
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
                          "takes the 23-D B1K action (layout b1k_r1pro)")
-    n_exec = n_exec or default_n_exec(policy_.horizon)
-    if not 0 < n_exec <= policy_.horizon or (follow_tail and n_exec == policy_.horizon):
-        raise ValueError(f"--n_exec = {n_exec} must be in [1, H = {policy_.horizon}] (below H "
-                         "with --rtc: the tail to follow)")
     spec = DemoSpec(seed=sim_seed)
-    replanning = inference.Replanner(policy_, n_exec, follow_tail, latch)
     records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
                                   progress=progress and jax.process_index() == 0)
-    summary = {"step": run.step, "params": run.params_name, "n_exec": n_exec,
-               "follow_tail": follow_tail,
-               "sim_seed": sim_seed, **policy_.sampling.describe(),
+    summary = {"step": run.step, "params": run.params_name, "sim_seed": sim_seed,
+               **sampling.describe(), "n_exec": n_exec,
                "results": str(results_path), "figure": str(figure_path),
                **rollout_lib.summarize(records),
                "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
@@ -108,23 +94,19 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                  spec=spec, progress=False)
     rollout_lib.plot_rollouts(shown, expert, figure_path,
                               f"step {run.step}: closed loop, n_exec {n_exec}"
-                              + (", following the unexecuted tail" if follow_tail else "")
-                              + ("" if latch is None else ", gripper hysteresis "
-                                 f"({latch.open_above:g}, {latch.close_below:g})"))
+                              + (f", levers {run.result_tag(closed_loop=True)}"
+                                 if run.result_tag(closed_loop=True) else ""))
     return run.step, summary
 
 
-def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int, n_exec: int = 0,
-                      follow_tail: bool = False, hysteresis_on: bool = False,
+def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int,
                       sim_seed: int = env_lib.EVAL_SEED, levers: str = ""
                       ) -> tuple[epath.Path, epath.Path]:
-    """`eval/step_<N>/closed_loop_<E>ep[_exec<K>][_seed<S>][_rtc][_hysteresis][levers].json` and
-    the `rollouts_...png` beside it: named by the settings that change the result (`n_exec` as
-    asked: 0, half the horizon, is left out; the world seed when not the evaluation's; `levers`:
-    `RestoredRun.result_tag` of the run read: its sampler, and the raw params of a run with an
-    EMA)."""
+    """`eval/step_<N>/closed_loop_<E>ep[_seed<S>][levers].json` and the `rollouts_...png` beside
+    it: named by the settings that change the result (the world seed when not the evaluation's;
+    `levers`: `RestoredRun.result_tag(closed_loop=True)` of the run read: its sampling and
+    execution levers, and the raw params of a run with an EMA)."""
     out = epath.Path(workdir) / "eval" / f"step_{step}"
-    tag = (f"_{episodes}ep" + (f"_exec{n_exec}" if n_exec else "")
-           + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")
-           + ("_rtc" if follow_tail else "") + ("_hysteresis" if hysteresis_on else "") + levers)
+    tag = (f"_{episodes}ep" + (f"_seed{sim_seed}" if sim_seed != env_lib.EVAL_SEED else "")
+           + levers)
     return out / f"{CLOSED_LOOP_STEM}{tag}.json", out / f"rollouts{tag}.png"

@@ -37,6 +37,7 @@ from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
+from pi0_armfix.model import flow_model
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.policies import inference
@@ -147,7 +148,8 @@ class Evaluator:
         self.chunks = heldout_chunks(spec, eval_cfg, model_config, norm_stats, tokenize, source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
         self.sampling = sampling or Sampling.from_eval(eval_cfg)
-        self.draws, self.average = eval_cfg["num_draws"], self.sampling.average_draws
+        self.draws, self.average = eval_cfg["num_draws"], self.sampling.most_draws
+        self.draw_counts = self.sampling.draw_counts(layout)
         # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on
         # the evaluation batch size nor on which batch it lands in.
         shape = (self.draws * self.average, len(self.chunks.frames), model_config.action_horizon,
@@ -170,8 +172,8 @@ class Evaluator:
 
     def sample(self, params: Any) -> np.ndarray:
         """The policy's chunks `[M, N, H, D]` (normalized) of all held-out chunks: M =
-        `eval.num_draws` draws, each the mean of `eval.average_draws` (the same noise every
-        call)."""
+        `eval.num_draws` draws, each the mean of `eval.average_draws` (per dim with
+        `group_draws`; the same noise every call)."""
         predicted, start = [], 0
         for batch, rows in zip(tqdm(self.chunks.batches, desc="eval", leave=False,
                                     disable=jax.process_index() != 0), self.chunks.batch_rows):
@@ -184,7 +186,8 @@ class Evaluator:
             predicted.append(np.asarray(draws)[:, :rows])
             start += rows
         draws = np.concatenate(predicted, axis=1)
-        return draws.reshape(self.draws, self.average, *draws.shape[1:]).mean(axis=1)
+        draws = draws.reshape(self.draws, self.average, *draws.shape[1:]).swapaxes(0, 1)
+        return np.asarray(flow_model.mean_of_draws(draws, self.draw_counts))
 
     def absolute_draws(self, params: Any) -> np.ndarray:
         """The policy's absolute chunks `[M, N, H, A]` of all held-out chunks in evaluation units

@@ -19,11 +19,12 @@ Flow-matching convention (docs/design.md §3): t = 1 is noise, t = 0 the data.
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
@@ -120,13 +121,13 @@ def compute_loss(params: Params, rng: jax.Array, batch: Mapping[str, Any], *, co
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "use_kv_cache", "num_draws",
-                                             "average_draws"))
+                                             "average_draws", "draw_counts"))
 def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any], *,
                    config: Pi0Config, num_steps: int = 10, noise: jax.Array | None = None,
                    use_kv_cache: bool = True, noise_factor: jax.Array | None = None,
                    inpaint: jax.Array | None = None, inpaint_weights: jax.Array | None = None,
-                   temperature: float = 1.0, average_draws: int = 1, num_draws: int | None = None
-                   ) -> jax.Array:
+                   temperature: float = 1.0, average_draws: int = 1, num_draws: int | None = None,
+                   draw_counts: Sequence[int] | None = None) -> jax.Array:
     """Integrates the flow from t = 1 (noise) to t = 0 with `num_steps` Euler steps.
 
     The policy's inference levers: `temperature` τ scales the initial noise (τ < 1 samples
@@ -150,12 +151,14 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
       average_draws: k, draws averaged into each returned chunk.
       num_draws: M: return every one of M draws, `[M, B, H, A]` (draw j from rows j * B + b of
         the noise), instead of their mean; None returns the mean of `average_draws`.
+      draw_counts: `[A]` draws averaged into each action dim (`mean_of_draws`), in place of
+        `average_draws` (per-group draws, `policies.sampling.Sampling.group_draws`).
     Returns:
       actions [B, H, A] float32 (normalized, padded like the training targets), or [M, B, H, A].
     """
     observation = preprocess_observation(None, observation, config=config, train=False)
     batch_size = observation["state"].shape[0]
-    draws = num_draws or average_draws
+    draws = num_draws or (max(draw_counts) if draw_counts else average_draws)
     if noise is None:
         noise = temperature * noise_lib.flow_noise(
             rng, (draws * batch_size, config.action_horizon, config.action_dim), noise_factor)
@@ -198,4 +201,15 @@ def sample_actions(params: Params, rng: jax.Array, observation: Mapping[str, Any
 
     actions, _ = jax.lax.fori_loop(0, num_steps, step, (noise.astype(jnp.float32), jnp.float32(1.0)))
     actions = actions.reshape(draws, batch_size, *actions.shape[1:])
-    return actions if num_draws else actions.mean(axis=0)
+    return actions if num_draws else mean_of_draws(actions, draw_counts)
+
+
+def mean_of_draws(draws: jax.Array, counts: Sequence[int] | None = None) -> jax.Array:
+    """Draws `[k, ..., A]` -> `[..., A]`: each dim d the mean of its first `counts[d]` draws
+    (`counts` `[A]`, each in [1, k]), or of all k for None. Every mean includes draw 0, so a dim
+    of one draw is the single draw."""
+    if counts is None:
+        return draws.mean(axis=0)
+    counts = np.asarray(counts)
+    weights = (np.arange(draws.shape[0])[:, None] < counts) / counts  # [k, A]
+    return (draws * weights.reshape(len(weights), *(1,) * (draws.ndim - 2), -1)).sum(axis=0)

@@ -47,7 +47,6 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.policies import hysteresis
 from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import checkpoint
 from pi0_armfix.training import sharding as sharding_lib
@@ -146,12 +145,13 @@ class RestoredRun:
     sampling: Sampling  # the run's levers, a command's in their place
     ema_kept: bool = False  # the checkpoint holds EMA params (read unless "params" was asked)
 
-    def result_tag(self) -> str:
-        """The suffix of this evaluation's result files: `Sampling.tag` of its sampler, and
-        `_params` where the raw params were read although the run kept an EMA, so that neither
-        replaces the default evaluation's files (the EMA's, plain sampler)."""
+    def result_tag(self, closed_loop: bool = False) -> str:
+        """The suffix of this evaluation's result files: `Sampling.tag` of its levers (the
+        execution levers too for a closed loop), and `_params` where the raw params were read
+        although the run kept an EMA, so that neither replaces the default evaluation's files
+        (the EMA's, plain sampler)."""
         raw = self.ema_kept and self.params_name == "params"
-        return self.sampling.tag() + ("_params" if raw else "")
+        return self.sampling.tag(closed_loop) + ("_params" if raw else "")
 
 
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",
@@ -253,7 +253,9 @@ class RunPolicy:
         self.sampling = (run.sampling if num_steps is None
                          else dataclasses.replace(run.sampling, num_steps=num_steps))
         # (params, rng, model observation, **kw) -> normalized chunks: what `infer` samples with.
-        self.sample = self.sampling.sampler(run.model_config, noise_factor)
+        self.sample = self.sampling.sampler(run.model_config, noise_factor, layout=layout)
+        self.action_std = stats_lib.fit_width(run.norm_stats["actions"], layout.real_dim,
+                                              "norm stats 'actions'").std  # [real_dim]
         self._key = jax.random.key(seed)
         self._draws = 0
         # Images of any size become the model's float images here, so the sampler compiles once
@@ -447,46 +449,3 @@ class RunPolicy:
             raise ValueError(f"observation[{key!r}] must be a uint8 image [h, w, 3] with h, w > 0, "
                              f"got {image.dtype} {image.shape}")
         return image
-
-
-class Replanner:
-    """A run's policy as a receding-horizon driver (`sim.rollout.Driver`, the harness's
-    sessions): a chunk per request, of which the rollout executes
-    `n_exec`; with `follow_tail`, each new chunk softly follows the previous chunk's unexecuted
-    tail (`RunPolicy.infer(follow=...)`, real-time chunking's soft inpainting); with `latch`, the
-    grippers' commands pass its hysteresis (`hysteresis.GripperLatch`, one stream per env). A
-    policy relative to the previous action gets each env's last executed one (the `n_exec`-th of
-    its last chunk; none at an episode's start)."""
-
-    def __init__(self, policy: RunPolicy, n_exec: int, follow_tail: bool,
-                 latch: hysteresis.GripperLatch | None = None):
-        self.policy, self.n_exec, self.follow_tail = policy, n_exec, follow_tail
-        self.latch = latch
-
-    def start(self, envs=None):
-        """A new episode: no tails, no executed action, the latch's held commands forgotten."""
-        self._tails: dict[int, np.ndarray] = {}
-        self._executed: dict[int, np.ndarray] = {}
-        if self.latch is not None:
-            self.latch.reset()
-
-    def __call__(self, active, observations, rng: jax.Array | None = None):
-        """Chunks `[len(active), H, A]` for the envs `active` (their tails followed when every
-        one has a tail: a chunk at an episode's start has none); `rng`: the draw's key (a caller
-        with its own noise stream), else the policy's next."""
-        follow = None
-        if self.follow_tail and all(i in self._tails for i in active):
-            follow = np.stack([self._tails[i] for i in active])
-        kwargs = {} if rng is None else {"rng": rng}
-        if getattr(self.policy, "delta_reference", "state") == "previous_action":
-            width = self.policy.layout.real_dim
-            kwargs["previous"] = np.stack([self._executed.get(i, np.full(width, np.nan))
-                                           for i in active])
-        chunks = self.policy.infer(observations, follow=follow, **kwargs)
-        if self.latch is not None:
-            chunks = np.stack([self.latch(i, chunk, self.n_exec)
-                               for i, chunk in zip(active, chunks)])
-        for i, chunk in zip(active, chunks):
-            self._tails[i] = chunk[self.n_exec:]
-            self._executed[i] = chunk[min(self.n_exec, len(chunk)) - 1]
-        return chunks

@@ -1,20 +1,24 @@
-"""How a policy turns its flow into the chunks a robot executes: the sampling and execution
+"""How a policy turns its flow into the actions a robot executes: the sampling and execution
 levers in one typed place, read the same way by the held-out evaluator, the closed loop, the
 server and the export.
 
     sampling = Sampling.from_eval(run.config.eval, average_draws=4)  # a command's --average_draws
     sample = sampling.sampler(model_config, noise_factor)            # flow_model.sample_actions
     latch = sampling.latch(layout)                                   # the grippers' hysteresis
+    replanning = execution.Replanner(policy)                         # n_exec, rtc, ensembling, stop
 
-A run keeps its levers in its config's `eval` section (`pi0_armfix/configs/base.py`); a command
-may replace them for its own use (`--average_draws`, `--temperature`, `--gripper_hysteresis`);
-keys a run predates take their defaults here.
+Sampled levers (`SAMPLED_LEVERS`) change the chunks the flow gives, so an open-loop evaluation
+measures them; execution levers (`EXECUTION_LEVERS`) change what is executed of them over time
+(`policies.execution`), so only a closed loop (or a robot) does. A run keeps its levers in its
+config's `eval` section (`pi0_armfix/configs/base.py`); a command may replace them for its own use
+(`console.define_lever_flags`); keys a run predates take their defaults here.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -27,9 +31,10 @@ from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model.config import Pi0Config
 from pi0_armfix.policies import hysteresis
 
-# The levers a study's lever variant may set on a trained config (`arm_focused@eval.average_draws=4`):
-# they change the sampled chunks, so an open-loop evaluation measures them.
-SAMPLED_LEVERS = ("average_draws", "temperature")
+# The levers a study's lever variant may set on a trained config (`arm_focused@eval.average_draws=4`).
+SAMPLED_LEVERS = ("average_draws", "temperature", "group_draws")
+EXECUTION_LEVERS = ("n_exec", "rtc", "temporal_ensemble", "stop_deadband", "gripper_hysteresis")
+LEVERS = SAMPLED_LEVERS + EXECUTION_LEVERS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,6 +44,20 @@ class Sampling:
       average_draws: each executed chunk the mean of this many draws (the spread of one draw
         averaged away; the grippers' hysteresis sees the mean).
       temperature: the initial noise's scale, in (0, 1] (1 = the flow as trained).
+      group_draws: `"group=k+group=k"`: those groups' dims the mean of k draws, the others
+        of `average_draws` (the base and torso may want the spread averaged away where the arms
+        do not); every mean includes the first draw. '' = every dim of `average_draws`.
+      n_exec: actions executed of each chunk before the policy is asked again (0: half the
+        horizon; `executed`).
+      rtc: each new chunk softly follows the unexecuted tail of the last (real-time chunking's
+        soft inpainting, from the flow's own noise law).
+      temporal_ensemble: ACT's temporal ensembling: each executed action the weighted mean of
+        every chunk still covering its step, weight exp(-m i) for the i-th oldest (m = this
+        value, > 0; the oldest weighs most); 0 = off.
+      stop_deadband: k > 0: a velocity group (`layout.velocity_groups`, the base) whose every
+        command of a step is below k times its dim's action std (the run's norm stats) is
+        commanded 0 there: the stop the demonstrations make, which the sampler's spread blurs;
+        0 = off.
       gripper_hysteresis: (open_above, close_below) in action units that the gripper commands
         pass (`hysteresis`), or () for the commands as sampled.
     """
@@ -46,30 +65,65 @@ class Sampling:
     num_steps: int = 10
     average_draws: int = 1
     temperature: float = 1.0
+    group_draws: str = ""
+    n_exec: int = 0
+    rtc: bool = False
+    temporal_ensemble: float = 0.0
+    stop_deadband: float = 0.0
     gripper_hysteresis: tuple[float, ...] = ()
 
     def __post_init__(self):
+        given = self.gripper_hysteresis
         try:
-            thresholds = tuple(float(x) for x in self.gripper_hysteresis)
+            thresholds = tuple(float(x) for x in (given.split(",") if isinstance(given, str)
+                                                  else given) if str(x).strip())
         except (TypeError, ValueError):
-            raise ValueError(f"gripper_hysteresis = {self.gripper_hysteresis!r} (eval."
-                             "gripper_hysteresis or --gripper_hysteresis) must be two numbers, "
+            raise ValueError(f"gripper_hysteresis = {self.gripper_hysteresis!r} "
+                             f"({_where('gripper_hysteresis')}) must be two numbers, "
                              "open_above,close_below") from None
         object.__setattr__(self, "gripper_hysteresis", thresholds)
-        for field, where in (("num_steps", "eval.num_steps"),
-                             ("average_draws", "eval.average_draws or --average_draws")):
+        for field, least in (("num_steps", 1), ("average_draws", 1), ("n_exec", 0)):
             value = getattr(self, field)
-            if float(value) != int(value) or int(value) < 1:
-                raise ValueError(f"{field} = {value} ({where}) must be a whole number >= 1")
-            object.__setattr__(self, field, int(value))
-        object.__setattr__(self, "temperature", float(self.temperature))
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                number = math.nan
+            if not number == int(number if math.isfinite(number) else 0) or number < least:
+                raise ValueError(f"{field} = {value} ({_where(field)}) must be a whole number "
+                                 f">= {least}")
+            object.__setattr__(self, field, int(number))
+        rtc = self.rtc
+        if isinstance(rtc, str):
+            rtc = {"true": True, "1": True, "false": False, "0": False}.get(rtc.lower(), rtc)
+        if not isinstance(rtc, (bool, np.bool_)) and rtc not in (0, 1):
+            raise ValueError(f"rtc = {self.rtc!r} ({_where('rtc')}) must be true or false")
+        object.__setattr__(self, "rtc", bool(rtc))
+        for field in ("temporal_ensemble", "stop_deadband"):
+            try:
+                value = float(getattr(self, field))
+            except (TypeError, ValueError):
+                value = math.nan
+            if not value >= 0:
+                raise ValueError(f"{field} = {getattr(self, field)} ({_where(field)}) must be "
+                                 ">= 0 (0: off)")
+            object.__setattr__(self, field, value)
+        object.__setattr__(self, "group_draws", str(self.group_draws or ""))
+        self.group_counts()  # its syntax, before any use
+        try:
+            object.__setattr__(self, "temperature", float(self.temperature))
+        except (TypeError, ValueError):
+            object.__setattr__(self, "temperature", math.nan)
         if not 0.0 < self.temperature <= 1.0:
-            raise ValueError(f"temperature = {self.temperature} (eval.temperature or "
-                             "--temperature) must be in (0, 1] (the initial noise's scale; 1 = "
-                             "the flow as trained)")
+            raise ValueError(f"temperature = {self.temperature} ({_where('temperature')}) "
+                             "must be in (0, 1] (the initial noise's scale; 1 = the flow as "
+                             "trained)")
         hysteresis.check_thresholds(self.gripper_hysteresis,
-                                    "gripper_hysteresis (eval.gripper_hysteresis or "
-                                    "--gripper_hysteresis)")
+                                    f"gripper_hysteresis ({_where('gripper_hysteresis')})")
+
+    @property
+    def most_draws(self) -> int:
+        """The draws each chunk needs: the most any dim averages."""
+        return max([self.average_draws, *self.group_counts().values()])
 
     @classmethod
     def from_eval(cls, eval_cfg: Mapping[str, Any], **overrides: Any) -> Sampling:
@@ -88,16 +142,79 @@ class Sampling:
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
 
-    def tag(self) -> str:
-        """`_avg<k>_temp<τ>` for sampled levers other than the plain sampler's (each part only
-        when set): the suffix of result files that another setting must not replace."""
-        return ((f"_avg{self.average_draws}" if self.average_draws != 1 else "")
-                + (f"_temp{self.temperature:g}" if self.temperature != 1.0 else ""))
+    def group_counts(self) -> dict[str, int]:
+        """`group_draws` as `{group: k}` ({} when unset).
+
+        Raises:
+          ValueError naming the item, for one that is not `group=k` with a whole k >= 1.
+        """
+        counts = {}
+        for item in filter(None, self.group_draws.split("+")):
+            group, _, k = item.partition("=")
+            try:
+                counts[group] = int(k)
+            except ValueError:
+                counts[group] = 0
+            if not group or counts[group] < 1 or str(counts[group]) != k.strip():
+                raise ValueError(f"group_draws item {item!r} ({_where('group_draws')}) must be "
+                                 "group=k with a whole k >= 1, items joined by '+' (e.g. "
+                                 "base=4+torso=8)")
+        return counts
+
+    def draw_counts(self, layout: ActionLayout) -> tuple[int, ...] | None:
+        """Draws averaged into each of `layout`'s padded action dims `[action_dim]` (None where
+        every dim takes `average_draws`).
+
+        Raises:
+          ValueError naming a `group_draws` group the layout lacks.
+        """
+        counts = self.group_counts()
+        unknown = sorted(set(counts) - set(layout.groups))
+        if unknown:
+            raise ValueError(f"group_draws names {unknown}, not groups of the run's layout "
+                             f"{list(layout.groups)}")
+        per_dim = np.full(layout.action_dim, self.average_draws)
+        for group, k in counts.items():
+            per_dim[layout.group_dims(group)] = k
+        return None if (per_dim == self.average_draws).all() else tuple(int(k) for k in per_dim)
+
+    def executed(self, horizon: int) -> int:
+        """The actions executed of each chunk: `n_exec`, or half the `horizon` for 0 (each
+        chunk's second half then only shapes the next plan).
+
+        Raises:
+          ValueError where it exceeds the horizon, or leaves no tail to follow with `rtc`.
+        """
+        n_exec = self.n_exec or max(horizon // 2, 1)
+        if n_exec > horizon or (self.rtc and n_exec == horizon):
+            raise ValueError(f"n_exec = {n_exec} ({_where('n_exec')}) must be in [1, H = "
+                             f"{horizon}]" + (" and below H with rtc (the tail to follow)"
+                                              if self.rtc else ""))
+        return n_exec
+
+    def tag(self, closed_loop: bool = False) -> str:
+        """The suffix of result files that another setting must not replace: `_avg<k>`,
+        `_temp<τ>`, `_draws-<group><k>...` for sampled levers off their defaults and, for a
+        closed loop, `_exec<n>`, `_rtc`, `_hysteresis`, `_ens<m>`, `_stop<k>` for execution
+        levers (each part only when set)."""
+        tag = ((f"_avg{self.average_draws}" if self.average_draws != 1 else "")
+               + (f"_temp{self.temperature:g}" if self.temperature != 1.0 else "")
+               + ("_draws-" + "-".join(f"{g}{k}" for g, k in self.group_counts().items())
+                  if self.group_draws else ""))
+        if closed_loop:
+            tag = ((f"_exec{self.n_exec}" if self.n_exec else "") + ("_rtc" if self.rtc else "")
+                   + ("_hysteresis" if self.gripper_hysteresis else "") + tag
+                   + (f"_ens{self.temporal_ensemble:g}" if self.temporal_ensemble else "")
+                   + (f"_stop{self.stop_deadband:g}" if self.stop_deadband else ""))
+        return tag
 
     def describe(self) -> dict[str, Any]:
         """The levers as JSON values (a server's metadata, a result file's settings)."""
         return {"num_steps": self.num_steps, "average_draws": self.average_draws,
-                "temperature": self.temperature,
+                "temperature": self.temperature, "group_draws": self.group_draws or None,
+                "n_exec": self.n_exec, "rtc": self.rtc,
+                "temporal_ensemble": self.temporal_ensemble,
+                "stop_deadband": self.stop_deadband,
                 "gripper_hysteresis": list(self.gripper_hysteresis) or None}
 
     def noise(self, rng: jax.Array, shape: Sequence[int],
@@ -107,16 +224,19 @@ class Sampling:
         return self.temperature * noise_lib.flow_noise(rng, tuple(shape), noise_factor)
 
     def sampler(self, model_config: Pi0Config, noise_factor: np.ndarray | None = None,
-                num_draws: int | None = None) -> Callable[..., jax.Array]:
+                num_draws: int | None = None, layout: ActionLayout | None = None
+                ) -> Callable[..., jax.Array]:
         """`flow_model.sample_actions` with these levers: `(params, rng, observation, **kw) ->
-        [B, H, A]` (the mean of `average_draws` draws), or with `num_draws` M every draw
-        `[M, B, H, A]` from the noise it is given (`noise`, already scaled)."""
+        [B, H, A]` (each dim the mean of its draws: `average_draws`, or `group_draws` on
+        `layout`), or with `num_draws` M every draw `[M, B, H, A]` from the noise it is given
+        (`noise`, already scaled)."""
         return functools.partial(
             flow_model.sample_actions, config=model_config, num_steps=self.num_steps,
             noise_factor=noise_factor, average_draws=self.average_draws,
-            temperature=self.temperature, num_draws=num_draws)
+            temperature=self.temperature, num_draws=num_draws,
+            draw_counts=None if layout is None else self.draw_counts(layout))
 
-    def latch(self, layout: ActionLayout) -> hysteresis.GripperLatch | None:
+    def latch(self, layout: ActionLayout | None) -> hysteresis.GripperLatch | None:
         """The grippers' hysteresis on `layout`'s gripper dims, or None without one.
 
         Raises:
@@ -129,3 +249,8 @@ class Sampling:
             raise ValueError("gripper_hysteresis is set but the layout has no group of role "
                              "gripper (layout.roles); set it to ()")
         return hysteresis.GripperLatch(dims, *self.gripper_hysteresis)
+
+
+def _where(field: str) -> str:
+    """Where a lever is set: its `eval` key, and the flag of a command (`console`)."""
+    return f"eval.{field}" + (f" or --{field}" if field in LEVERS else "")

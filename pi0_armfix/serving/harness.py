@@ -17,10 +17,9 @@ server over openpi's websocket and msgpack encoding, but not openpi's request/re
 
 `HarnessSession` keeps, per env, the actions of the last sampled chunk: a step pops the next
 one and replans (one model call for every env that needs it) when the queue is empty, executing
-`n_exec` actions of each chunk (receding horizon, as the closed-loop evaluation); with `rtc`,
-each new chunk softly follows the previous chunk's unexecuted tail (real-time chunking, as
-`evaluate --closed_loop --follow_tail`), and with a gripper latch the grippers commit
-(`pi0_armfix.policies.hysteresis`, per env). Each connection samples from its own noise stream:
+`n_exec` actions of each chunk with the run's execution levers, as the closed-loop evaluation
+does (`policies.execution.Replanner`: real-time chunking, temporal ensembling, the base's stop
+deadband, the grippers' hysteresis, each per env). Each connection samples from its own noise stream:
 a reset empties the queues and tails and restarts the stream from the server's seed plus the episode
 count, so an evaluation rerun with the same seed gets the same actions whatever other
 connections do. The prompt is the run's own for `task_id` (`meta/tasks.jsonl` of its dataset,
@@ -38,7 +37,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import execution
+from pi0_armfix.policies.sampling import Sampling
 
 CAMERAS = {"robot_r1::robot_r1:zed_link:Camera:0::rgb": "base_0_rgb",
            "robot_r1::robot_r1:left_realsense_link:Camera:0::rgb": "left_wrist_0_rgb",
@@ -72,21 +72,18 @@ class HarnessSession:
 
     Args:
       policy: a `RunPolicy` (or anything with `infer(observations, follow=, rng=)`, `horizon`,
-        `keys`, `task_prompts`, `trained_prompts`).
-      n_exec: actions executed of each sampled chunk before replanning.
+        `layout`, `sampling`, `keys`, `task_prompts`, `trained_prompts`); its execution levers
+        (`policies.execution.Replanner`) decide what of each chunk is executed.
       seed: the noise seed of the first episode; episode e samples from `seed + e`.
       prompt: the prompt for every task ('' = the run's prompt of the request's `task_id`).
-      rtc: each new chunk follows the last one's unexecuted tail (needs n_exec < horizon).
-      latch: a `hysteresis.GripperLatch` the commands pass, one stream per env; None: as sampled.
+      sampling: the levers in place of the policy's (None: `policy.sampling`).
     """
 
-    def __init__(self, policy: Any, n_exec: int, seed: int = 0, prompt: str = "",
-                 rtc: bool = False, latch: Any = None):
-        if rtc and n_exec >= policy.horizon:
-            raise ValueError(f"RTC follows the unexecuted tail of a chunk: --n_exec={n_exec} "
-                             f"must be below the horizon {policy.horizon}")
-        self.policy, self.n_exec, self.seed, self.prompt = policy, n_exec, seed, prompt
-        self._replanning = inference.Replanner(policy, n_exec, rtc, latch)
+    def __init__(self, policy: Any, seed: int = 0, prompt: str = "",
+                 sampling: Sampling | None = None):
+        self.policy, self.seed, self.prompt = policy, seed, prompt
+        self._replanning = execution.Replanner(policy, sampling)
+        self.n_exec = self._replanning.n_exec
         self.episode = -1
         self._queues: dict[int, list[np.ndarray]] = {}
         self._warned: set[int] = set()

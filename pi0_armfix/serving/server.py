@@ -19,7 +19,8 @@ import numpy as np
 from websockets import exceptions as websockets_exceptions
 from websockets.asyncio import server as ws_server
 
-from pi0_armfix.policies import hysteresis
+from pi0_armfix.policies import execution
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.serving import harness
 
 
@@ -86,21 +87,34 @@ unpack = functools.partial(msgpack.unpackb, object_hook=_unpack_array)
 # ---------------------------------------------------------------------- the server
 
 class PolicyServer:
-    """Serves `policy` (a `RunPolicy`, or anything with `infer([obs]) -> [1, H, A]` and
-    `metadata()`) to websocket clients, one request at a time; `latch` filters each client's
-    gripper commands (its held commands after the first `n_exec` actions of a chunk; None: all)."""
+    """Serves `policy` (a `RunPolicy`, or anything with `infer([obs]) -> [1, H, A]`,
+    `metadata()`, `sampling`, `layout` and `horizon`) to websocket clients, one request at a
+    time, with the policy's execution levers (`policies.execution`): an openpi client's chunks
+    pass the per-chunk rules (`ChunkRules`, one stream per client), a B1K harness connection
+    gets its own `Replanner` (`harness.HarnessSession`).
 
-    def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000,
-                 latch: hysteresis.GripperLatch | None = None, n_exec: int | None = None, *,
+    Raises:
+      ValueError naming the lever, for one the protocol cannot apply (rtc or temporal ensembling
+      for an openpi client, which executes the chunks itself) or out of its range.
+    """
+
+    def __init__(self, policy: Any, host: str = "0.0.0.0", port: int = 8000, *,
                  sock: socket.socket | None = None,
                  max_message_bytes: int = MAX_MESSAGE_MB << 20, protocol: str = "openpi",
-                 seed: int = 0, prompt: str = "", rtc: bool = False):
+                 seed: int = 0, prompt: str = ""):
         if protocol not in PROTOCOLS:
             raise ValueError(f"--protocol={protocol!r}: choose one of {PROTOCOLS}")
+        sampling = getattr(policy, "sampling", None) or Sampling()
+        if protocol != "b1k" and (sampling.rtc or sampling.temporal_ensemble):
+            raise ValueError("rtc and temporal_ensemble (the run's eval section or the flags) "
+                             "need --protocol=b1k: an openpi client executes the chunks itself; "
+                             "set them off (--nortc --temporal_ensemble=0)")
         self.policy, self.host, self.port = policy, host, port
-        self.latch, self.n_exec = latch, n_exec
+        self.rules = execution.ChunkRules(policy, sampling)
+        if protocol == "b1k":
+            execution.Replanner(policy, sampling)  # its levers checked before any client
         self.sock, self.max_message_bytes = sock, max_message_bytes
-        self.protocol, self.seed, self.prompt, self.rtc = protocol, seed, prompt, rtc
+        self.protocol, self.seed, self.prompt = protocol, seed, prompt
         self.sessions: dict[Any, harness.HarnessSession] = {}
         self.warm = threading.Event()  # /healthz answers 200 once set (the sampler compiled)
         self._metadata = pack(policy.metadata())
@@ -108,11 +122,7 @@ class PolicyServer:
     def session(self, client: Any) -> harness.HarnessSession:
         """The harness session of `client` (`--protocol=b1k`), made on its first message."""
         if client not in self.sessions:
-            n_exec = self.n_exec or max(self.policy.horizon // 2, 1)
-            latch = None if self.latch is None else hysteresis.GripperLatch(
-                self.latch.dims, self.latch.open_above, self.latch.close_below)  # its own streams
-            self.sessions[client] = harness.HarnessSession(self.policy, n_exec, self.seed,
-                                                           self.prompt, self.rtc, latch)
+            self.sessions[client] = harness.HarnessSession(self.policy, self.seed, self.prompt)
         return self.sessions[client]
 
     def answer(self, message: bytes | str, client: Any = None) -> bytes | str | None:
@@ -138,9 +148,7 @@ class PolicyServer:
                 return pack({**reply, "server_timing": {
                     "infer_ms": 1000 * (time.monotonic() - start)}})
             start = time.monotonic()
-            actions = self.policy.infer([observation])[0]
-            if self.latch is not None:
-                actions = self.latch(client, actions, self.n_exec)
+            actions = self.rules(client, self.policy.infer([observation])[0])
             return pack({"actions": actions,
                          "server_timing": {"infer_ms": 1000 * (time.monotonic() - start)}})
         except ValueError as e:
@@ -161,8 +169,7 @@ class PolicyServer:
         except websockets_exceptions.ConnectionClosed:
             pass  # the client left (or sent more than --max_message_mb): nothing to answer
         finally:
-            if self.latch is not None:
-                self.latch.forget(websocket.id)
+            self.rules.forget(websocket.id)
             self.sessions.pop(websocket.id, None)
 
     def _health(self, connection, request):

@@ -31,7 +31,10 @@ class PhaseResult:
     (navigation: to the target; manipulation: the hand to its target offset, mean over the phase's
     arms), in [0, 1]: a graded view of phases that mostly fail. `reason`: why it failed
     (`FAILURE_REASONS`; '' on success); `gripper_switches`: the grippers' open/close commands during
-    the phase (both arms)."""
+    the phase (both arms). `slowest_base` (navigation): of the frames within the arrival radius
+    with the heading right, the one whose base command was nearest a stop, as the largest of its
+    three components (m/s, rad/s; the world stops below `stop_speed`), and `slowest_dim` which of
+    x / y / yaw that was (None / '' where no frame got there): why `not_stopped` failed."""
 
     kind: str  # "navigation" | "manipulation"
     success: bool
@@ -39,3 +42,5 @@ class PhaseResult:
     progress: float = 0.0
     reason: str = ""
     gripper_switches: int = 0
+    slowest_base: float | None = None
+    slowest_dim: str = ""

@@ -6,7 +6,7 @@ its chunk, then asks again (receding horizon). Drivers here: the scripted expert
 with errors the size of a policy's (`NoisyExpertDriver`), holding the last action, zero actions
 and a replay of random recorded chunks (the calibration rows,
 `pi0_armfix.tools.closed_loop_calibration`); a trained run drives through
-`pi0_armfix.policies.inference.Replanner` around its `RunPolicy` (`pi0_armfix.evaluate
+`pi0_armfix.policies.execution.Replanner` around its `RunPolicy` (`pi0_armfix.evaluate
 --closed_loop`).
 
 Per episode the result of every phase (`sim.world`), whether navigation, manipulation and the task
@@ -17,6 +17,7 @@ the arm joints for the figure.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import Any, Protocol
 
@@ -30,13 +31,14 @@ from tqdm import tqdm  # noqa: E402
 from pi0_armfix.sim import env as env_lib  # noqa: E402
 from pi0_armfix.sim.expert import demonstration  # noqa: E402
 from pi0_armfix.sim.outcomes import FAILURE_REASONS, PhaseResult  # noqa: E402
-from pi0_armfix.sim.world import ACTION_DIM, STATE_ARM, DemoSpec, World, tolerances  # noqa: E402
+from pi0_armfix.sim.world import (ACTION_DIM, BASE_DIMS, STATE_ARM, DemoSpec, World,  # noqa: E402
+                                  tolerances)
 
 KINDS = ("navigation", "manipulation", "task")
 
 
 class Driver(Protocol):
-    """What steers a rollout: a trained run's `inference.Replanner`, or a calibration row."""
+    """What steers a rollout: a trained run's `execution.Replanner`, or a calibration row."""
 
     def start(self, envs: Sequence[env_lib.DemoWorldEnv]) -> None:
         """Called once the environments are reset."""
@@ -189,8 +191,11 @@ def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
     phases (`phase_success/<kind>`), the phases' mean progress (`progress/<kind>`, see
     `PhaseResult`), the fraction of phases that failed for each reason
     (`failure/<kind>/<reason>`, `sim.outcomes.FAILURE_REASONS`: they add up to 1 - phase success),
-    the gripper switches per phase (`gripper_switches/<kind>`) and the mean seconds to a
-    successful task."""
+    the gripper switches per phase (`gripper_switches/<kind>`), why the base did not stop
+    (`not_stopped/slowest_base_median`: over the `not_stopped` phases, the median of the base
+    command nearest a stop within the radius, `PhaseResult.slowest_base`; `not_stopped/held_by/
+    <x|y|yaw>`: the share of them whose largest component there was that one) and the mean
+    seconds to a successful task."""
     summary: dict[str, Any] = {"episodes": len(records)}
     for kind in KINDS:
         summary[f"success/{kind}"] = float(np.mean([r.success[kind] for r in records]))
@@ -205,6 +210,13 @@ def summarize(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
                 float(np.mean([p.reason == reason for p in phases])) if phases else float("nan"))
         summary[f"gripper_switches/{kind}"] = (
             float(np.mean([p.gripper_switches for p in phases])) if phases else float("nan"))
+    creeping = [p for r in records for p in r.results if p.reason == "not_stopped"]
+    summary["not_stopped/slowest_base_median"] = (
+        float(np.median([p.slowest_base for p in creeping])) if creeping else float("nan"))
+    for dim in BASE_DIMS:
+        summary[f"not_stopped/held_by/{dim}"] = (
+            float(np.mean([p.slowest_dim == dim for p in creeping])) if creeping
+            else float("nan"))
     done = [r.seconds for r in records if r.success["task"]]
     summary["seconds_to_success"] = float(np.mean(done)) if done else float("nan")
     return summary
@@ -223,6 +235,11 @@ def format_summary(summary: dict[str, Any]) -> str:
                             if summary.get(f"failure/{kind}/{reason}", 0) > 0)
         lines.append(f"{kind} phases failed: {reasons or 'none'}; gripper switches per phase "
                      f"{summary[f'gripper_switches/{kind}']:.1f}")
+    if not math.isnan(summary.get("not_stopped/slowest_base_median", math.nan)):
+        held = ", ".join(f"{dim} {summary[f'not_stopped/held_by/{dim}']:.2f}" for dim in BASE_DIMS)
+        lines.append(f"not stopped: the base command nearest a stop, median "
+                     f"{summary['not_stopped/slowest_base_median']:.3f} (largest component: "
+                     f"{held})")
     lines.append(f"{summary['episodes']} episodes; mean time to task success "
                  f"{summary['seconds_to_success']:.1f} s")
     return "\n".join(lines)

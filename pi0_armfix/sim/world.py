@@ -103,6 +103,7 @@ ARMS = ("left", "right")
 # stored order (`state_space.DEMO_STATE_PRESET`).
 _STATE = {part.group: part.dims for part in STATE_PRESETS[DEMO_STATE_PRESET].parts}
 BASE = slice(*_LAYOUT.groups["base"])
+BASE_DIMS = ("x", "y", "yaw")  # the base command's components, in the action's order
 TORSO = slice(_TORSO_START, _TORSO_START + 3)
 ARM = {arm: slice(*_LAYOUT.groups[f"{arm}_arm"]) for arm in ARMS}
 GRIPPER = {arm: _LAYOUT.groups[f"{arm}_gripper"][0] for arm in ARMS}
@@ -400,7 +401,7 @@ class World:
         # How far the phase got, for the reason of a failure (`FAILURE_REASONS`).
         self._events = {"switches": 0, "within_radius": False, "heading_ok": False,
                         "reached": set(), "closed_away": False, "dropped": False,
-                        "not_holding": False}
+                        "not_holding": False, "slowest": (math.inf, -1)}
         if self.done:
             return
         draws = self.layout.phases[phase]
@@ -436,6 +437,10 @@ class World:
             heading_ok = within and bool(heading_error < spec.heading_tolerance)
             self._events["within_radius"] |= within
             self._events["heading_ok"] |= heading_ok
+            if heading_ok:
+                speeds = np.abs(self.command[BASE])
+                self._events["slowest"] = min(self._events["slowest"],
+                                              (float(speeds.max()), int(speeds.argmax())))
             if heading_ok and stopped:
                 return self._finish(True)
             limit = spec.navigation_seconds
@@ -478,7 +483,9 @@ class World:
     def _finish(self, success: bool) -> None:
         progress = np.mean([max(0.0, 1.0 - self._closest[k] / self._start_gap[k])
                             for k in self._start_gap])
+        slowest, dim = self._events["slowest"]
         self.results.append(PhaseResult(
             phase_kind(self.phase_step), success, self._phase_frames, float(progress),
-            "" if success else self._failure_reason(), self._events["switches"]))
+            "" if success else self._failure_reason(), self._events["switches"],
+            slowest if dim >= 0 else None, BASE_DIMS[dim] if dim >= 0 else ""))
         self._start_phase(self.phase + 1)

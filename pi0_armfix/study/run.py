@@ -27,7 +27,7 @@ from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         closed_loop_outcomes, episode_replicates, group_keys)
-from pi0_armfix.policies.sampling import SAMPLED_LEVERS, Sampling
+from pi0_armfix.policies.sampling import LEVERS, SAMPLED_LEVERS, Sampling
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -54,10 +54,10 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
 
 def inference_levers(config: str) -> dict[str, str]:
     """A study config's own inference levers: its `@eval.<lever>=<value>` overrides of
-    `sampling.SAMPLED_LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
+    `sampling.LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
     own = (o.partition("=")[::2] for o in parse_config(config)[2])
     return {key.removeprefix("eval."): value for key, value in own
-            if key.startswith("eval.") and key.removeprefix("eval.") in SAMPLED_LEVERS}
+            if key.startswith("eval.") and key.removeprefix("eval.") in LEVERS}
 
 
 def check_study_levers(configs: Sequence[str]) -> None:
@@ -68,7 +68,7 @@ def check_study_levers(configs: Sequence[str]) -> None:
     """
     for config in configs:
         try:
-            Sampling.from_eval({}, **{k: float(v) for k, v in inference_levers(config).items()})
+            Sampling.from_eval({}, **inference_levers(config))
         except ValueError as err:
             raise ValueError(f"--configs {config}: {err}") from None
 
@@ -88,12 +88,12 @@ def lever_args(config: str) -> list[str]:
     return [f"--{key}={value}" for key, value in inference_levers(config).items()]
 
 
-def lever_tag(config: str, checkpoints: Path) -> str:
-    """`Sampling.tag` of a config's sampler on its trained run (that run's `eval` with the
-    config's levers in place): the tag of the evaluation files its levers write."""
+def lever_tag(config: str, checkpoints: Path, closed_loop: bool = False) -> str:
+    """`Sampling.tag` of a config's levers on its trained run (that run's `eval` with the
+    config's levers in place): the tag of the evaluation files its levers write (held-out, or
+    `closed_loop`)."""
     saved = json.loads((checkpoints / "config.json").read_text())["eval"]
-    return Sampling.from_eval(saved, **{k: float(v) for k, v in
-                                        inference_levers(config).items()}).tag()
+    return Sampling.from_eval(saved, **inference_levers(config)).tag(closed_loop)
 
 
 def run_steps(config: str, steps: int) -> int:
@@ -211,8 +211,8 @@ def closed_loop_metrics(workdir: Path, config: str, seed: int, steps: int, episo
              f"--step={steps}", "--closed_loop", f"--episodes={episodes}",
              f"--tolerances={factors}", *lever_args(config)], folder,
             f"the closed-loop evaluation of {folder}")
-    path, _ = closed_loop_lib.closed_loop_paths(checkpoints, steps, episodes=episodes,
-                                                levers=lever_tag(config, checkpoints))
+    path, _ = closed_loop_lib.closed_loop_paths(
+        checkpoints, steps, episodes=episodes, levers=lever_tag(config, checkpoints, True))
     saved = json.loads(path.read_text())
     metrics = {CLOSED_LOOP + k: v for k, v in saved.items()
                if k.startswith(("success/", "phase_success/", "progress/", "failure/",
@@ -270,9 +270,10 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
 
 def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
     """A lever variant's result: the final checkpoint of its trained config's run of the same
-    seed (finished) evaluated on the held-out chunks with the variant's levers
+    seed (finished) evaluated on the held-out chunks with the variant's sampled levers
     (`pi0_armfix.evaluate --average_draws=...`, files tagged by the levers in that run's
-    `eval/step_<N>/`), with its episode replicates; `result.json` written in the variant's own
+    `eval/step_<N>/`; a variant of execution levers alone samples the trained config's chunks and
+    takes its held-out metrics), with its episode replicates; `result.json` written in the variant's own
     folder, which holds the evaluations' log."""
     folder, trained = run_folder(workdir, config, seed), trained_config(config)
     checkpoints = run_folder(workdir, trained, seed)
@@ -280,17 +281,19 @@ def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
     if base is None:
         raise RuntimeError(f"{config} seed {seed} is measured on the checkpoints of {trained} "
                            f"seed {seed}, which has not finished ({checkpoints})")
-    _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={checkpoints}",
-             f"--step={base['steps']}", *lever_args(config)], folder,
-            f"the held-out evaluation of {config} seed {seed}")
-    metrics_path, sums_path = evaluator_lib.heldout_paths(checkpoints, base["steps"],
-                                                          lever_tag(config, checkpoints))
-    saved = json.loads(metrics_path.read_text())
+    tag = lever_tag(config, checkpoints)
     layout = ActionLayout.from_config(base["layout"])
+    metrics_path, sums_path = evaluator_lib.heldout_paths(checkpoints, base["steps"], tag)
+    if tag:
+        _logged([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={checkpoints}",
+                 f"--step={base['steps']}", *lever_args(config)], folder,
+                f"the held-out evaluation of {config} seed {seed}")
+        metrics = {k: v for k, v in json.loads(metrics_path.read_text()).items()
+                   if k not in ("step", "params", *SAMPLED_LEVERS)}
+    else:  # execution levers alone sample the trained config's chunks: its held-out metrics
+        metrics = {k: v for k, v in base["metrics"].items() if not k.startswith(CLOSED_LOOP)}
     result = {"config": config, "seed": seed, "steps": base["steps"], "layout": base["layout"],
-              "trained": trained, "metrics": {
-                  k: v for k, v in saved.items()
-                  if k not in ("step", "params", *SAMPLED_LEVERS)},
+              "trained": trained, "metrics": metrics,
               EPISODE_REPLICATES: episode_replicates(heldout_lib.load_chunk_sums(sums_path),
                                                      layout)}
     json_files.write_json_atomic(folder / RESULT_FILE, result)

@@ -126,6 +126,18 @@ def openpi_caveats(run: inference.RestoredRun) -> list[str]:
         caveats.append(f"eval.temperature = {sampling.temperature:g}: this run starts the flow "
                        "from noise scaled by it; openpi starts from N(0, I): pass "
                        "sample_kwargs={'noise': temperature * noise} to its sample_actions")
+    if sampling.group_draws:
+        caveats.append(f"eval.group_draws = {sampling.group_draws!r}: this run executes those "
+                       "groups as the mean of that many draws; openpi executes one draw: call "
+                       "infer that many times and average those groups' actions in the client")
+    executed = {"n_exec": sampling.n_exec, "rtc": sampling.rtc,
+                "temporal_ensemble": sampling.temporal_ensemble,
+                "stop_deadband": sampling.stop_deadband}
+    for key, value in executed.items():
+        if value:
+            caveats.append(f"eval.{key} = {value!r}: how this run's chunks are executed "
+                           "(pi0_armfix.policies.execution); openpi returns whole chunks: "
+                           "apply it where the client executes them")
     return caveats
 
 

@@ -29,7 +29,6 @@ import numpy as np
 from absl import app, flags
 
 from pi0_armfix import console
-from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
@@ -112,7 +111,7 @@ def run_switch_timing(workdir: str, step: int | None, tolerances: Sequence[int]
     chunks = evaluator.chunks
     dims = np.concatenate([run.layout.group_dims(g) for g in groups])
     settings = {"tolerance": int(run.config.eval.switch_tolerance),
-                "executed": closed_loop_lib.default_n_exec(run.model_config.action_horizon),
+                "executed": run.sampling.executed(run.model_config.action_horizon),
                 "tolerances": [int(t) for t in tolerances]}
     result = {"step": run.step, "draws": len(draws), "gripper_groups": list(groups), **settings}
     for name, predicted in (("single_draw", draws[0]), ("mean_of_draws", draws.mean(axis=0))):
