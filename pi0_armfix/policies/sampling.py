@@ -31,7 +31,8 @@ from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model.config import Pi0Config
 from pi0_armfix.policies import hysteresis
 
-# The levers a study's lever variant may set on a trained config (`arm_focused@eval.average_draws=4`).
+# The levers a study's lever variant may set on a trained config
+# (`arm_focused@eval.average_draws=4`).
 SAMPLED_LEVERS = ("average_draws", "temperature", "group_draws")
 EXECUTION_LEVERS = ("n_exec", "rtc", "temporal_ensemble", "stop_deadband", "gripper_hysteresis")
 LEVERS = SAMPLED_LEVERS + EXECUTION_LEVERS

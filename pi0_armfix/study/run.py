@@ -273,8 +273,8 @@ def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
     seed (finished) evaluated on the held-out chunks with the variant's sampled levers
     (`pi0_armfix.evaluate --average_draws=...`, files tagged by the levers in that run's
     `eval/step_<N>/`; a variant of execution levers alone samples the trained config's chunks and
-    takes its held-out metrics), with its episode replicates; `result.json` written in the variant's own
-    folder, which holds the evaluations' log."""
+    takes its held-out metrics), with its episode replicates; `result.json` written in the
+    variant's own folder, which holds the evaluations' log."""
     folder, trained = run_folder(workdir, config, seed), trained_config(config)
     checkpoints = run_folder(workdir, trained, seed)
     base = load_result(checkpoints)
