@@ -20,8 +20,8 @@ one and replans (one model call for every env that needs it) when the queue is e
 `n_exec` actions of each chunk with the run's execution levers, as the closed-loop evaluation
 does (`policies.execution.Replanner`: real-time chunking, temporal ensembling, the base's stop
 deadband, the grippers' hysteresis, each per env). Each connection samples from its own noise
-stream: a reset empties the queues and tails and restarts the stream from the server's seed plus the episode
-count, so an evaluation rerun with the same seed gets the same actions whatever other
+stream: a reset empties the queues and tails and restarts the stream from the server's seed plus
+the episode count, so an evaluation rerun with the same seed gets the same actions whatever other
 connections do. The prompt is the run's own for `task_id` (`meta/tasks.jsonl` of its dataset,
 kept in the run folder; a task the run never trained on is served with one warning line); an id
 the run's table lacks falls back to B1K 2025's task table (`B1K_2025_TASKS`, prompt from the
