@@ -167,8 +167,8 @@ def _check_config_file(program: str, path: str) -> None:
                          f"name of an installed config: {', '.join(config_names())}")
 
 
-_LEVER_FLAGS = ("average_draws", "temperature", "group_draws", "n_exec", "rtc",
-                "temporal_ensemble", "stop_deadband", "gripper_hysteresis")
+_LEVER_FLAGS = ("average_draws", "temperature", "group_draws", "deadband", "n_exec", "rtc",
+                "temporal_ensemble", "gripper_hysteresis")
 
 
 def define_lever_flags() -> None:
@@ -181,6 +181,10 @@ def define_lever_flags() -> None:
     flags.DEFINE_string("group_draws", None, "group=k+group=k: those groups the mean of k draws, "
                         "the rest of --average_draws (e.g. base=4+torso=8; unset: the run's "
                         "eval.group_draws)")
+    flags.DEFINE_string("deadband", None, "group=k+group=k: each group holds still where the "
+                        "policy commands less motion than k action stds (the base: 0; a joint "
+                        "group: its last command; e.g. base=0.2+torso=0.5; unset: the run's "
+                        "eval.deadband)")
     flags.DEFINE_integer("n_exec", None, "actions executed of each chunk before replanning (0: "
                          "half the horizon; served to an openpi client: what it executes, for the "
                          "gripper hysteresis, 0: all; unset: the run's eval.n_exec)")
@@ -190,9 +194,6 @@ def define_lever_flags() -> None:
     flags.DEFINE_float("temporal_ensemble", None, "ACT's temporal ensembling of overlapping "
                        "chunks, weight exp(-m i) for the i-th oldest (m > 0; 0: off; closed loop, "
                        "b1k harness; unset: the run's eval.temporal_ensemble)")
-    flags.DEFINE_float("stop_deadband", None, "a base step whose every velocity command is below "
-                       "this many action stds is commanded 0 (0: off; unset: the run's "
-                       "eval.stop_deadband)")
     flags.DEFINE_list("gripper_hysteresis", None, "open_above,close_below of the grippers' "
                       "hysteresis (pi0_armfix.policies.hysteresis), in action units, for the "
                       "executed chunks (closed loop, server); unset: the run's "

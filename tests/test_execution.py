@@ -48,42 +48,67 @@ def test_the_replanner_ensembles_every_chunk_still_covering_the_executed_steps()
     assert float(replanning([0], [{}])[0, 0, 0]) == 6.0  # a new episode forgets the old plans
 
 
-def test_the_stop_deadband_zeroes_a_velocity_group_only_where_every_command_is_inside():
-    dims, band = np.array([0, 1, 2]), np.full(3, 0.05)
+def _bands(**groups):
+    return [(np.asarray(dims), np.full(len(dims), band), velocity)
+            for dims, band, velocity in groups.values()]
+
+
+def test_the_deadband_stops_a_velocity_group_only_where_every_command_is_inside():
+    bands = _bands(base=([0, 1, 2], 0.05, True))
     chunk = np.zeros((3, 5))
     chunk[0, :3] = [0.01, -0.02, 0.04]  # all inside: stopped
     chunk[1, :3] = [0.01, 0.2, 0.0]  # one outside: kept as sampled
     chunk[:, 3:] = 0.01  # not the group's
-    out = execution.stop(chunk, [(dims, band)])
+    out, _ = execution.hold_still(chunk, bands, np.full(5, np.nan))
     np.testing.assert_array_equal(out[0, :3], 0.0)
     np.testing.assert_array_equal(out[1], chunk[1])
     np.testing.assert_array_equal(out[:, 3:], chunk[:, 3:])
 
 
-def test_the_deadband_is_its_factor_times_each_velocity_dims_action_std():
+def test_a_position_group_keeps_its_command_until_one_leaves_the_band_around_it():
+    bands = _bands(torso=([0], 0.1, False))
+    chunk = np.array([[1.05], [0.98], [1.3], [1.35], [1.1]])
+    out, held = execution.hold_still(chunk, bands, np.array([1.0]))
+    np.testing.assert_allclose(out[:, 0], [1.0, 1.0, 1.3, 1.3, 1.1])
+    assert held[0] == 1.1
+    fresh, _ = execution.hold_still(chunk, bands, np.array([np.nan]))  # nothing held yet
+    np.testing.assert_allclose(fresh[:, 0], [1.05, 1.05, 1.3, 1.3, 1.1])
+
+
+def test_the_bands_are_k_times_each_dims_action_std_and_know_velocity_groups():
     std = np.arange(1.0, B1K.real_dim + 1)
-    ((dims, band),) = execution.stop_groups(Sampling(stop_deadband=0.1), B1K, std)
-    np.testing.assert_array_equal(dims, B1K.group_dims("base"))
-    np.testing.assert_allclose(band, 0.1 * std[dims])
-    assert execution.stop_groups(Sampling(), B1K, std) == []
+    bands = execution.deadband_groups(Sampling(deadband="base=0.1+torso=0.5"), B1K, std)
+    (base_dims, base_band, base_velocity), (torso_dims, torso_band, torso_velocity) = bands
+    np.testing.assert_array_equal(base_dims, B1K.group_dims("base"))
+    np.testing.assert_allclose(base_band, 0.1 * std[base_dims])
+    np.testing.assert_allclose(torso_band, 0.5 * std[torso_dims])
+    assert base_velocity and not torso_velocity
+    assert execution.deadband_groups(Sampling(), B1K, std) == []
 
 
-def test_a_deadband_on_a_layout_without_a_velocity_group_is_refused():
-    with pytest.raises(ValueError, match="stop_deadband is set but the layout has no velocity"):
-        execution.stop_groups(Sampling(stop_deadband=0.1), ActionLayout.preset("g1_inspire"),
-                              np.ones(26))
+@pytest.mark.parametrize("deadband, message", [
+    ("wheels=0.1", r"deadband names \['wheels'\]"), ("base=0", r"deadband item 'base=0'"),
+    ("base", r"must be group=k with k > 0")])
+def test_a_bad_deadband_is_one_line_naming_it(deadband, message):
+    with pytest.raises(ValueError, match=message):
+        execution.deadband_groups(Sampling(deadband=deadband), B1K, np.ones(B1K.real_dim))
 
 
-def test_the_replanner_applies_the_deadband_to_what_it_executes():
+def test_the_replanner_holds_still_from_what_it_executed_last():
     class Creeping(_Scripted):
         def infer(self, observations, follow=None):
             chunk = np.zeros((len(observations), 4, B1K.real_dim), np.float32)
             chunk[..., B1K.group_dims("base")] = 0.03
+            chunk[..., B1K.group_dims("torso")] = 0.03 * self.calls
+            self.calls += 1
             return chunk
 
-    stopped = execution.Replanner(Creeping(stop_deadband=0.05))([0], [{}])
-    assert not stopped[..., B1K.group_dims("base")].any()
-    moving = execution.Replanner(Creeping(stop_deadband=0.02))([0], [{}])
+    replanning = execution.Replanner(Creeping(deadband="base=0.05+torso=0.05"))
+    first = replanning([0], [{}])
+    assert not first[..., B1K.group_dims("base")].any()
+    second = replanning([0], [{}])  # the torso moved 0.03 from what was executed: held
+    assert not second[..., B1K.group_dims("torso")].any()
+    moving = execution.Replanner(Creeping(deadband="base=0.02"))([0], [{}])
     assert (moving[..., B1K.group_dims("base")] == np.float32(0.03)).all()
 
 

@@ -109,13 +109,13 @@ def test_the_exported_folder_gives_the_runs_actions(run, exported):
 def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
     restored = inference.restore_run(run, levers={"average_draws": 4, "temperature": 0.5,
                                                   "group_draws": "base=2", "rtc": True,
-                                                  "stop_deadband": 0.1})
+                                                  "deadband": "base=0.1"})
     caveats = export_openpi.openpi_caveats(restored)
     assert any(c.startswith("eval.average_draws = 4") for c in caveats)
     assert any(c.startswith("eval.temperature = 0.5") for c in caveats)
     assert any(c.startswith("eval.group_draws = 'base=2'") for c in caveats)
     assert any(c.startswith("eval.rtc = True: how this run's chunks are executed") for c in caveats)
-    assert any(c.startswith("eval.stop_deadband = 0.1") for c in caveats)
+    assert any(c.startswith("eval.deadband = 'base=0.1'") for c in caveats)
     assert not any("eval.average_draws" in c or "eval.temperature" in c
                    for c in export_openpi.openpi_caveats(inference.restore_run(run)))
 

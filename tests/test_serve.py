@@ -301,13 +301,14 @@ def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run
 
 def test_closed_loop_outputs_are_named_by_their_settings_and_never_replaced(tmp_path):
     settings = ({}, {"n_exec": 4}, {"rtc": True}, {"temporal_ensemble": 0.1},
-                {"stop_deadband": 0.2}, {"group_draws": "base=4"}, {"average_draws": 4})
+                {"deadband": "base=0.2"}, {"group_draws": "base=4"}, {"average_draws": 4})
     names = [closed_loop_lib.closed_loop_paths(
         tmp_path, 5, episodes=50, levers=Sampling(**levers).tag(closed_loop=True))[0].name
         for levers in settings]
     assert names == ["closed_loop_50ep.json", "closed_loop_50ep_exec4.json",
                      "closed_loop_50ep_rtc.json", "closed_loop_50ep_ens0.1.json",
-                     "closed_loop_50ep_stop0.2.json", "closed_loop_50ep_draws-base4.json",
+                     "closed_loop_50ep_deadband-base0.2.json",
+                     "closed_loop_50ep_draws-base4.json",
                      "closed_loop_50ep_avg4.json"]
     assert closed_loop_lib.closed_loop_paths(tmp_path, 5, episodes=10)[0].name == \
         "closed_loop_10ep.json"
@@ -358,6 +359,15 @@ def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
         policy.sample(restored.params, key, observation),
         policy.sample(restored.params, None, observation, noise=policy.sampling.noise(
             key, (3 * len(batch["actions"]), *evaluator.noise.shape[2:]))), atol=1e-6)
+
+
+def test_a_deadband_wider_than_any_motion_scores_as_holding_the_previous_action(run):
+    restored = inference.restore_run(run, levers={"deadband": "torso=1e9"})
+    evaluator, mesh = evaluator_lib.run_evaluator(restored)
+    with jax.set_mesh(mesh):
+        metrics = evaluator(restored.params).metrics
+    assert metrics["skill/torso"] == pytest.approx(0.0, abs=1e-12)
+    assert metrics["skill/base"] != pytest.approx(0.0, abs=1e-3)  # the other groups as sampled
 
 
 @pytest.mark.parametrize("levers, message", [

@@ -257,14 +257,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Execution levers (closed loop, B1K harness; pi0_armfix.policies.execution), off until
     # measured: actions executed per chunk before replanning (0: half the horizon), each new chunk
     # following the last one's unexecuted tail (real-time chunking), ACT's temporal ensembling
-    # (its decay m > 0; 0: off), the base commanded 0 where every velocity is below this many
-    # action stds (0: off); and per-group draws ("base=4+torso=8": those groups the mean of k
-    # draws, a sampled lever).
+    # (its decay m > 0; 0: off); per-group draws ("base=4+torso=8": those groups the mean of k
+    # draws) and a per-group deadband ("base=0.2+torso=0.5": a group holds still where it is
+    # commanded less motion than k action stds), which the held-out evaluation measures too.
     config.eval.n_exec = 0
     config.eval.rtc = False
     config.eval.temporal_ensemble = 0.0
-    config.eval.stop_deadband = 0.0
     config.eval.group_draws = ""
+    config.eval.deadband = ""
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
     if scale in B1K_STATE_PRESETS:

@@ -1,7 +1,7 @@
 """A checkpoint's policy driving the demo world (`pi0_armfix.sim`): `evaluate --closed_loop`.
 
     python -m pi0_armfix.evaluate --workdir=RUN --closed_loop [--episodes=50] [--n_exec=K] [--rtc]
-        [--temporal_ensemble=M] [--stop_deadband=K] [--group_draws=base=4] \
+        [--temporal_ensemble=M] [--deadband=base=0.2] [--group_draws=base=4] \
         [--gripper_hysteresis=0.9,-0.98] [--tolerances=1,2,4] [--sim_seed=S]
 
 The policy samples a chunk, the world executes `n_exec` of it, the policy replans, with the run's

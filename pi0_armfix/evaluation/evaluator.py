@@ -40,7 +40,7 @@ from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import execution, inference
 from pi0_armfix.policies.sampling import SAMPLED_LEVERS, Sampling
 from pi0_armfix.training import metrics_log
 from pi0_armfix.training import plots
@@ -150,6 +150,9 @@ class Evaluator:
         self.sampling = sampling or Sampling.from_eval(eval_cfg)
         self.draws, self.average = eval_cfg["num_draws"], self.sampling.most_draws
         self.draw_counts = self.sampling.draw_counts(layout)
+        self.bands = execution.deadband_groups(
+            self.sampling, layout, stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
+                                                       "norm stats 'actions'").std)
         # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on
         # the evaluation batch size nor on which batch it lands in.
         shape = (self.draws * self.average, len(self.chunks.frames), model_config.action_horizon,
@@ -191,10 +194,14 @@ class Evaluator:
 
     def absolute_draws(self, params: Any) -> np.ndarray:
         """The policy's absolute chunks `[M, N, H, A]` of all held-out chunks in evaluation units
-        (`sample`'s draws, comparable with `chunks.true`)."""
+        (`sample`'s draws, with the levers' deadband, comparable with `chunks.true`)."""
         chunks = self.chunks
-        return np.stack([chunks.transform.absolute_actions(d, chunks.frames)
-                         for d in self.sample(params)]) / chunks.scale
+        draws = np.stack([chunks.transform.absolute_actions(d, chunks.frames)
+                          for d in self.sample(params)])
+        if self.bands:  # as executed: each chunk held still from the command before it
+            draws, _ = execution.hold_still(draws, self.bands,
+                                            np.broadcast_to(chunks.previous, draws[:, :, 0].shape))
+        return draws / chunks.scale
 
     def __call__(self, params: Any) -> Evaluation:
         """Samples the held-out chunks with `params` and scores them (`Evaluation`)."""

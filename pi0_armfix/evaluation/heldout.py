@@ -103,7 +103,8 @@ class HeldOutChunks:
       true `[N, H, A]` (evaluation units), scale
       `[A]`, gripper_threshold `[A]`, transform, reference: `{name: metrics}` of `persistence`,
       `state_copy` and, on the embedded demo, `ceiling`, each with its `skill/<g>` over
-      persistence, and reference_sums: `{name: per-chunk sums}` of the same.
+      persistence, and reference_sums: `{name: per-chunk sums}` of the same; previous `[N, A]`:
+      the action before each chunk (dataset units).
     """
 
     def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
@@ -143,6 +144,7 @@ class HeldOutChunks:
                                                spec.state_groups)
         if not spec.get("root") and spec.get("format", "lerobot") == "lerobot":
             chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
+        self.previous = chunks["persistence"][:, 0, :layout.real_dim]  # dataset units
         self.reference_sums = {name: self.sums(c[None, ..., :layout.real_dim] / self.scale)
                                for name, c in chunks.items()}
         self.reference = {name: self._measure(s) for name, s in self.reference_sums.items()}

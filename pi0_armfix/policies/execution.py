@@ -11,14 +11,15 @@ before asking again. On the way out, in this order:
                       chunking's soft inpainting, `RunPolicy.infer(follow=...)`);
   temporal_ensemble   each executed action the weighted mean of every chunk still covering its
                       step (ACT, Zhao et al., 2023; `temporal_ensemble`);
-  stop_deadband       a velocity group whose every command of a step is within the deadband is
-                      commanded 0 (`stop`): the demonstrations stop exactly, a sampler near
-                      zero does not;
+  deadband            a group holds still where the policy commands less motion than its band
+                      (`hold_still`): the base is commanded 0, a position group keeps its last
+                      command; the demonstrations stop exactly, a sampler near zero does not;
   gripper_hysteresis  the grippers' commands pass their hysteresis (`hysteresis.GripperLatch`,
                       one stream per env).
 Used by the closed-loop evaluation (`evaluation.closed_loop`) and the B1K harness
 (`serving.harness`); an openpi client executes the chunks itself, so its server applies only
-the per-chunk rules (`stop`, the hysteresis).
+the per-chunk rules (the deadband and the hysteresis, held per client). The held-out evaluator
+applies the deadband too (`hold_still` from each chunk's previous command).
 """
 
 from __future__ import annotations
@@ -50,51 +51,75 @@ def temporal_ensemble(plans: Sequence[tuple[int, np.ndarray]], now: int, n_exec:
     return out.astype(np.asarray(newest).dtype)
 
 
-def stop(chunk: np.ndarray, groups: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """`chunk` `[H, A]` with each velocity group `(dims, deadband [len(dims)])` commanded 0 at
-    the steps where every one of its commands lies within its deadband."""
-    out = np.array(chunk, copy=True)
-    for dims, deadband in groups:
-        still = (np.abs(out[:, dims]) < deadband).all(axis=-1)
-        out[np.ix_(still, dims)] = 0.0
-    return out
+Band = tuple[np.ndarray, np.ndarray, bool]  # a group's (dims, band [len(dims)], velocity?)
 
 
-def stop_groups(sampling: Sampling, layout: ActionLayout | None, action_std: np.ndarray | None
-                ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The `(dims, deadband)` of each velocity group for `stop`: `stop_deadband` times each dim's
-    action std `[real_dim]` (dataset units); [] when off.
+def hold_still(chunks: np.ndarray, bands: Sequence[Band], held: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Chunks `[..., H, A]` with each group of `bands` held still where it is commanded less
+    motion than its band, step by step: a velocity group is commanded 0 at a step whose every
+    command lies within its band around 0; a position group keeps its held command at a step
+    whose every command lies within its band around it, and any other command passes and is held
+    from then on. `held` `[..., A]`: the commands held before the first step (the last executed;
+    NaN where there is none: those commands pass). Returns the chunks and the held commands
+    after the last step."""
+    out = np.array(chunks, dtype=np.float64)
+    held = np.array(held, dtype=np.float64)
+    for t in range(out.shape[-2]):
+        for dims, band, velocity in bands:
+            rest = np.zeros_like(held[..., dims]) if velocity else held[..., dims]
+            # a dim the data never moves (band 0) has no motion to tell: it follows the others
+            inside = ((np.abs(out[..., t, dims] - rest) < band) | (band == 0)).all(
+                axis=-1, keepdims=True)
+            out[..., t, dims] = np.where(inside, rest, out[..., t, dims])
+            if not velocity:
+                held[..., dims] = out[..., t, dims]
+    return out.astype(np.asarray(chunks).dtype), held
+
+
+def deadband_groups(sampling: Sampling, layout: ActionLayout | None,
+                    action_std: np.ndarray | None) -> list[Band]:
+    """`hold_still`'s bands: each `deadband` group's dims, k times each dim's action std
+    `[real_dim]` (dataset units), and whether it is a velocity group; [] when off.
 
     Raises:
-      ValueError where a deadband is set on a layout without a velocity group.
+      ValueError naming a group the layout lacks.
     """
-    if not sampling.stop_deadband:
+    bands = sampling.deadbands()
+    if not bands:
         return []
-    if not layout.velocity_groups:
-        raise ValueError("stop_deadband is set but the layout has no velocity group "
-                         "(layout.velocity_groups); set it to 0")
-    return [(np.asarray(layout.group_dims(g)),
-             sampling.stop_deadband * np.asarray(action_std)[layout.group_dims(g)])
-            for g in layout.velocity_groups]
+    unknown = sorted(set(bands) - set(layout.groups))
+    if unknown:
+        raise ValueError(f"deadband names {unknown}, not groups of the run's layout "
+                         f"{list(layout.groups)}")
+    std = np.asarray(action_std, np.float64)
+    return [(np.asarray(layout.group_dims(g)), k * std[layout.group_dims(g)],
+             g in layout.velocity_groups) for g, k in bands.items()]
 
 
 class ChunkRules:
-    """The per-chunk execution rules (`stop`, the grippers' hysteresis) of a policy, for a client
-    that executes whole chunks itself (openpi's protocol): `rules(stream, chunk)`."""
+    """The per-chunk execution rules (the deadband, the grippers' hysteresis) of a policy, for a
+    client that executes whole chunks itself (openpi's protocol): `rules(stream, chunk)`, what
+    they hold kept per stream as if it executed `n_exec` actions of each chunk (0: all)."""
 
     def __init__(self, policy: Any, sampling: Sampling | None = None):
         sampling = sampling or getattr(policy, "sampling", Sampling())
         layout = getattr(policy, "layout", None)  # read only where a rule is set
         self.executed = sampling.n_exec or None  # what the client executes, for the latch
-        self.stops = stop_groups(sampling, layout, getattr(policy, "action_std", None))
+        self.bands = deadband_groups(sampling, layout, getattr(policy, "action_std", None))
         self.latch = sampling.latch(layout)
+        self._held: dict[Hashable, np.ndarray] = {}
 
     def __call__(self, stream: Hashable, chunk: np.ndarray) -> np.ndarray:
-        chunk = stop(chunk, self.stops) if self.stops else chunk
+        if self.bands:
+            held = self._held.get(stream, np.full(chunk.shape[-1], np.nan))
+            chunk, _ = hold_still(chunk, self.bands, held)
+            self._held[stream] = chunk[min(self.executed or len(chunk), len(chunk)) - 1]
         return chunk if self.latch is None else self.latch(stream, chunk, self.executed)
 
     def forget(self, stream: Hashable) -> None:
         """Forgets what a stream's commands held (its client left)."""
+        self._held.pop(stream, None)
         if self.latch is not None:
             self.latch.forget(stream)
 
@@ -108,7 +133,7 @@ class Replanner:
 
     Raises:
       ValueError naming the lever, for `n_exec` beyond the horizon (or leaving no tail with
-      `rtc`), a deadband without a velocity group, a hysteresis without grippers.
+      `rtc`), a deadband on a group the layout lacks, a hysteresis without grippers.
     """
 
     def __init__(self, policy: Any, sampling: Sampling | None = None):
@@ -116,7 +141,7 @@ class Replanner:
         self.sampling = sampling or getattr(policy, "sampling", Sampling())
         layout = getattr(policy, "layout", None)  # read only where a rule is set
         self.n_exec = self.sampling.executed(policy.horizon)
-        self.stops = stop_groups(self.sampling, layout, getattr(policy, "action_std", None))
+        self.bands = deadband_groups(self.sampling, layout, getattr(policy, "action_std", None))
         self.latch = self.sampling.latch(layout)
         self.start()
 
@@ -151,8 +176,9 @@ class Replanner:
                 self._plans[i] = plans + [(now, chunk)]
                 chunk = temporal_ensemble(self._plans[i], now, self.n_exec,
                                           sampling.temporal_ensemble)
-            if self.stops:
-                chunk = stop(chunk, self.stops)
+            if self.bands:
+                chunk, _ = hold_still(chunk, self.bands,
+                                      self._executed.get(i, np.full(chunk.shape[-1], np.nan)))
             if self.latch is not None:
                 chunk = self.latch(i, chunk, self.n_exec)
             self._tails[i] = chunk[self.n_exec:]

@@ -5,7 +5,7 @@ server and the export.
     sampling = Sampling.from_eval(run.config.eval, average_draws=4)  # a command's --average_draws
     sample = sampling.sampler(model_config, noise_factor)            # flow_model.sample_actions
     latch = sampling.latch(layout)                                   # the grippers' hysteresis
-    replanning = execution.Replanner(policy)                         # n_exec, rtc, ensembling, stop
+    replanning = execution.Replanner(policy)                         # n_exec, rtc, ensembling, deadband
 
 Sampled levers (`SAMPLED_LEVERS`) change the chunks the flow gives, so an open-loop evaluation
 measures them; execution levers (`EXECUTION_LEVERS`) change what is executed of them over time
@@ -33,8 +33,10 @@ from pi0_armfix.policies import hysteresis
 
 # The levers a study's lever variant may set on a trained config
 # (`arm_focused@eval.average_draws=4`).
-SAMPLED_LEVERS = ("average_draws", "temperature", "group_draws")
-EXECUTION_LEVERS = ("n_exec", "rtc", "temporal_ensemble", "stop_deadband", "gripper_hysteresis")
+# Sampled levers change the chunks the held-out evaluation scores (the deadband too: it needs only
+# the previous command, which every held-out chunk has); execution levers act over time.
+SAMPLED_LEVERS = ("average_draws", "temperature", "group_draws", "deadband")
+EXECUTION_LEVERS = ("n_exec", "rtc", "temporal_ensemble", "gripper_hysteresis")
 LEVERS = SAMPLED_LEVERS + EXECUTION_LEVERS
 
 
@@ -55,10 +57,12 @@ class Sampling:
       temporal_ensemble: ACT's temporal ensembling: each executed action the weighted mean of
         every chunk still covering its step, weight exp(-m i) for the i-th oldest (m = this
         value, > 0; the oldest weighs most); 0 = off.
-      stop_deadband: k > 0: a velocity group (`layout.velocity_groups`, the base) whose every
-        command of a step is below k times its dim's action std (the run's norm stats) is
-        commanded 0 there: the stop the demonstrations make, which the sampler's spread blurs;
-        0 = off.
+      deadband: `"group=k+group=k"`: a group holds still where the policy commands less than
+        k times each dim's action std (the run's norm stats) of motion: a velocity group
+        (`layout.velocity_groups`, the base) is commanded 0 at a step whose every command is
+        within its band (the stop the demonstrations make, which the sampler's spread blurs), a
+        position group keeps its last command until one leaves the band around it
+        (`execution.hold_still`). '' = off.
       gripper_hysteresis: (open_above, close_below) in action units that the gripper commands
         pass (`hysteresis`), or () for the commands as sampled.
     """
@@ -70,7 +74,7 @@ class Sampling:
     n_exec: int = 0
     rtc: bool = False
     temporal_ensemble: float = 0.0
-    stop_deadband: float = 0.0
+    deadband: str = ""
     gripper_hysteresis: tuple[float, ...] = ()
 
     def __post_init__(self):
@@ -99,7 +103,7 @@ class Sampling:
         if not isinstance(rtc, (bool, np.bool_)) and rtc not in (0, 1):
             raise ValueError(f"rtc = {self.rtc!r} ({_where('rtc')}) must be true or false")
         object.__setattr__(self, "rtc", bool(rtc))
-        for field in ("temporal_ensemble", "stop_deadband"):
+        for field in ("temporal_ensemble",):
             try:
                 value = float(getattr(self, field))
             except (TypeError, ValueError):
@@ -108,8 +112,9 @@ class Sampling:
                 raise ValueError(f"{field} = {getattr(self, field)} ({_where(field)}) must be "
                                  ">= 0 (0: off)")
             object.__setattr__(self, field, value)
-        object.__setattr__(self, "group_draws", str(self.group_draws or ""))
-        self.group_counts()  # its syntax, before any use
+        for field in ("group_draws", "deadband"):
+            object.__setattr__(self, field, str(getattr(self, field) or ""))
+        self.group_counts(), self.deadbands()  # their syntax, before any use
         try:
             object.__setattr__(self, "temperature", float(self.temperature))
         except (TypeError, ValueError):
@@ -149,18 +154,16 @@ class Sampling:
         Raises:
           ValueError naming the item, for one that is not `group=k` with a whole k >= 1.
         """
-        counts = {}
-        for item in filter(None, self.group_draws.split("+")):
-            group, _, k = item.partition("=")
-            try:
-                counts[group] = int(k)
-            except ValueError:
-                counts[group] = 0
-            if not group or counts[group] < 1 or str(counts[group]) != k.strip():
-                raise ValueError(f"group_draws item {item!r} ({_where('group_draws')}) must be "
-                                 "group=k with a whole k >= 1, items joined by '+' (e.g. "
-                                 "base=4+torso=8)")
-        return counts
+        return _per_group(self.group_draws, "group_draws", int, "a whole k >= 1",
+                          "base=4+torso=8")
+
+    def deadbands(self) -> dict[str, float]:
+        """`deadband` as `{group: k}` ({} when unset).
+
+        Raises:
+          ValueError naming the item, for one that is not `group=k` with k > 0.
+        """
+        return _per_group(self.deadband, "deadband", float, "k > 0", "base=0.2+torso=0.5")
 
     def draw_counts(self, layout: ActionLayout) -> tuple[int, ...] | None:
         """Draws averaged into each of `layout`'s padded action dims `[action_dim]` (None where
@@ -195,18 +198,19 @@ class Sampling:
 
     def tag(self, closed_loop: bool = False) -> str:
         """The suffix of result files that another setting must not replace: `_avg<k>`,
-        `_temp<τ>`, `_draws-<group><k>...` for sampled levers off their defaults and, for a
-        closed loop, `_exec<n>`, `_rtc`, `_hysteresis`, `_ens<m>`, `_stop<k>` for execution
-        levers (each part only when set)."""
+        `_temp<τ>`, `_draws-<group><k>...`, `_deadband-<group><k>...` for sampled levers off
+        their defaults and, for a closed loop, `_exec<n>`, `_rtc`, `_hysteresis`, `_ens<m>` for
+        execution levers (each part only when set)."""
         tag = ((f"_avg{self.average_draws}" if self.average_draws != 1 else "")
                + (f"_temp{self.temperature:g}" if self.temperature != 1.0 else "")
                + ("_draws-" + "-".join(f"{g}{k}" for g, k in self.group_counts().items())
-                  if self.group_draws else ""))
+                  if self.group_draws else "")
+               + ("_deadband-" + "-".join(f"{g}{k:g}" for g, k in self.deadbands().items())
+                  if self.deadband else ""))
         if closed_loop:
             tag = ((f"_exec{self.n_exec}" if self.n_exec else "") + ("_rtc" if self.rtc else "")
                    + ("_hysteresis" if self.gripper_hysteresis else "") + tag
-                   + (f"_ens{self.temporal_ensemble:g}" if self.temporal_ensemble else "")
-                   + (f"_stop{self.stop_deadband:g}" if self.stop_deadband else ""))
+                   + (f"_ens{self.temporal_ensemble:g}" if self.temporal_ensemble else ""))
         return tag
 
     def describe(self) -> dict[str, Any]:
@@ -215,7 +219,7 @@ class Sampling:
                 "temperature": self.temperature, "group_draws": self.group_draws or None,
                 "n_exec": self.n_exec, "rtc": self.rtc,
                 "temporal_ensemble": self.temporal_ensemble,
-                "stop_deadband": self.stop_deadband,
+                "deadband": self.deadband or None,
                 "gripper_hysteresis": list(self.gripper_hysteresis) or None}
 
     def noise(self, rng: jax.Array, shape: Sequence[int],
@@ -250,6 +254,27 @@ class Sampling:
             raise ValueError("gripper_hysteresis is set but the layout has no group of role "
                              "gripper (layout.roles); set it to ()")
         return hysteresis.GripperLatch(dims, *self.gripper_hysteresis)
+
+
+def _per_group(text: str, field: str, cast: Callable[[str], float], allowed: str,
+               example: str) -> dict[str, Any]:
+    """`"group=value+group=value"` -> `{group: cast(value)}`, each value > 0 ({} for '').
+
+    Raises:
+      ValueError naming the item and `field`, for a malformed one.
+    """
+    values = {}
+    for item in filter(None, text.split("+")):
+        group, _, value = item.partition("=")
+        try:
+            number = cast(value.strip())
+        except ValueError:
+            number = None
+        if not group or number is None or not number > 0:
+            raise ValueError(f"{field} item {item!r} ({_where(field)}) must be group=k with "
+                             f"{allowed}, items joined by '+' (e.g. {example})")
+        values[group] = number
+    return values
 
 
 def _where(field: str) -> str:

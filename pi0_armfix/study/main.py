@@ -46,8 +46,8 @@ optionally with overrides of its own after `@` (`arm_focused@data.video_access=r
 variants of one file compare; `@train.total_steps=N` trains that config's runs N steps instead of
 `--steps`, so that recipes whose steps cost differently compare at equal wall time; the inference
 levers (`policies.sampling.LEVERS`: sampled, `@eval.average_draws=k`, `@eval.temperature=t`,
-`@eval.group_draws=base=4+torso=8`; executed, `@eval.n_exec=4`, `@eval.rtc=true`,
-`@eval.temporal_ensemble=0.1`, `@eval.stop_deadband=0.1`) make a lever variant, which trains
+`@eval.group_draws=base=4+torso=8`, `@eval.deadband=base=0.2`; executed, `@eval.n_exec=4`,
+`@eval.rtc=true`, `@eval.temporal_ensemble=0.1`) make a lever variant, which trains
 nothing: after the trained runs, it evaluates its trained config's checkpoints, seed for seed,
 with those levers, open and closed loop, so `--configs=uniform,arm_focused,arm_focused@eval.
 average_draws=4` adds the mean of 4 draws as executed for the cost of its evaluations); every

@@ -131,8 +131,7 @@ def openpi_caveats(run: inference.RestoredRun) -> list[str]:
                        "groups as the mean of that many draws; openpi executes one draw: call "
                        "infer that many times and average those groups' actions in the client")
     executed = {"n_exec": sampling.n_exec, "rtc": sampling.rtc,
-                "temporal_ensemble": sampling.temporal_ensemble,
-                "stop_deadband": sampling.stop_deadband}
+                "temporal_ensemble": sampling.temporal_ensemble, "deadband": sampling.deadband}
     for key, value in executed.items():
         if value:
             caveats.append(f"eval.{key} = {value!r}: how this run's chunks are executed "
