@@ -59,7 +59,7 @@ def test_the_deadband_stops_a_velocity_group_only_where_every_command_is_inside(
     chunk[0, :3] = [0.01, -0.02, 0.04]  # all inside: stopped
     chunk[1, :3] = [0.01, 0.2, 0.0]  # one outside: kept as sampled
     chunk[:, 3:] = 0.01  # not the group's
-    out, _ = execution.hold_still(chunk, bands, np.full(5, np.nan))
+    out = execution.hold_still(chunk, bands, np.full(5, np.nan))
     np.testing.assert_array_equal(out[0, :3], 0.0)
     np.testing.assert_array_equal(out[1], chunk[1])
     np.testing.assert_array_equal(out[:, 3:], chunk[:, 3:])
@@ -68,10 +68,9 @@ def test_the_deadband_stops_a_velocity_group_only_where_every_command_is_inside(
 def test_a_position_group_keeps_its_command_until_one_leaves_the_band_around_it():
     bands = _bands(torso=([0], 0.1, False))
     chunk = np.array([[1.05], [0.98], [1.3], [1.35], [1.1]])
-    out, held = execution.hold_still(chunk, bands, np.array([1.0]))
+    out = execution.hold_still(chunk, bands, np.array([1.0]))
     np.testing.assert_allclose(out[:, 0], [1.0, 1.0, 1.3, 1.3, 1.1])
-    assert held[0] == 1.1
-    fresh, _ = execution.hold_still(chunk, bands, np.array([np.nan]))  # nothing held yet
+    fresh = execution.hold_still(chunk, bands, np.array([np.nan]))  # nothing held yet
     np.testing.assert_allclose(fresh[:, 0], [1.05, 1.05, 1.3, 1.3, 1.1])
 
 

@@ -199,8 +199,8 @@ class Evaluator:
         draws = np.stack([chunks.transform.absolute_actions(d, chunks.frames)
                           for d in self.sample(params)])
         if self.bands:  # as executed: each chunk held still from the command before it
-            draws, _ = execution.hold_still(draws, self.bands,
-                                            np.broadcast_to(chunks.previous, draws[:, :, 0].shape))
+            draws = execution.hold_still(draws, self.bands,
+                                         np.broadcast_to(chunks.previous, draws[:, :, 0].shape))
         return draws / chunks.scale
 
     def __call__(self, params: Any) -> Evaluation:

@@ -54,15 +54,13 @@ def temporal_ensemble(plans: Sequence[tuple[int, np.ndarray]], now: int, n_exec:
 Band = tuple[np.ndarray, np.ndarray, bool]  # a group's (dims, band [len(dims)], velocity?)
 
 
-def hold_still(chunks: np.ndarray, bands: Sequence[Band], held: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+def hold_still(chunks: np.ndarray, bands: Sequence[Band], held: np.ndarray) -> np.ndarray:
     """Chunks `[..., H, A]` with each group of `bands` held still where it is commanded less
     motion than its band, step by step: a velocity group is commanded 0 at a step whose every
     command lies within its band around 0; a position group keeps its held command at a step
     whose every command lies within its band around it, and any other command passes and is held
     from then on. `held` `[..., A]`: the commands held before the first step (the last executed;
-    NaN where there is none: those commands pass). Returns the chunks and the held commands
-    after the last step."""
+    NaN where there is none: those commands pass)."""
     out = np.array(chunks, dtype=np.float64)
     held = np.array(held, dtype=np.float64)
     for t in range(out.shape[-2]):
@@ -74,7 +72,7 @@ def hold_still(chunks: np.ndarray, bands: Sequence[Band], held: np.ndarray
             out[..., t, dims] = np.where(inside, rest, out[..., t, dims])
             if not velocity:
                 held[..., dims] = out[..., t, dims]
-    return out.astype(np.asarray(chunks).dtype), held
+    return out.astype(np.asarray(chunks).dtype)
 
 
 def deadband_groups(sampling: Sampling, layout: ActionLayout | None,
@@ -113,7 +111,7 @@ class ChunkRules:
     def __call__(self, stream: Hashable, chunk: np.ndarray) -> np.ndarray:
         if self.bands:
             held = self._held.get(stream, np.full(chunk.shape[-1], np.nan))
-            chunk, _ = hold_still(chunk, self.bands, held)
+            chunk = hold_still(chunk, self.bands, held)
             self._held[stream] = chunk[min(self.executed or len(chunk), len(chunk)) - 1]
         return chunk if self.latch is None else self.latch(stream, chunk, self.executed)
 
@@ -177,8 +175,8 @@ class Replanner:
                 chunk = temporal_ensemble(self._plans[i], now, self.n_exec,
                                           sampling.temporal_ensemble)
             if self.bands:
-                chunk, _ = hold_still(chunk, self.bands,
-                                      self._executed.get(i, np.full(chunk.shape[-1], np.nan)))
+                chunk = hold_still(chunk, self.bands,
+                                   self._executed.get(i, np.full(chunk.shape[-1], np.nan)))
             if self.latch is not None:
                 chunk = self.latch(i, chunk, self.n_exec)
             self._tails[i] = chunk[self.n_exec:]
