@@ -55,9 +55,9 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     run, sampling = policy_.run, policy_.sampling
     replanning = execution.Replanner(policy_)  # its levers checked before any rollout
     n_exec = replanning.n_exec
+    tag = run.result_tag(closed_loop=True)
     results_path, figure_path = closed_loop_paths(run.workdir, run.step, episodes=episodes,
-                                                  sim_seed=sim_seed,
-                                                  levers=run.result_tag(closed_loop=True))
+                                                  sim_seed=sim_seed, levers=tag)
     writable_folder(results_path.parent)  # before the rollouts, not after
     if run.layout.real_dim != 23:
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
@@ -94,8 +94,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                                  spec=spec, progress=False)
     rollout_lib.plot_rollouts(shown, expert, figure_path,
                               f"step {run.step}: closed loop, n_exec {n_exec}"
-                              + (f", levers {run.result_tag(closed_loop=True)}"
-                                 if run.result_tag(closed_loop=True) else ""))
+                              + (f", levers {tag}" if tag else ""))
     return run.step, summary
 
 

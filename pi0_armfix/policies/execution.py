@@ -83,13 +83,9 @@ def deadband_groups(sampling: Sampling, layout: ActionLayout | None,
     Raises:
       ValueError naming a group the layout lacks.
     """
-    bands = sampling.deadbands()
+    bands = sampling.deadbands(layout)
     if not bands:
         return []
-    unknown = sorted(set(bands) - set(layout.groups))
-    if unknown:
-        raise ValueError(f"deadband names {unknown}, not groups of the run's layout "
-                         f"{list(layout.groups)}")
     std = np.asarray(action_std, np.float64)
     return [(np.asarray(layout.group_dims(g)), k * std[layout.group_dims(g)],
              g in layout.velocity_groups) for g, k in bands.items()]

@@ -89,10 +89,7 @@ class Sampling:
         object.__setattr__(self, "gripper_hysteresis", thresholds)
         for field, least in (("num_steps", 1), ("average_draws", 1), ("n_exec", 0)):
             value = getattr(self, field)
-            try:
-                number = float(value)
-            except (TypeError, ValueError):
-                number = math.nan
+            number = _number(value)
             if not number == int(number if math.isfinite(number) else 0) or number < least:
                 raise ValueError(f"{field} = {value} ({_where(field)}) must be a whole number "
                                  f">= {least}")
@@ -103,22 +100,14 @@ class Sampling:
         if not isinstance(rtc, (bool, np.bool_)) and rtc not in (0, 1):
             raise ValueError(f"rtc = {self.rtc!r} ({_where('rtc')}) must be true or false")
         object.__setattr__(self, "rtc", bool(rtc))
-        for field in ("temporal_ensemble",):
-            try:
-                value = float(getattr(self, field))
-            except (TypeError, ValueError):
-                value = math.nan
-            if not value >= 0:
-                raise ValueError(f"{field} = {getattr(self, field)} ({_where(field)}) must be "
-                                 ">= 0 (0: off)")
-            object.__setattr__(self, field, value)
+        if not _number(self.temporal_ensemble) >= 0:
+            raise ValueError(f"temporal_ensemble = {self.temporal_ensemble} "
+                             f"({_where('temporal_ensemble')}) must be >= 0 (0: off)")
+        object.__setattr__(self, "temporal_ensemble", _number(self.temporal_ensemble))
         for field in ("group_draws", "deadband"):
             object.__setattr__(self, field, str(getattr(self, field) or ""))
         self.group_counts(), self.deadbands()  # their syntax, before any use
-        try:
-            object.__setattr__(self, "temperature", float(self.temperature))
-        except (TypeError, ValueError):
-            object.__setattr__(self, "temperature", math.nan)
+        object.__setattr__(self, "temperature", _number(self.temperature))
         if not 0.0 < self.temperature <= 1.0:
             raise ValueError(f"temperature = {self.temperature} ({_where('temperature')}) "
                              "must be in (0, 1] (the initial noise's scale; 1 = the flow as "
@@ -148,22 +137,25 @@ class Sampling:
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
 
-    def group_counts(self) -> dict[str, int]:
-        """`group_draws` as `{group: k}` ({} when unset).
+    def group_counts(self, layout: ActionLayout | None = None) -> dict[str, int]:
+        """`group_draws` as `{group: k}` ({} when unset), its groups checked against `layout`.
 
         Raises:
-          ValueError naming the item, for one that is not `group=k` with a whole k >= 1.
+          ValueError naming the item, for one that is not `group=k` with a whole k >= 1, or a
+          group the layout lacks.
         """
         return _per_group(self.group_draws, "group_draws", int, "a whole k >= 1",
-                          "base=4+torso=8")
+                          "base=4+torso=8", layout)
 
-    def deadbands(self) -> dict[str, float]:
-        """`deadband` as `{group: k}` ({} when unset).
+    def deadbands(self, layout: ActionLayout | None = None) -> dict[str, float]:
+        """`deadband` as `{group: k}` ({} when unset), its groups checked against `layout`.
 
         Raises:
-          ValueError naming the item, for one that is not `group=k` with k > 0.
+          ValueError naming the item, for one that is not `group=k` with k > 0, or a group the
+          layout lacks.
         """
-        return _per_group(self.deadband, "deadband", float, "k > 0", "base=0.2+torso=0.5")
+        return _per_group(self.deadband, "deadband", float, "k > 0", "base=0.2+torso=0.5",
+                          layout)
 
     def draw_counts(self, layout: ActionLayout) -> tuple[int, ...] | None:
         """Draws averaged into each of `layout`'s padded action dims `[action_dim]` (None where
@@ -172,11 +164,7 @@ class Sampling:
         Raises:
           ValueError naming a `group_draws` group the layout lacks.
         """
-        counts = self.group_counts()
-        unknown = sorted(set(counts) - set(layout.groups))
-        if unknown:
-            raise ValueError(f"group_draws names {unknown}, not groups of the run's layout "
-                             f"{list(layout.groups)}")
+        counts = self.group_counts(layout)
         per_dim = np.full(layout.action_dim, self.average_draws)
         for group, k in counts.items():
             per_dim[layout.group_dims(group)] = k
@@ -256,12 +244,22 @@ class Sampling:
         return hysteresis.GripperLatch(dims, *self.gripper_hysteresis)
 
 
+def _number(value: Any) -> float:
+    """`value` as a float (a config's number, a flag's or a study override's text); NaN where it
+    is none, so that the range checks name it."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 def _per_group(text: str, field: str, cast: Callable[[str], float], allowed: str,
-               example: str) -> dict[str, Any]:
-    """`"group=value+group=value"` -> `{group: cast(value)}`, each value > 0 ({} for '').
+               example: str, layout: ActionLayout | None) -> dict[str, Any]:
+    """`"group=value+group=value"` -> `{group: cast(value)}`, each value > 0 ({} for ''), the
+    groups those of `layout` where one is given.
 
     Raises:
-      ValueError naming the item and `field`, for a malformed one.
+      ValueError naming the item and `field`, for a malformed one, or the groups `layout` lacks.
     """
     values = {}
     for item in filter(None, text.split("+")):
@@ -274,6 +272,10 @@ def _per_group(text: str, field: str, cast: Callable[[str], float], allowed: str
             raise ValueError(f"{field} item {item!r} ({_where(field)}) must be group=k with "
                              f"{allowed}, items joined by '+' (e.g. {example})")
         values[group] = number
+    unknown = sorted(set(values) - set(layout.groups)) if layout is not None else []
+    if unknown:
+        raise ValueError(f"{field} names {unknown}, not groups of the run's layout "
+                         f"{list(layout.groups)}")
     return values
 
 
