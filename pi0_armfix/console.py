@@ -167,10 +167,6 @@ def _check_config_file(program: str, path: str) -> None:
                          f"name of an installed config: {', '.join(config_names())}")
 
 
-_LEVER_FLAGS = ("average_draws", "temperature", "group_draws", "deadband", "n_exec", "rtc",
-                "temporal_ensemble", "gripper_hysteresis")
-
-
 def define_lever_flags() -> None:
     """The policy's levers for this command (`policies.sampling.Sampling`, whose docstring says
     what each does), unset = the run's `eval.<lever>` (`inference.restore_run`)."""
@@ -202,5 +198,6 @@ def define_lever_flags() -> None:
 
 def lever_flags() -> dict[str, Any]:
     """The levers given on the command line (`define_lever_flags`), as `Sampling` fields."""
-    return {key: flags.FLAGS[key].value for key in _LEVER_FLAGS
-            if flags.FLAGS[key].value is not None}
+    # Here, not at the top: the console stays free of jax for the commands that never sample.
+    from pi0_armfix.policies.sampling import LEVERS
+    return {key: flags.FLAGS[key].value for key in LEVERS if flags.FLAGS[key].value is not None}
