@@ -34,7 +34,7 @@ RESUME_MODES = ("auto", "force", "new")
 # Key prefixes of the fingerprint, and the keys under them that only tune how a run is executed.
 FINGERPRINT_KEYS = ("seed", "model", "loss", "layout", "data", "train.batch_size")
 EXECUTION_KEYS = ("model.pretrained", "model.dtype", "data.num_workers", "data.prefetch",
-                  "data.probe_episodes", "data.video_tolerance_frames")
+                  "data.probe_episodes", "data.video_tolerance_frames", "data.frame_cache")
 # Keys added after runs were saved without them, with the value that reproduces what those runs
 # did: a saved config that lacks one compares as if it held that value.
 ADDED_KEYS = {"data.video_access": "auto", "data.stream_episodes": 16, "data.stream_shuffle": 256,

@@ -69,6 +69,7 @@ from pi0_armfix.cache import digest
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data.episodes import EpisodeTable
+from pi0_armfix.data.formats import image_store
 from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 from pi0_armfix.data.formats.frame_store import FrameStore
 from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, segment_time
@@ -113,6 +114,8 @@ class LeRobotSource:
         is missing are left out, named in one warning line (True), or (False) are an error naming
         them all as soon as a pass would read images (`probe`, `load_table`); passes that read
         none (statistics, analysis) read every episode.
+      frame_cache: `data.frame_cache`: video frames are decoded once, at the size `load_table`
+        is asked for, into an on-disk cache (`image_store`) that every later table reads.
 
     Attributes:
       num_episodes, episode_index ([E] int64 episode ids), episode_lengths ([E] int64),
@@ -127,8 +130,9 @@ class LeRobotSource:
                  state_key: str = STATE, state_indices: Sequence[int] | None = None,
                  state_preset: str = "", action_indices: Sequence[int] | None = None,
                  video_tolerance_frames: float = 0.5, images: bool = True,
-                 skip_missing_videos: bool = False):
+                 skip_missing_videos: bool = False, frame_cache: bool = False):
         self.root = Path(root)
+        self.frame_cache = bool(frame_cache)
         info_path = self.root / "meta" / "info.json"
         if not info_path.is_file():
             raise ValueError(f"{self.root} is not a LeRobot dataset root: {info_path} is missing")
@@ -480,6 +484,25 @@ class LeRobotSource:
                 "state": [self._columns["state"] if self._has_state else None,
                           repr(self.state_selection)]}
 
+    def _stored_images(self, positions: Sequence[int], image_size: tuple[int, int] | None
+                       ) -> image_store.StoredFrameImages:
+        """The images of the episodes at `positions` from the decoded-frame cache of every
+        episode (`image_store`; built on first use)."""
+        if any(kind != "video" for kind in self._camera_kind.values()):
+            raise ValueError(f"{self.root}: data.frame_cache stores video cameras, but "
+                             f"{sorted(self._camera_kind)} mixes videos and images; set "
+                             "data.frame_cache=False")
+        everything = list(range(len(self._episodes)))
+        starts = np.concatenate([[0], np.cumsum(self.episode_lengths)]).astype(np.int64)
+        reader = LeRobotFrameImages(
+            self.cameras, self._camera_kind, self._episodes, starts,
+            self.frame_store.column("timestamp", everything), self.fps,
+            video_tolerance_frames=self.video_tolerance_frames, image_size=image_size)
+        files = [path for e in self._episodes for path, _, _ in e.videos.values()]
+        root = image_store.open_store(self.identity(), reader, self.episode_index,
+                                      self.episode_lengths, files, image_size)
+        return image_store.stored_images(root, self.cameras, starts, positions)
+
     @functools.cached_property
     def frame_store(self) -> FrameStore:
         """The on-disk frame columns of this source (built on first use)."""
@@ -501,7 +524,9 @@ class LeRobotSource:
         store = self.frame_store
         starts = np.concatenate([[0], np.cumsum([e.length for e in chosen])]).astype(np.int64)
         reader = None
-        if images and self.cameras:
+        if images and self.cameras and videos and self.frame_cache:
+            reader = self._stored_images(positions, image_size)
+        elif images and self.cameras:
             reader = LeRobotFrameImages(
                 self.cameras, self._camera_kind, chosen, starts,
                 store.column("timestamp", positions) if videos else None, self.fps,

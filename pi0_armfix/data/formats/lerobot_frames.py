@@ -75,7 +75,7 @@ class LeRobotFrameImages:
         self._starts = np.asarray(episode_starts)
         self._timestamps = timestamps
         self._fps, self._cache_bytes, self._max_open = fps, cache_bytes, max_open_videos
-        self._tolerance = video_tolerance_frames
+        self.tolerance = video_tolerance_frames
         self._image_size = tuple(image_size) if image_size else None
         self._local = threading.local()
 
@@ -122,7 +122,7 @@ class LeRobotFrameImages:
             if self._kinds[feature] == "video":
                 path, start, stop = episode.videos[feature]
                 seconds = segment_time(start, stop, float(self._timestamps[frame]), self._fps,
-                                       self._tolerance, f"episode {episode.index}, camera "
+                                       self.tolerance, f"episode {episode.index}, camera "
                                        f"{feature!r}, row {offset}", path)
                 out[camera] = video(path).frame_at(seconds)
             else:
@@ -137,9 +137,9 @@ class LeRobotFrameImages:
         if not path.is_file():
             raise ValueError(f"missing video file {path}")
         if forward_only:
-            return VideoDecoder(path, self._fps, self._tolerance, size=self._image_size,
-                                threads=False, max_frames=math.ceil(self._tolerance) + 2)
-        return VideoDecoder(path, self._fps, self._tolerance, size=self._image_size)
+            return VideoDecoder(path, self._fps, self.tolerance, size=self._image_size,
+                                threads=False, max_frames=math.ceil(self.tolerance) + 2)
+        return VideoDecoder(path, self._fps, self.tolerance, size=self._image_size)
 
     def _image(self, feature: str, path: Path, row: int) -> np.ndarray:
         caches = self._caches

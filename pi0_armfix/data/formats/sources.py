@@ -15,6 +15,8 @@ Config keys read here (`config.data`):
   video_tolerance_frames    LeRobot: how far a row's timestamp may lie from its video frame.
   skip_missing_videos       LeRobot: leave out the episodes whose video files are missing
                  (named in one line) instead of refusing them.
+  frame_cache    LeRobot: decode the video frames once at the model's size into an on-disk
+                 cache (`image_store`) and read them from there.
   split          optional, RLDS only: the split to read (default "train").
 """
 
@@ -90,4 +92,5 @@ def open_source(data_cfg: Mapping[str, Any], layout: ActionLayout) -> Source:
         state_preset=selection_lib.state_preset(data_cfg),
         action_indices=data_cfg.get("action_indices") or None,
         video_tolerance_frames=float(data_cfg.get("video_tolerance_frames") or 0.5),
-        images=images, skip_missing_videos=bool(data_cfg.get("skip_missing_videos", False)))
+        images=images, skip_missing_videos=bool(data_cfg.get("skip_missing_videos", False)),
+        frame_cache=bool(data_cfg.get("frame_cache", False)))
