@@ -39,7 +39,8 @@ EXECUTION_KEYS = ("model.pretrained", "model.dtype", "data.num_workers", "data.p
 # did: a saved config that lacks one compares as if it held that value.
 ADDED_KEYS = {"data.video_access": "auto", "data.stream_episodes": 16, "data.stream_shuffle": 256,
               "data.stream_stride": 1, "data.skip_missing_videos": False,
-              "data.delta_reference": "state"}
+              "data.delta_reference": "state", "data.frame_cache": False, "model.lora": [],
+              "model.remat_policy": "nothing_saveable", "model.attention": "einsum"}
 # Paths compare as absolute paths, so that a run restarted from another folder is the same run.
 PATH_KEYS = ("data.root", "data.norm_stats", "data.arm_heavy_episodes", "model.tokenizer")
 
