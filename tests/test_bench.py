@@ -57,6 +57,17 @@ def test_video_benchmark_measures_both_access_modes_on_a_short_gop_original(tmp_
     assert "diversity" not in out and "re-encode" not in out
 
 
+@pytest.mark.slow  # a whole benchmark part
+def test_video_benchmark_measures_the_frame_cache_against_decoding_on_request(tmp_path):
+    out = _bench(tmp_path, "video", "--episodes=2", "--episode_frames=12", "--head=96",
+                 "--wrist=64", "--size=32", "--samples=3", "--batch_size=2", "--steps=2",
+                 "--num_workers=0", "--original_gop=2", "--parts=cache")
+    assert "frame cache: 24 frames x 3 cameras decoded once at 32²" in out
+    assert "ms against" in out and "decoded on request (warm decoders)" in out
+    assert "training iterator on the original, 0 workers, decoded on request:" in out
+    assert "training iterator on the original, 0 workers, from the frame cache:" in out
+
+
 @pytest.mark.slow  # the slow lane: fault injection
 def test_fault_injection_benchmark_kills_restarts_and_finds_every_resume_bitwise(tmp_path):
     out = _bench(tmp_path, "faults", "--kills=2", "--steps=6", "--seed=1")

@@ -5,7 +5,8 @@
                                      [--stream_workers=0,1,2] [--stream_episodes=16]
                                      [--stream_shuffle=256] [--stream_stride=4]
                                      [--diversity_samples=10000,100000]
-                                     [--original_gop=0] [--parts=random,stream,diversity,reencode]
+                                     [--original_gop=0]
+                                     [--parts=random,stream,diversity,reencode,cache]
 
 dataset    a LeRobot v2.1 root like BEHAVIOR-1K 2025's cameras: head 720², wrists 480², HEVC
            (libx265) with ONE keyframe per episode (`--original_gop=8`: a keyframe every 8
@@ -37,6 +38,11 @@ reencode   `python -m pi0_armfix.tools.reencode_videos --size --gop` on it: fram
 training   the training iterator (images, prompts, chunks) on the re-encoded copy with
            `--num_workers` Grain workers: samples/s. Target >= 20 samples/s on 2 cores
            (one H100 at openpi's speed consumes ~19).
+cache      `data.frame_cache` on the original (a short GOP: `--original_gop=2` is a G1's AV1
+           keyframe spacing): the one-time decode of every frame at `--size`² (frames/s, MiB on
+           disk, into a scratch cache folder), then a random sample's 3 cameras read from it
+           against decoding them on request (warm decoders, as a training process keeps them),
+           and the training iterator with `--num_workers` workers on each.
 """
 
 from __future__ import annotations
@@ -59,7 +65,7 @@ _LAYOUT = "b1k_r1pro"
 _CAMERAS = ("observation.images.rgb.head", "observation.images.rgb.left_wrist",
             "observation.images.rgb.right_wrist")
 B1K_MEAN_EPISODE_FRAMES = 11_900
-PARTS = ("random", "stream", "diversity", "reencode")
+PARTS = ("random", "stream", "diversity", "reencode", "cache")
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
@@ -200,7 +206,8 @@ def _tokenize(prompt: str) -> tuple[np.ndarray, np.ndarray]:
 
 def training_throughput(root: Path, size: int, batch_size: int, steps: int,
                         num_workers: int, video_access: str = "random",
-                        stream: tuple[int, int, int] = (16, 256, 4)) -> dict[str, Any]:
+                        stream: tuple[int, int, int] = (16, 256, 4),
+                        frame_cache: bool = False) -> dict[str, Any]:
     """The training iterator's samples/s; for a stream also the memory of its processes and the
     latency of a resume from the state after the timed steps. `stream`: (open episodes, shuffle
     window, stride)."""
@@ -212,6 +219,7 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
     config = common.data_config(str(root), num_workers)
     (config.data.stream_episodes, config.data.stream_shuffle,
      config.data.stream_stride) = stream
+    config.data.frame_cache = frame_cache
     spec = DataSpec.from_config(config, ActionLayout.preset(_LAYOUT))
     source = sources.open_source(spec.options, spec.layout)
     stats = dataset_lib.dataset_norm_stats(spec, action_horizon=50, source=source,
@@ -251,6 +259,41 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
         finally:
             resumed.close()
     return result
+
+
+def frame_cache(root: Path, size: int, samples: int, scratch: Path) -> dict[str, float]:
+    """The one-time decode of `root`'s frames into a frame cache under `scratch`, and random
+    reads of a sample's cameras from it against decoding on request (one table each, its
+    decoders kept warm as a training process keeps them)."""
+    from pi0_armfix.data.formats.lerobot import LeRobotSource
+
+    layout = ActionLayout.preset(_LAYOUT)
+    previous = os.environ.get("PI0_ARMFIX_CACHE")
+    os.environ["PI0_ARMFIX_CACHE"] = str(scratch)
+    try:
+        cached = LeRobotSource(root, layout, frame_cache=True)
+        cached.frame_store  # noqa: B018 - the frame columns first, so that only decoding is timed
+        start = time.perf_counter()
+        cached_table = cached.load_table(images=True, image_size=(size, size))
+        build_s = time.perf_counter() - start
+    finally:
+        if previous is None:
+            os.environ.pop("PI0_ARMFIX_CACHE")
+        else:
+            os.environ["PI0_ARMFIX_CACHE"] = previous
+    decoded_table = LeRobotSource(root, layout).load_table(images=True, image_size=(size, size))
+    frames = np.random.default_rng(0).integers(0, cached_table.num_frames, samples)
+
+    def ms_per_sample(table) -> float:
+        start = time.perf_counter()
+        for frame in frames:
+            table.images(int(frame))
+        return 1000 * (time.perf_counter() - start) / samples
+
+    disk = sum(f.stat().st_size for f in (scratch / "images").rglob("*.npy"))
+    return {"frames": cached_table.num_frames, "build_s": build_s,
+            "frames_per_s": cached_table.num_frames / build_s, "mib": disk / 2**20,
+            "cached_ms": ms_per_sample(cached_table), "decoded_ms": ms_per_sample(decoded_table)}
 
 
 class _EpisodeLengths:
@@ -374,6 +417,20 @@ def main(argv: list[str]) -> None:
                                             if k.startswith("same@"))
               + f"; {d['distinct_long']:.0f} distinct in {long:,} samples")
 
+    if "cache" in args.parts:
+        with tempfile.TemporaryDirectory(dir=root.parent) as scratch:
+            cache = frame_cache(root, args.size, max(args.samples, 100), Path(scratch))
+        print(f"frame cache: {cache['frames']:,} frames x 3 cameras decoded once at {args.size}² "
+              f"in {cache['build_s']:.1f} s = {cache['frames_per_s']:.0f} frames/s on {cores} "
+              f"cores, {cache['mib']:.0f} MiB; a random sample read from it "
+              f"{cache['cached_ms']:.3f} ms against {cache['decoded_ms']:.1f} ms decoded on "
+              "request (warm decoders)")
+        for cached in (False, True):
+            result = training_throughput(root, args.size, args.batch_size, args.steps,
+                                         args.num_workers, frame_cache=cached)
+            print(f"training iterator on the original, {args.num_workers} workers, "
+                  + ("from the frame cache" if cached else "decoded on request")
+                  + f": {result['samples_per_s']:.1f} samples/s")
     if "reencode" not in args.parts:
         return
     with tempfile.TemporaryDirectory(dir=root.parent) as scratch:
