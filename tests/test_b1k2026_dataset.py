@@ -84,6 +84,7 @@ def test_every_row_decodes_its_own_episodes_frame_from_the_concatenated_videos(b
             assert identify_frame(images[camera], episode, length, c) == offset
 
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_b1k2026_scale_trains_and_evaluates_on_the_fixture_and_says_what_it_reads(
         b1k2026, tmp_path, capsys):
     root, _ = b1k2026

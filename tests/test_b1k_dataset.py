@@ -85,6 +85,7 @@ def test_b1k_hevc_frames_decode_at_their_timestamps(b1k):
             assert identify_frame(images[camera], position, table.num_frames, c) == frame
 
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_b1k_scale_trains_and_evaluates_on_the_fixture(b1k, tmp_path, capsys):
     root, _ = b1k
     workdir = tmp_path / "run"

@@ -107,6 +107,7 @@ def test_train_benchmark_prints_throughput_against_the_bounds_and_the_batch_swee
     assert "  K = 4, batch 16:" in out
 
 
+@pytest.mark.slow  # a whole benchmark run: the slow lane
 def test_the_step_benchmark_times_the_projects_train_step_and_counts_its_flops():
     from pi0_armfix.bench import step as step_bench
 

@@ -13,6 +13,7 @@ import pytest
 from ml_collections import ConfigDict
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.cache import cache_root
 from pi0_armfix.data.formats import demo, video
 from pi0_armfix.data.formats.lerobot import LeRobotSource
 from pi0_armfix.data.formats.sources import open_source
@@ -25,15 +26,13 @@ CHUNK = 50  # pi0's action horizon
 
 
 @pytest.fixture(scope="module")
-def default_demo(tmp_path_factory):
-    """The default demo, reached as training reaches it: data.root '' and a cache folder."""
-    cache = tmp_path_factory.mktemp("cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("PI0_ARMFIX_CACHE", str(cache))
-        # Every stored dim in its stored order (the runs' default reorders it, tested below).
-        source = open_source(ConfigDict({"root": "", "format": "lerobot",
-                                         "state_indices": tuple(range(23))}), LAYOUT)
-    assert source.root == demo.demo_cache_path(cache, demo.DemoSpec())
+def default_demo():
+    """The default demo, reached as training reaches it: data.root '' and the cache folder (the
+    session's, so that a warm cache is not generated again)."""
+    # Every stored dim in its stored order (the runs' default reorders it, tested below).
+    source = open_source(ConfigDict({"root": "", "format": "lerobot",
+                                     "state_indices": tuple(range(23))}), LAYOUT)
+    assert source.root == demo.demo_cache_path(cache_root(), demo.DemoSpec())
     return source
 
 
@@ -76,9 +75,7 @@ def test_state_follows_the_baseline_state_order(demo_frames):
 
 def test_runs_read_the_embedded_demos_state_in_the_action_order(default_demo, demo_frames):
     actions, stored, _ = demo_frames
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("PI0_ARMFIX_CACHE", str(default_demo.root.parent))
-        source = open_source(ConfigDict({"root": "", "format": "lerobot"}), LAYOUT)
+    source = open_source(ConfigDict({"root": "", "format": "lerobot"}), LAYOUT)
     state = source.load_table([int(default_demo.episode_index[0])], images=False).state
     first = stored[:len(state)]
     np.testing.assert_array_equal(state[:, 15:22], first[:, 14:21])  # right arm after the gripper

@@ -83,6 +83,7 @@ def test_the_camera_feeds_the_head_camera_and_decodes_each_rows_frame(g1):
         assert identify_frame(image, 2, g1_fixture.LENGTHS[2], 0) == frame % 16
 
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_the_g1_scale_trains_and_evaluates_without_the_episodes_missing_their_videos(g1, tmp_path):
     root, _ = g1
     workdir = tmp_path / "run"

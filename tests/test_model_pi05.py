@@ -143,6 +143,7 @@ def test_pi05_loss_has_finite_gradients_for_every_parameter(params, strategy, kw
     assert float(jnp.abs(grads["time_mlp_in"]["kernel"]).sum()) > 0
 
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_pi05_trains_with_correlated_noise_and_gripper_switch_emphasis(params):
     from pi0_armfix.model import noise
 

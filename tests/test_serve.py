@@ -275,6 +275,7 @@ def test_arrays_round_trip_between_the_server_and_openpis_encoding():
         assert restored["b"] == 3 and restored["c"] == "x"
 
 
+@pytest.mark.slow  # a closed-loop evaluation of a trained run: the slow lane
 def test_closed_loop_evaluation_reports_success_per_phase_and_draws_rollouts(run, cache_dir):  # noqa: F811
     result = subprocess.run(
         [sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={run}", "--closed_loop",

@@ -30,6 +30,7 @@ B1K = ActionLayout.preset("b1k_r1pro")
 
 # ---------------------------------------------------------------------- a run and its outputs
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, cache_dir,
                                                                        demo_root):
     workdir = tmp_path / "run"
@@ -69,6 +70,7 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
     assert json.loads((workdir / "config.json").read_text())["loss"]["strategy"] == "per_group"
 
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_a_pi05_run_trains_evaluates_and_records_its_quantile_normalization(tmp_path, cache_dir,
                                                                             demo_root):
     workdir = tmp_path / "run"
@@ -196,6 +198,7 @@ def test_default_workdir_is_named_after_the_config_and_its_scale():
     assert train.default_workdir("configs/uniform.py:b1k") == "runs/uniform_b1k"
 
 
+@pytest.mark.slow  # a whole training run: the slow lane
 def test_run_without_workdir_checkpoints_into_runs_of_the_current_folder(tmp_path, cache_dir,
                                                                           demo_root):
     result = tf.run_train("configs/uniform.py", None, tf.tiny_overrides(demo_root), cache_dir,
