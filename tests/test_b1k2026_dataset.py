@@ -118,6 +118,7 @@ def test_a_download_of_a_few_tasks_reads_just_those_tasks_episodes(b1k2026, tmp_
     assert source.load_table().num_episodes == 3
 
 
+@pytest.mark.slow  # a trained run served: the slow lane
 def test_a_b1k2026_run_serves_61d_proprio_without_its_data(b1k2026, tmp_path):
     root, data = b1k2026
     copy = shutil.copytree(root, tmp_path / "data")

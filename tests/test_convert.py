@@ -70,6 +70,7 @@ def _run_cli(*args):
                           env={**os.environ, "JAX_PLATFORMS": "cpu"})
 
 
+@pytest.mark.slow  # a command in a subprocess: the slow lane
 def test_cli_converts_a_run_checkpoint_that_loads_back_identical_and_predicts_like_flax(
         tmp_path, params):
     _write_run_checkpoint(str(tmp_path / "run"), params)

@@ -177,6 +177,7 @@ def _save_openpi(path, params):
     return path
 
 
+@pytest.mark.slow  # a LoRA model's compile: the slow lane
 def test_a_base_checkpoint_starts_a_lora_model_with_its_adapters_from_the_init(tmp_path):
     base = _flat(flow_model.init_params(_config(()), jax.random.key(3)))
     path = _save_openpi(tmp_path / "params", _unflatten(base))

@@ -39,6 +39,7 @@ def test_each_network_maps_an_observation_batch_to_a_chunk(network, demo_root):
                            data.layout.action_dim)
 
 
+@pytest.mark.slow  # whole regressor runs: the slow lane
 def test_the_baseline_writes_every_seed_and_evaluation_beside_the_do_nothing_rows(demo_root,
                                                                                  tmp_path):
     result = regressor.run(tiny_config(demo_root), tmp_path, network="cnn", seeds=2, steps=6,

@@ -406,6 +406,7 @@ def test_real_time_chunking_weights_decay_over_the_overlap_to_zero():
     assert inference.soft_mask(8, 4, delay=2)[:2].tolist() == [1.0, 1.0]
 
 
+@pytest.mark.slow  # a closed-loop evaluation of a trained run: the slow lane
 def test_closed_loop_with_real_time_chunking_follows_the_tail(run, monkeypatch):
     asked = []
     infer = inference.RunPolicy.infer

@@ -423,6 +423,7 @@ study_main.cli()
 """
 
 
+@pytest.mark.slow  # several processes: the slow lane
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_or_kill_stops_the_study_and_its_children_and_says_how_to_resume(tmp_path,
                                                                                  signum,

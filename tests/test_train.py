@@ -131,6 +131,7 @@ def test_a_second_process_on_a_locked_workdir_stops_at_once(tmp_path, cache_dir,
     assert not (tmp_path / "run" / "metrics.jsonl").exists()
 
 
+@pytest.mark.slow  # several processes: the slow lane
 def test_the_lock_of_a_dead_run_does_not_block_and_a_finished_run_releases_it(tmp_path,
                                                                                  demo_root):
     from pi0_armfix.training import workdir_lock
@@ -312,6 +313,7 @@ def test_print_config_shows_the_resolved_keys_and_help_points_to_them(tmp_path, 
     assert "configs/base.py" in helped.stdout and "--print_config" in helped.stdout
 
 
+@pytest.mark.slow  # a command in a subprocess per module: the slow lane
 @pytest.mark.parametrize("module", ["pi0_armfix.train", "pi0_armfix.evaluate", "pi0_armfix.study",
                                     "pi0_armfix.serve", "pi0_armfix.tools.compute_norm_stats"])
 def test_help_exits_0(module, cache_dir):

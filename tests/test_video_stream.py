@@ -216,6 +216,7 @@ def _curriculum_order(phases, **options):
         **dict(seed=0, global_batch_size=10, open_episodes=2) | options)
 
 
+@pytest.mark.slow  # a long stream: the slow lane
 def test_a_mix_opens_episodes_so_that_each_source_gets_its_weight_of_the_frames():
     order = _curriculum_order([(10, {"full": 0.5, "arm_heavy": 0.5})])
     opened = np.array([order[i] for i in range(2_000)])
