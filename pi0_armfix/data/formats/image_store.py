@@ -33,7 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pi0_armfix.cache import build_lock, cache_root, digest
-from pi0_armfix.data.formats.frame_store import FrameColumn
+from pi0_armfix.data.formats.frame_store import FrameColumn, FrameStore
 
 _FORMAT = 1  # bump when the entry layout or the decoding path changes
 
@@ -97,12 +97,10 @@ def open_store(identity: Mapping[str, Any], reader, episode_index: np.ndarray, l
 def stored_images(root: Path, cameras: Sequence[str], row_starts: np.ndarray,
                   positions: Sequence[int]) -> StoredFrameImages:
     """The stored frames of the episodes at `positions` (source order, in the order given);
-    `row_starts`: `[E + 1]` first row of each of the source's episodes."""
-    positions = np.asarray(positions, np.int64)
-    starts = row_starts[positions]
-    lengths = row_starts[positions + 1] - starts
-    return StoredFrameImages({camera: FrameColumn(root / f"{camera}.npy", starts, lengths)
-                              for camera in cameras})
+    `row_starts`: `[E + 1]` first row of each of the source's episodes. The entry's columns are
+    laid out as a `FrameStore`'s, one per camera."""
+    store = FrameStore(root, cameras, row_starts)
+    return StoredFrameImages({camera: store.column(camera, positions) for camera in cameras})
 
 
 def _build(reader, key: dict[str, Any], root: Path, episode_index: np.ndarray,

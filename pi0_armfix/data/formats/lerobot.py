@@ -492,11 +492,10 @@ class LeRobotSource:
             raise ValueError(f"{self.root}: data.frame_cache stores video cameras, but "
                              f"{sorted(self._camera_kind)} mixes videos and images; set "
                              "data.frame_cache=False")
-        everything = list(range(len(self._episodes)))
-        starts = np.concatenate([[0], np.cumsum(self.episode_lengths)]).astype(np.int64)
+        starts = self.frame_store.row_starts
         reader = LeRobotFrameImages(
             self.cameras, self._camera_kind, self._episodes, starts,
-            self.frame_store.column("timestamp", everything), self.fps,
+            self.frame_store.column("timestamp", range(len(self._episodes))), self.fps,
             video_tolerance_frames=self.video_tolerance_frames, image_size=image_size)
         files = [path for e in self._episodes for path, _, _ in e.videos.values()]
         root = image_store.open_store(self.identity(), reader, self.episode_index,
