@@ -80,3 +80,12 @@ def test_policy_error_comes_from_a_runs_last_evaluation_in_data_units(tmp_path):
 def test_a_noise_run_without_an_evaluation_is_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match="--noise_run=.*held-out evaluation"):
         calibration.policy_error_std(tmp_path)
+
+
+def test_each_tolerance_keeps_the_outcomes_of_its_own_episodes(curves):
+    for factor, summary in curves[calibration.NOISY_EXPERT].items():
+        detail = summary["episodes_detail"]
+        assert [e["episode"] for e in detail] == [PRESS_TASK]
+        assert float(np.mean([e["task"] for e in detail])) == summary["success/task"]
+        phases = [p for e in detail for p in e["phases"] if p["kind"] == "manipulation"]
+        assert np.mean([p["success"] for p in phases]) == summary["phase_success/manipulation"]

@@ -230,6 +230,81 @@ def test_closed_loop_replicates_are_the_rate_on_each_resample_of_the_episodes():
     assert task.mean() == pytest.approx(0.5, abs=0.05)
 
 
+def _outcomes(rng, episodes=38, factors=("", "curve/2x/", "curve/4x/")):
+    """Per-episode closed-loop outcomes at each tolerance, the task's success drawn at random."""
+    out = {}
+    for at in factors:
+        s = rng.integers(0, 2, episodes).tolist()
+        out |= {f"{at}success/task": s, f"{at}success/navigation": s,
+                f"{at}success/manipulation": s, f"{at}phases/navigation": [2] * episodes,
+                f"{at}phase_successes/navigation": [2] * episodes,
+                f"{at}phases/manipulation": [2] * episodes, f"{at}phase_successes/manipulation": s}
+    return out
+
+
+def test_a_rate_at_a_looser_tolerance_is_resampled_from_that_tolerances_episodes():
+    outcomes = _outcomes(np.random.default_rng(0), episodes=4)
+    outcomes["curve/2x/success/task"] = [1, 1, 1, 1]
+    outcomes["success/task"] = [0, 0, 0, 0]
+    np.testing.assert_allclose(aggregate.closed_loop_replicates(outcomes, "curve/2x/success/task"),
+                               1.0)
+    np.testing.assert_allclose(aggregate.closed_loop_replicates(outcomes, "success/task"), 0.0)
+    counts = intervals.episode_counts(4)
+    expected = counts @ np.asarray(outcomes["curve/4x/phase_successes/manipulation"], float) / (
+        counts @ np.full(4, 2.0))
+    np.testing.assert_allclose(aggregate.closed_loop_replicates(
+        outcomes, "curve/4x/phase_success/manipulation"), expected)
+
+
+def _curve_lever_pair(seed, rng, task_2x, shift):
+    """A trained run and its execution-lever variant, both measured in closed loop at 1x, 2x
+    and 4x on the same 38 episodes; the variant's task success at 2x `shift` higher."""
+    pair = []
+    for config, rate in (("arm_focused", task_2x), ("arm_focused@eval.n_exec=8", task_2x + shift)):
+        run = _closed_loop_result(config, seed, 0.5, _outcomes(rng))
+        run["metrics"] |= {"closed_loop/curve/2x/success/task": rate,
+                           "closed_loop/curve/4x/success/task": 0.9}
+        pair.append(run)
+    pair[1]["trained"] = "arm_focused"
+    return pair
+
+
+def test_a_lever_is_compared_at_every_tolerance_of_the_curve_with_its_interval(tmp_path):
+    rng = np.random.default_rng(0)
+    runs = [r for seed in range(5) for r in _curve_lever_pair(seed, rng, 0.2 + 0.1 * seed, 0.2)]
+    agg = study_main.write_reports(runs, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    vs = agg["configs"]["arm_focused@eval.n_exec=8"]["vs_trained"]
+    diff, low, high = vs["closed_loop/curve/2x/success/task"]
+    assert diff == pytest.approx(0.2)
+    assert low < 0.19 and high > 0.21  # every seed +0.2: the width is the episodes' own error
+    assert vs["closed_loop/curve/4x/success/task"][0] == pytest.approx(0.0)
+    text = (tmp_path / "study.md").read_text()
+    assert "| config | navigation at 1x | manipulation at 1x | task at 1x | navigation at 2x |" \
+        in text
+    row = next(line for line in text.splitlines()
+               if line.startswith("| arm_focused@eval.n_exec=8 | +"))
+    assert "+0.200 [" in row
+
+
+def test_a_run_without_its_episodes_at_a_looser_tolerance_gets_no_interval_there():
+    rng = np.random.default_rng(1)
+    runs = [r for seed in range(3) for r in _curve_lever_pair(seed, rng, 0.3, 0.1)]
+    for run in runs:  # measured before the curve's episodes were kept
+        run["closed_loop_episodes"] = {k: v for k, v in run["closed_loop_episodes"].items()
+                                       if not k.startswith("curve/")}
+    vs = aggregate.aggregate(runs)["configs"]["arm_focused@eval.n_exec=8"]["vs_trained"]
+    assert "closed_loop/curve/2x/success/task" not in vs
+    assert "closed_loop/success/task" in vs
+
+
+def test_a_run_measured_before_the_curve_kept_its_episodes_is_measured_again():
+    run = _closed_loop_result("uniform", 0, 0.5, _outcomes(np.random.default_rng(2)))
+    assert study_run.run_has_closed_loop(run, 50)
+    run["closed_loop_episodes"] = {k: v for k, v in run["closed_loop_episodes"].items()
+                                   if not k.startswith("curve/4x/")}
+    assert not study_run.run_has_closed_loop(run, 50)
+
+
 def test_the_world_episodes_widen_the_closed_loop_interval():
     rng = np.random.default_rng(0)
 
@@ -265,6 +340,7 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     assert [r["seed"] for r in results] == [0, 1, 0, 1, 0, 1]
     assert results[0]["metrics"] != results[1]["metrics"]  # the seed reaches the run
     assert all(r["metrics"]["closed_loop/episodes"] == 1 for r in results)
+    assert all(r["closed_loop_episodes"]["curve/4x/success/task"] in ([0], [1]) for r in results)
     # the lever variant: its trained config's checkpoints sampled as the mean of 2 draws
     trained = study_run.run_folder(tmp_path, "uniform", 0)
     assert not (study_run.run_folder(tmp_path, "uniform@eval.average_draws=2", 0)
@@ -302,15 +378,17 @@ def test_finished_runs_without_the_closed_loop_get_it_once_in_the_pool(tmp_path,
         (folder / study_run.RESULT_FILE).write_text(json.dumps(_result("uniform", seed, 0.1)))
     measured = []
 
+    outcomes = {f"{at}success/task": [1, 1, 1] for at in ("", "curve/2x/", "curve/4x/")}
+
     def fake(workdir, config, seed, steps, episodes):
         measured.append(f"seed_{seed}")
-        return {"closed_loop/episodes": episodes}, {"success/task": [1] * episodes}
+        return {"closed_loop/episodes": episodes}, outcomes
     monkeypatch.setattr(study_run, "closed_loop_metrics", fake)
     for _ in range(2):
         results = study_run.run_study(["uniform"], [0, 1], 10, tmp_path, parallel=2,
                                   closed_loop_episodes=3)
     assert sorted(measured) == ["seed_0", "seed_1"]
-    assert all(r["closed_loop_episodes"] == {"success/task": [1, 1, 1]} for r in results)
+    assert all(r["closed_loop_episodes"] == outcomes for r in results)
     saved = study_run.load_result(study_run.run_folder(tmp_path, "uniform", 1))
     assert saved["metrics"]["closed_loop/episodes"] == 3
 

@@ -14,7 +14,6 @@ another evaluation's.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -69,17 +68,14 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                **sampling.describe(), "n_exec": n_exec,
                "results": str(results_path), "figure": str(figure_path),
                **rollout_lib.summarize(records),
-               "episodes_detail": [{"episode": r.episode, "task": r.task, **r.success,
-                                    "seconds": r.seconds,
-                                    "phases": [dataclasses.asdict(p) for p in r.results]}
-                                   for r in records]}
+               "episodes_detail": rollout_lib.episode_details(records)}
     looser = [f for f in tolerances if f != 1]
     if looser:
         summary["success_curve"] = {"1": {k: v for k, v in summary.items()
                                           if k.startswith(("success/", "phase_success/"))}}
         summary["success_curve"] |= {
             factor: {k: v for k, v in measured.items()
-                     if k.startswith(("success/", "phase_success/"))}
+                     if k.startswith(("success/", "phase_success/")) or k == "episodes_detail"}
             for factor, measured in rollout_lib.success_curve(
                 replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
                 progress=progress and jax.process_index() == 0).items()}

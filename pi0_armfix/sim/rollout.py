@@ -245,16 +245,27 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def episode_details(records: Sequence[EpisodeRecord]) -> list[dict[str, Any]]:
+    """Per episode, what a study resamples and a reader audits: its task, whether each kind
+    succeeded, its seconds and every phase's result (`PhaseResult` as a dict)."""
+    return [{"episode": r.episode, "task": r.task, **r.success, "seconds": r.seconds,
+             "phases": [dataclasses.asdict(p) for p in r.results]} for r in records]
+
+
 def success_curve(driver: Driver, episodes: Sequence[int], *, spec: DemoSpec,
                   factors: Sequence[float], n_exec: int = 1, progress: bool = True
                   ) -> dict[str, dict[str, Any]]:
-    """`{factor: summarize(...)}`: `driver` on `episodes` in the world with every success tolerance
-    times each factor (`sim.world.tolerances`; 1 = the world as it is), so a policy that misses by
-    a little is told from one that misses by far."""
-    return {f"{factor:g}": summarize(rollout(driver, episodes, spec=tolerances(spec, factor),
-                                             n_exec=n_exec, progress=progress,
-                                             desc=f"closed loop at {factor:g}x tolerance"))
-            for factor in factors}
+    """`{factor: summarize(...) | {"episodes_detail": episode_details(...)}}`: `driver` on
+    `episodes` in the world with every success tolerance times each factor
+    (`sim.world.tolerances`; 1 = the world as it is), so a policy that misses by a little is told
+    from one that misses by far; the per-episode outcomes kept so that a study's interval at each
+    factor holds the episodes' sampling error too."""
+    curve = {}
+    for factor in factors:
+        records = rollout(driver, episodes, spec=tolerances(spec, factor), n_exec=n_exec,
+                          progress=progress, desc=f"closed loop at {factor:g}x tolerance")
+        curve[f"{factor:g}"] = summarize(records) | {"episodes_detail": episode_details(records)}
+    return curve
 
 
 def plot_success_curves(curves: dict[str, dict[str, dict[str, Any]]], path, title: str) -> None:

@@ -30,6 +30,20 @@ PHASE_KINDS = CLOSED_LOOP_KINDS[:2]
 CLOSED_LOOP_COMPARED = (*(f"success/{k}" for k in CLOSED_LOOP_KINDS),
                         *(f"phase_success/{k}" for k in PHASE_KINDS))
 CLOSED_LOOP_TOLERANCES = (1.0, 2.0, 4.0)  # the success curve: the world's tolerances times these
+
+
+def curve_prefix(factor: float) -> str:
+    """The prefix of a closed-loop rate measured with the world's tolerances times `factor`
+    (`closed_loop/curve/<f>x/<rate>` in a run's metrics, `curve/<f>x/<outcome>` in its
+    per-episode outcomes)."""
+    return f"curve/{factor:g}x/"
+
+
+LOOSER_TOLERANCES = tuple(f for f in CLOSED_LOOP_TOLERANCES if f != 1)
+# The same rates at the looser tolerances, compared only where every run kept their per-episode
+# outcomes (a run measured before they were kept has its rates, not their resamples).
+CURVE_COMPARED = tuple(curve_prefix(f) + k for f in LOOSER_TOLERANCES
+                       for k in CLOSED_LOOP_COMPARED)
 EPISODE_REPLICATES = "episode_replicates"  # result.json: headline numbers per episode resample
 CLOSED_LOOP_EPISODES = "closed_loop_episodes"  # result.json: per-episode closed-loop outcomes
 
@@ -102,17 +116,25 @@ def closed_loop_outcomes(detail: Sequence[Mapping[str, Any]]) -> dict[str, list[
 
 
 def closed_loop_replicates(outcomes: Mapping[str, Sequence[int]], key: str) -> np.ndarray:
-    """`[B]`: a run's closed-loop rate `key` (one of `CLOSED_LOOP_COMPARED`) on each of the
-    study's resamples of its episodes (`intervals.episode_counts`, the same for every run of
-    that many episodes)."""
-    kind, name = key.split("/")[1], key.split("/")[0]
-    counts = intervals.episode_counts(len(outcomes[f"success/{kind}"]))  # [B, E]
+    """`[B]`: a run's closed-loop rate `key` (one of `CLOSED_LOOP_COMPARED`, or of
+    `CURVE_COMPARED` from the outcomes at that factor) on each of the study's resamples of its
+    episodes (`intervals.episode_counts`, the same for every run of that many episodes)."""
+    *prefix, name, kind = key.split("/")
+    at = "".join(f"{p}/" for p in prefix)
+    counts = intervals.episode_counts(len(outcomes[f"{at}success/{kind}"]))  # [B, E]
     if name == "success":
         return counts @ np.asarray(outcomes[key], np.float64) / counts.sum(axis=1)
-    phases = counts @ np.asarray(outcomes[f"phases/{kind}"], np.float64)
+    phases = counts @ np.asarray(outcomes[f"{at}phases/{kind}"], np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(phases > 0, counts @ np.asarray(outcomes[f"phase_successes/{kind}"],
+        return np.where(phases > 0, counts @ np.asarray(outcomes[f"{at}phase_successes/{kind}"],
                                                         np.float64) / phases, np.nan)
+
+
+def has_outcomes(run: Mapping[str, Any], key: str) -> bool:
+    """Whether a run kept the per-episode outcomes behind its closed-loop rate `key`."""
+    *prefix, _, kind = key.split("/")
+    return "".join(f"{p}/" for p in prefix) + f"success/{kind}" in run.get(
+        CLOSED_LOOP_EPISODES, {})
 
 
 def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
@@ -278,8 +300,10 @@ def closed_loop_comparisons(runs: Sequence[Mapping[str, Any]],
     found = [r.get(CLOSED_LOOP_EPISODES) for r in both]
     episodes = (len(found[0]["success/task"])
                 if all(found) and len({len(f["success/task"]) for f in found}) == 1 else 0)
-    for key in CLOSED_LOOP_COMPARED:
+    for key in (*CLOSED_LOOP_COMPARED, *CURVE_COMPARED):
         if not all(CLOSED_LOOP + key in r["metrics"] for r in both):
+            continue
+        if key in CURVE_COMPARED and not all(has_outcomes(r, key) for r in both):
             continue
         variance = 0.0
         if episodes:
@@ -309,7 +333,9 @@ def lever_comparisons(runs: Sequence[Mapping[str, Any]],
     for key in COMPARED:
         out[key] = _paired(pairs, lambda r: summaries[id(r)][key],
                            lambda r: _held_out_replicates(r, key), confidence)
-    for key in CLOSED_LOOP_COMPARED:
+    for key in (*CLOSED_LOOP_COMPARED, *CURVE_COMPARED):
+        if key in CURVE_COMPARED and not all(has_outcomes(r, key) for p in pairs for r in p):
+            continue
         if all(CLOSED_LOOP + key in r["metrics"] for pair in pairs for r in pair):
             out[CLOSED_LOOP + key] = _paired(
                 pairs, lambda r: as_number(r["metrics"][CLOSED_LOOP + key]),

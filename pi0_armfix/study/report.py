@@ -18,7 +18,8 @@ from pi0_armfix.evaluation import intervals
 from pi0_armfix.sim.outcomes import FAILURE_REASONS  # noqa: E402
 from pi0_armfix.study.aggregate import (  # noqa: E402
     CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, COMPARED_HEADINGS,
-    PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number, nanmean, nanstd)
+    CURVE_COMPARED, PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number, curve_prefix,
+    nanmean, nanstd)
 from pi0_armfix.evaluation.heldout import MEAN_OF_DRAWS  # noqa: E402
 
 GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
@@ -204,6 +205,31 @@ def lever_table(configs: Mapping[str, Any]) -> list[str]:
         vs = c["vs_trained"]
         lines.append(f"| {name} | {c['trained']} | " + " | ".join(
             _interval(vs[k]) if k in vs else "n/a" for k in [*COMPARED, *loop]) + " |")
+    return lines + tolerance_table(levers, "vs_trained")
+
+
+def tolerance_table(configs: Mapping[str, Any], versus: str) -> list[str]:
+    """The closed-loop differences (`versus`: "vs_baseline" or "vs_trained") at the world's
+    tolerance and at each looser factor of the success curve, with their intervals; nothing when
+    no config has a difference at a looser factor."""
+    if not any(CLOSED_LOOP + k in c[versus] for c in configs.values() for k in CURVE_COMPARED):
+        return []
+    rates = [f"phase_success/{k}" for k in PHASE_KINDS] + ["success/task"]
+    columns = [("" if f == 1 else curve_prefix(f)) + r
+               for f in CLOSED_LOOP_TOLERANCES for r in rates]
+    against = ("the trained config it samples (paired seed for seed)" if versus == "vs_trained"
+               else "the baseline (Welch, over seeds)")
+    lines = ["", f"The same difference to {against} at the world's tolerances (1x) and with "
+             "every tolerance times 2 and 4 (the same episodes; the intervals widened by their "
+             "sampling error at each factor): navigation phases, manipulation phases, task.", "",
+             "| config | " + " | ".join(f"{r.split('/')[-1]} at {f:g}x"
+                                        for f in CLOSED_LOOP_TOLERANCES for r in rates) + " |",
+             "|---" * (len(columns) + 1) + "|"]
+    for name, c in configs.items():
+        vs = c[versus]
+        lines.append(f"| {name} | " + " | ".join(
+            _interval(vs[CLOSED_LOOP + k]) if CLOSED_LOOP + k in vs else "n/a"
+            for k in columns) + " |")
     return lines
 
 
@@ -238,8 +264,8 @@ def closed_loop_table(study: Mapping[str, Any]) -> list[str]:
             [_cell(c, f"{CLOSED_LOOP}phase_success/{k}") for k in PHASE_KINDS]
             + [_cell(c, f"{CLOSED_LOOP}success/{k}") for k in CLOSED_LOOP_KINDS]
             + [_cell(c, f"{CLOSED_LOOP}progress/{k}") for k in PHASE_KINDS] + diffs) + " |")
-    return (lines + failure_table(configs) + success_curve_table(configs)
-            + closed_loop_targets(study))
+    return (lines + tolerance_table(configs, "vs_baseline") + failure_table(configs)
+            + success_curve_table(configs) + closed_loop_targets(study))
 
 
 def success_curve_table(configs: Mapping[str, Any]) -> list[str]:

@@ -26,7 +26,8 @@ from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
-                                        closed_loop_outcomes, episode_replicates, group_keys)
+                                        LOOSER_TOLERANCES, closed_loop_outcomes, curve_prefix,
+                                        episode_replicates, group_keys, has_outcomes)
 from pi0_armfix.policies.sampling import LEVERS, SAMPLED_LEVERS, Sampling
 from pi0_armfix.training import metrics_log
 
@@ -218,9 +219,15 @@ def closed_loop_metrics(workdir: Path, config: str, seed: int, steps: int, episo
                if k.startswith(("success/", "phase_success/", "progress/", "failure/",
                                 "gripper_switches/", "seconds_to"))
                or k == "episodes"}
+    outcomes = closed_loop_outcomes(saved["episodes_detail"])
     for factor, rates in saved.get("success_curve", {}).items():
-        metrics |= {f"{CLOSED_LOOP}curve/{float(factor):g}x/{k}": v for k, v in rates.items()}
-    return metrics, closed_loop_outcomes(saved["episodes_detail"])
+        at = curve_prefix(float(factor))
+        metrics |= {CLOSED_LOOP + at + k: v for k, v in rates.items()
+                    if k.startswith(("success/", "phase_success/"))}
+        if "episodes_detail" in rates:
+            outcomes |= {at + k: v for k, v in
+                         closed_loop_outcomes(rates["episodes_detail"]).items()}
+    return metrics, outcomes
 
 
 def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missing: bool
@@ -316,9 +323,13 @@ def add_closed_loop(result: dict[str, Any], workdir: Path, episodes: int) -> dic
 
 
 def run_has_closed_loop(result: Mapping[str, Any], episodes: int) -> bool:
-    """Whether a run's result holds the closed-loop metrics and outcomes of `episodes` episodes."""
+    """Whether a run's result holds the closed-loop metrics and outcomes of `episodes` episodes,
+    at every tolerance of the success curve (one measured before those were kept is measured
+    again)."""
     return (result["metrics"].get(CLOSED_LOOP + "episodes") == episodes
-            and CLOSED_LOOP_EPISODES in result)
+            and all(has_outcomes(result, curve_prefix(f) + "success/task")
+                    for f in LOOSER_TOLERANCES)
+            and has_outcomes(result, "success/task"))
 
 
 # What every result.json holds (`run_one`), with its type.
