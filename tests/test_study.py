@@ -833,3 +833,24 @@ def test_per_group_intervals_widen_by_the_held_out_episodes_resamples():
         "vs_baseline_groups"]["skill/right_arm"][1]
     assert both["groups_resampled"] and not seeds_only["groups_resampled"]
     assert width(both) > width(seeds_only)
+
+
+def test_each_groups_skill_gets_its_interval_against_holding(tmp_path):
+    rng = np.random.default_rng(0)
+    results = [_g1_result("uniform:g1", s, (-40.0, -0.4, -17.0, -0.4), rng.normal(0, 0.1, 200))
+               for s in range(5)]
+    results += [_g1_result("fix:g1", s, (-1.0, 0.2 + 0.02 * s, -0.5, 0.01 * s - 0.02),
+                           rng.normal(0, 0.1, 200)) for s in range(5)]
+    fix = aggregate.aggregate(results)["configs"]["fix:g1"]
+    mean, low, high = fix["group_intervals"]["skill/right_arm"]
+    assert mean == pytest.approx(0.24) and 0 < low < mean < high  # above holding
+    mean, low, high = fix["group_intervals"]["skill/right_hand"]
+    assert low < 0 < high  # cannot tell from holding
+    seeds_only = intervals.mean_interval([0.2 + 0.02 * s for s in range(5)])
+    assert high - low > 0 and (fix["group_intervals"]["skill/right_arm"][2]
+                               - fix["group_intervals"]["skill/right_arm"][1]
+                               > seeds_only[2] - seeds_only[1])  # the episodes widen it
+    study_main.write_reports(results, tmp_path, steps=10, command="study")
+    text = (tmp_path / "study.md").read_text()
+    assert "## Each group against holding the previous action" in text
+    assert "| fix:g1 | single | -1.000 [" in text

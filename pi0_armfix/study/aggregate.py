@@ -267,6 +267,10 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         entry["vs_baseline_groups"] = {
             k: versus_baseline(config, k, groups_of(runs, k), groups_of(base_runs, k),
                                confidence) for k in group_keys(layout)}
+        entry["group_intervals"] = {  # each group against holding: is it above 0?
+            k: intervals.mean_interval(groups_of(runs, k), episodes=episodes, episode_variance=(
+                intervals.episode_variance(replicates(config, k), episodes)
+                if replicates(config, k) is not None else 0.0)) for k in group_keys(layout)}
         entry["groups_resampled"] = all(replicates(c, k) is not None for c in (config, baseline)
                                         for k in group_keys(layout))
         entry["vs_baseline"].update(closed_loop_comparisons(runs, base_runs, confidence))

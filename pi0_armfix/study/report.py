@@ -138,6 +138,7 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         level = f"{c['comparison']} ({c['confidence']:.1%})"
         lines.append(f"| {name} | {level} | " + " | ".join(_interval(vs[k]) for k in COMPARED)
                      + " |")
+    lines += group_skill_table(study, sampling)
     lines += group_comparison_table(study, sampling)
     lines += ["", "## Targets", "",
               f"Arms' skill over persistence > 0 with its 95 % interval above 0; each arm's "
@@ -159,6 +160,29 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
 
 def _verdict(met: bool | None) -> str:
     return "n/a" if met is None else "met" if met else "missed"
+
+
+def group_skill_table(study: Mapping[str, Any], sampling: str) -> list[str]:
+    """study.md's per-group skill over persistence of each config with its 95 % interval (the
+    question whether a group beats holding the previous action, not whether it beats the
+    baseline): single draw, then the mean of the draws."""
+    configs = {n: c for n, c in study["configs"].items() if "group_intervals" in c}
+    if not configs:
+        return []
+    groups = study["groups"]
+    episodes = (sampling if all(c["groups_resampled"] for c in configs.values())
+                else "the seeds' spread alone (some runs kept no per-group resamples)")
+    lines = ["", "## Each group against holding the previous action (skill over persistence, "
+             "95 % interval)", "",
+             "Each group's mean skill over seeds; the interval holds "
+             f"{episodes}. Above 0: the group beats holding the previous action at these seeds "
+             "and episodes. Single draw, then the mean of the draws.", "",
+             "| config | draw | " + " | ".join(groups) + " |", "|---" * (len(groups) + 2) + "|"]
+    for name, c in configs.items():
+        for label, prefix in (("single", ""), ("mean of draws", f"{MEAN_OF_DRAWS}/")):
+            lines.append(f"| {name} | {label} | " + " | ".join(
+                _interval(c["group_intervals"][f"{prefix}skill/{g}"]) for g in groups) + " |")
+    return lines
 
 
 def group_comparison_table(study: Mapping[str, Any], sampling: str) -> list[str]:
