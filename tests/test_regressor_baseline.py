@@ -74,3 +74,28 @@ def test_a_bad_flag_is_named_before_any_training(change, message, demo_root, tmp
     with pytest.raises(ValueError, match=message.replace("(", r"\(")):
         regressor.run(tiny_config(demo_root), tmp_path, **kwargs)
     assert not (tmp_path / regressor.RESULT_FILE).exists()
+
+
+@pytest.mark.slow  # two regressor runs: the slow lane
+def test_a_stopped_run_keeps_its_finished_seeds_and_trains_only_the_rest(demo_root, tmp_path,
+                                                                         monkeypatch):
+    config = tiny_config(demo_root)
+    first = regressor.run(config, tmp_path, network="cnn", seeds=1, steps=2, evaluations=1,
+                          lr=1e-3)
+    trained = []
+    real = regressor.train_seed
+    monkeypatch.setattr(regressor, "train_seed",
+                        lambda data, seed, **kw: trained.append(seed) or real(data, seed, **kw))
+    again = regressor.run(config, tmp_path, network="cnn", seeds=2, steps=2, evaluations=1,
+                          lr=1e-3)
+    assert trained == [1]
+    assert json.dumps(again["seeds"]["0"]) == json.dumps(first["seeds"]["0"])  # NaN included
+    table = (tmp_path / regressor.TABLE_FILE).read_text()
+    assert "2 seed(s)" in table and "95 % t interval over the 2 seeds" in table
+
+
+def test_an_output_of_other_settings_is_refused_before_any_training(demo_root, tmp_path):
+    config = tiny_config(demo_root)
+    regressor.run(config, tmp_path, network="cnn", seeds=1, steps=2, evaluations=1, lr=1e-3)
+    with pytest.raises(ValueError, match=r"other settings \(lr, steps differ\): choose another"):
+        regressor.run(config, tmp_path, network="cnn", seeds=1, steps=3, evaluations=1, lr=1e-2)

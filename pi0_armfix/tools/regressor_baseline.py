@@ -45,6 +45,7 @@ from pi0_armfix.data.pipeline import batching, pipeline, video_stream
 from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.evaluation import evaluator as evaluator_lib
+from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation.outputs import strict_json
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model, pi0
@@ -275,15 +276,45 @@ def report(result: Mapping[str, Any], layout: ActionLayout, gripper_groups: Sequ
         cells = [label, ""] + [_summary([metrics[f"{name}/skill/{g}"]]) for g in groups]
         cells += [" / ".join(f"{metrics[f'{name}/motion_gain/{a}']:.2f}" for a in arms), "0"]
         lines.append("| " + " | ".join(cells) + " |")
+    if len(runs) >= 2:
+        last = [run[-1]["metrics"] for run in runs]
+        spans = []
+        for g in groups:
+            mean, low, high = intervals.mean_interval([m[f"skill/{g}"] for m in last])
+            spans.append(f"{g.replace('_', ' ')} {mean:+.2f} [{low:+.2f}, {high:+.2f}]")
+        lines += ["", f"At step {runs[0][-1]['step']}, skill with its 95 % t interval over the "
+                  f"{len(runs)} seeds (their spread alone: the regressor keeps no per-episode "
+                  "sums): " + "; ".join(spans) + "."]
     return "\n".join(lines) + "\n"
+
+
+def finished_seeds(path: Path, settings: Mapping[str, Any]) -> dict[str, Any]:
+    """The seeds a stopped run of the same settings already wrote to `path` (`{seed: records}`;
+    none where there is no file); another run's file is refused, naming what differs."""
+    if not path.exists():
+        return {}
+    try:
+        kept = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not a regressor result ({e}): remove it or choose another "
+                         "--output") from None
+    differ = sorted(k for k in settings if kept.get(k) != settings[k])
+    if differ:
+        raise ValueError(f"{path} holds a regressor run with other settings ({', '.join(differ)}"
+                         " differ): choose another --output, or remove it to start again")
+    # JSON keeps a metric without a value (NaN) as null: read back as NaN, as it was measured.
+    return {seed: [{**r, "metrics": {k: math.nan if v is None else v
+                                     for k, v in r["metrics"].items()}} for r in records]
+            for seed, records in kept["seeds"].items()}
 
 
 def run(config: ml_collections.ConfigDict, output: str | Path, *, network: str, seeds: int,
         steps: int, evaluations: int, lr: float, command: str = "", code: str = ""
         ) -> dict[str, Any]:
     """Trains `seeds` regressors `make_network(network)` on the config's data (seeds
-    `config.seed` + 0 .. seeds-1) and writes `regressor.json` and `regressor.md` into `output`;
-    returns the result."""
+    `config.seed` + 0 .. seeds-1) and writes `regressor.json` and `regressor.md` into `output`
+    after each seed; returns the result. Seeds a stopped run of the same settings finished in
+    `output` are kept, not trained again."""
     if network not in NETWORKS:
         raise ValueError(f"--network = {network!r}: choose one of {NETWORKS}")
     for name, value in (("--seeds", seeds), ("--steps", steps), ("--evaluations", evaluations)):
@@ -295,12 +326,18 @@ def run(config: ml_collections.ConfigDict, output: str | Path, *, network: str, 
     if not lr > 0:
         raise ValueError(f"--lr = {lr} must be positive")
     output = Path(output)
+    settings = {"network": network, "lr": lr, "batch_size": int(config.train.batch_size),
+                "steps": steps, "evaluations": evaluations,
+                "config": json.loads(config.to_json_best_effort(sort_keys=True)) | {"seed": None}}
+    finished = finished_seeds(output / RESULT_FILE, settings)
     output.mkdir(parents=True, exist_ok=True)
     data = ConfigData(config, output / "norm_stats.json")
     gripper_groups = evaluator_lib.eval_groups(config.eval, data.layout)["gripper_groups"]
-    result = {"command": command, "code": code, "network": network, "lr": lr,
-              "batch_size": int(config.train.batch_size), "seeds": {}}
+    result = {"command": command, "code": code, **settings, "seeds": {}}
     for seed in range(int(config.seed), int(config.seed) + seeds):
+        if str(seed) in finished:
+            result["seeds"][str(seed)] = finished[str(seed)]
+            continue
         result["seeds"][str(seed)] = train_seed(
             data, seed, network=network, steps=steps, evaluations=evaluations,
             batch_size=int(config.train.batch_size), lr=lr)
