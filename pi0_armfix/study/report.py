@@ -167,22 +167,11 @@ def group_skill_table(study: Mapping[str, Any], sampling: str) -> list[str]:
     question whether a group beats holding the previous action, not whether it beats the
     baseline): single draw, then the mean of the draws."""
     configs = {n: c for n, c in study["configs"].items() if "group_intervals" in c}
-    if not configs:
-        return []
-    groups = study["groups"]
-    episodes = (sampling if all(c["groups_resampled"] for c in configs.values())
-                else "the seeds' spread alone (some runs kept no per-group resamples)")
-    lines = ["", "## Each group against holding the previous action (skill over persistence, "
-             "95 % interval)", "",
-             "Each group's mean skill over seeds; the interval holds "
-             f"{episodes}. Above 0: the group beats holding the previous action at these seeds "
-             "and episodes. Single draw, then the mean of the draws.", "",
-             "| config | draw | " + " | ".join(groups) + " |", "|---" * (len(groups) + 2) + "|"]
-    for name, c in configs.items():
-        for label, prefix in (("single", ""), ("mean of draws", f"{MEAN_OF_DRAWS}/")):
-            lines.append(f"| {name} | {label} | " + " | ".join(
-                _interval(c["group_intervals"][f"{prefix}skill/{g}"]) for g in groups) + " |")
-    return lines
+    return _group_table(study, configs, "group_intervals", sampling, [
+        "## Each group against holding the previous action (skill over persistence, 95 % "
+        "interval)", "Each group's mean skill over seeds; the interval holds {episodes}. Above "
+        "0: the group beats holding the previous action at these seeds and episodes. Single "
+        "draw, then the mean of the draws."])
 
 
 def group_comparison_table(study: Mapping[str, Any], sampling: str) -> list[str]:
@@ -190,20 +179,28 @@ def group_comparison_table(study: Mapping[str, Any], sampling: str) -> list[str]
     the single draw's and the mean of the draws', with the comparison's interval."""
     configs = {n: c for n, c in study["configs"].items() if "vs_baseline_groups" in c
                and c["comparison"] != "baseline"}
+    return _group_table(study, configs, "vs_baseline_groups", sampling, [
+        f"## Against `{study['baseline']}`, per group (skill over persistence)",
+        "Each group's difference of means over seeds, at each comparison's level (above); the "
+        "intervals hold {episodes}. Single draw, then the mean of the draws."])
+
+
+def _group_table(study: Mapping[str, Any], configs: Mapping[str, Any], key: str, sampling: str,
+                 heading: Sequence[str]) -> list[str]:
+    """A per-group table of `configs`' intervals `c[key]` (single draw and mean of the draws),
+    under `heading` (the title and the text, whose `{episodes}` says what the intervals hold)."""
     if not configs:
         return []
     groups = study["groups"]
     episodes = (sampling if all(c["groups_resampled"] for c in configs.values())
                 else "the seeds' spread alone (some runs kept no per-group resamples)")
-    lines = ["", f"## Against `{study['baseline']}`, per group (skill over persistence)", "",
-             "Each group's difference of means over seeds, at each comparison's level (above); "
-             f"the intervals hold {episodes}. Single draw, then the mean of the draws.", "",
+    title, text = heading
+    lines = ["", title, "", text.format(episodes=episodes), "",
              "| config | draw | " + " | ".join(groups) + " |", "|---" * (len(groups) + 2) + "|"]
     for name, c in configs.items():
         for label, prefix in (("single", ""), ("mean of draws", f"{MEAN_OF_DRAWS}/")):
-            vs = c["vs_baseline_groups"]
             lines.append(f"| {name} | {label} | " + " | ".join(
-                _interval(vs[f"{prefix}skill/{g}"]) for g in groups) + " |")
+                _interval(c[key][f"{prefix}skill/{g}"]) for g in groups) + " |")
     return lines
 
 
