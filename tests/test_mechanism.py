@@ -132,3 +132,37 @@ def test_a_command_that_is_its_state_has_no_offset():
 def test_groups_the_state_does_not_place_have_no_copy_error():
     groups, verdict, _ = _report_with_copy(_commanded(offset=0.05))
     assert groups["base"]["copy_error"] is None and groups["base"]["hold_error"] > 0
+
+
+def _trailing(lag: int, seed=0):
+    """Arms whose measured position trails the command by `lag` frames (a tracking delay)."""
+    rng = np.random.default_rng(seed)
+    blocks = []
+    for e in range(20):
+        arm = np.cumsum(rng.normal(0, 0.05, size=(100 + lag, 2)), axis=0)
+        actions = np.concatenate([rng.normal(size=(100, 1)), arm[lag:]], axis=1)
+        blocks.append({"actions": actions, "state": arm[:100],
+                       "episode_index": np.full(100, e)})
+    return blocks
+
+
+def test_a_state_that_trails_its_command_is_measured_at_its_lag():
+    groups, verdict, _ = _report_with_copy(_trailing(lag=5))
+    arm = groups["arm"]
+    assert arm["state_lag"] == 5
+    assert arm["lagged_copy_error"] == pytest.approx(0.0, abs=1e-9)  # s_t = a_{t-5} exactly
+    assert arm["copy_error"] > 2 * arm["hold_error"]  # five frames of motion against one
+    assert verdict["lag"] == ["arm"] and verdict["offset"] == []
+    assert any(line.startswith("lag: ['arm']") and "5 frames" in line
+               for line in verdict["verdict"])
+
+
+def test_a_steady_offset_is_not_a_lag():
+    _, verdict, _ = _report_with_copy(_commanded(offset=0.05))
+    assert verdict["lag"] == [] and verdict["offset"] == ["arm"]
+
+
+def test_a_command_that_is_its_state_has_no_lag():
+    groups, _, _ = _report_with_copy(_trailing(lag=0))
+    assert groups["arm"]["state_lag"] == 0 and groups["arm"]["lagged_copy_error"] == 0.0
+    assert groups["base"]["state_lag"] is None

@@ -225,11 +225,13 @@ def format_report(report: dict[str, Any]) -> str:
     lines += ["", f"stagnation mechanism (z-scored absolute actions, chunks of "
               f"H = {mechanism['horizon']}):",
               f"{'group':<16}{'loss %':>8}{'dims %':>8}{'state R2':>10}{'after state %':>15}"
-              f"{'chunk change':>14}{'hold err':>10}{'copy err':>10}{'offset':>8}"]
+              f"{'chunk change':>14}{'hold err':>10}{'copy err':>10}{'offset':>8}"
+              f"{'lag':>5}{'at lag':>8}"]
     for name, g in mechanism["groups"].items():
         explained = "constant" if g["constant"] else f"{g['state_explained']:.3f}"
         copied = ("" if g["copy_error"] is None
-                  else f"{g['copy_error']:>10.3f}{g['steady_offset']:>8.3f}")
+                  else f"{g['copy_error']:>10.3f}{g['steady_offset']:>8.3f}"
+                       f"{g['state_lag']:>5d}{g['lagged_copy_error']:>8.3f}")
         lines.append(f"{name:<16}{100 * g['loss_share']:>8.1f}{100 * g['dim_share']:>8.1f}"
                      f"{explained:>10}{100 * g['share_after_state']:>15.1f}"
                      f"{g['within_chunk_change']:>14.4f}{g['hold_error']:>10.3f}{copied}")

@@ -38,6 +38,15 @@ two do-nothing predictors of the evaluation pay (RMS, same units) and what the R
                       copying the state misses by it where holding the previous command does not:
                       the **offset** verdict, whose lever gives the policy the previous command
                       (`data.delta_reference='previous_action'`).
+  state_lag           the delay in frames (0 .. `MAX_LAG`) at which the measured state best
+                      matches the command, `s_t ~ a_{t-k}`: a joint that trails its command (a
+                      controller's tracking delay) leaves copying the state the command's motion
+                      over k frames to miss, which holding the previous command misses by one.
+  lagged_copy_error   copy_error with the state matched to the command k frames before: what is
+                      left of the gap once the lag is accounted for. Holding erring less than
+                      `OFFSET_HOLD_RATIO` of copying, with the lag taking away at least
+                      1 - `LAG_LEFT` of copying's squared error: the **lag** verdict, the same
+                      lever as the offset's.
 """
 
 from __future__ import annotations
@@ -57,6 +66,8 @@ COPY_EXPLAINED = 0.9  # state explains at least this much of a group's targets .
 COPY_SHRINK = 0.5  # ... and its share of what is left falls below this fraction of its share
 OFFSET_HOLD_RATIO = 0.5  # holding errs less than this fraction of copying ...
 OFFSET_SHARE = 0.5  # ... and a steady offset makes at least this share of copying's squared error
+MAX_LAG = 15  # frames the state's delay behind the command is looked for within (0.5 s at 30 fps)
+LAG_LEFT = 0.5  # the lag verdict: at its lag, copying keeps at most this share of its squared error
 
 
 @dataclasses.dataclass
@@ -71,6 +82,8 @@ class MechanismSums:
     copy: np.ndarray  # [A] per frame: sum of (a_t - s_t)^2 on the dims the state places
     offset: np.ndarray  # [A] sum over episodes of frames * (mean a_t - s_t)^2
     placed: np.ndarray  # [A] bool: the dims the state places (copy, offset)
+    lagged: np.ndarray  # [MAX_LAG + 1, A] sum of (a_{t-k} - s_t)^2 over frames t >= k
+    lagged_frames: np.ndarray  # [MAX_LAG + 1] those frames
     count: int = 0
     frames: int = 0
     held_frames: int = 0
@@ -78,7 +91,8 @@ class MechanismSums:
     @classmethod
     def zeros(cls, state_width: int, action_width: int) -> "MechanismSums":
         return cls(np.zeros((state_width + 1,) * 2), np.zeros((state_width + 1, action_width)),
-                   *(np.zeros(action_width) for _ in range(5)), np.zeros(action_width, bool))
+                   *(np.zeros(action_width) for _ in range(5)), np.zeros(action_width, bool),
+                   np.zeros((MAX_LAG + 1, action_width)), np.zeros(MAX_LAG + 1, np.int64))
 
 
 def _zscore(x: np.ndarray, stats: stats_lib.NormStats) -> np.ndarray:
@@ -120,8 +134,14 @@ def accumulate(blocks: Iterable[stats_lib.Block], action_stats: stats_lib.NormSt
             gap[:, action_dims] = (raw[:, action_dims] - np.asarray(
                 block["state"], np.float64)[:, state_dims]) / std[action_dims]
             sums.copy += np.square(gap).sum(axis=0)
+            measured = np.asarray(block["state"], np.float64)[:, state_dims]
             for start, stop in zip(starts[:-1], starts[1:]):
                 sums.offset += (stop - start) * np.square(gap[start:stop].mean(axis=0))
+                for lag in range(min(MAX_LAG, stop - start - 1) + 1):
+                    late = (raw[start:stop - lag, action_dims]
+                            - measured[start + lag:stop]) / std[action_dims]
+                    sums.lagged[lag, action_dims] += np.square(late).sum(axis=0)
+                    sums.lagged_frames[lag] += stop - start - lag
         index, _ = transforms.chunk_indices(np.arange(len(episode)), starts, horizon)
         x = np.concatenate([np.ones((len(state), 1)), state], axis=1)
         xtx = x.T @ x
@@ -151,8 +171,8 @@ def residual_variance(sums: MechanismSums) -> tuple[np.ndarray, np.ndarray]:
 def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dict[str, Any]]:
     """Per group: loss_share, dim_share (of the dims that move at all), state_explained (None for
     a group that never moves), share_after_state, within_chunk_change, constant, and hold_error,
-    copy_error, steady_offset (None for a group the state does not place; see the module
-    docstring)."""
+    copy_error, steady_offset, state_lag, lagged_copy_error (None for a group the state does not
+    place; see the module docstring)."""
     variance, residual = residual_variance(sums)
     active = variance > 0
     change = sums.change / sums.count
@@ -163,6 +183,9 @@ def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dic
         group_var = float(variance[dims].sum())
         moving = bool(active[dims].any())
         copied = moving and bool(placed[dims].all())
+        lagged = (np.sqrt(sums.lagged[:, dims].mean(axis=1) / np.maximum(sums.lagged_frames, 1))
+                  if copied else None)  # [MAX_LAG + 1]
+        lag = int(np.argmin(np.where(sums.lagged_frames > 0, lagged, np.inf))) if copied else None
         report[name] = {
             "loss_share": group_var / max(float(variance.sum()), 1e-12),
             "dim_share": float(active[dims].sum() / max(active.sum(), 1)),
@@ -175,6 +198,8 @@ def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dic
                            else None),
             "steady_offset": (float(np.sqrt(sums.offset[dims].mean() / sums.frames)) if copied
                               else None),
+            "state_lag": lag,
+            "lagged_copy_error": float(lagged[lag]) if copied else None,
         }
     return report
 
@@ -191,6 +216,10 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
     offset = [g for g in watched if groups[g].get("copy_error") is not None
               and groups[g]["hold_error"] < OFFSET_HOLD_RATIO * groups[g]["copy_error"]
               and groups[g]["steady_offset"] ** 2 >= OFFSET_SHARE * groups[g]["copy_error"] ** 2]
+    lag = [g for g in watched if groups[g].get("copy_error") is not None
+           and groups[g]["state_lag"] > 0
+           and groups[g]["hold_error"] < OFFSET_HOLD_RATIO * groups[g]["copy_error"]
+           and groups[g]["lagged_copy_error"] ** 2 <= LAG_LEFT * groups[g]["copy_error"] ** 2]
     lines = []
     if copy:
         lines.append(
@@ -209,6 +238,16 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
             "Give the policy the previous command: actions relative to it "
             "(data.delta_reference='previous_action', "
             "pi0_armfix/configs/arm_focused_previous_action.py).")
+    if lag:
+        numbers = ", ".join(f"{g} {groups[g]['state_lag']} frames (copying errs "
+                            f"{groups[g]['copy_error']:.2f} σ, {groups[g]['lagged_copy_error']:.2f}"
+                            f" σ at the lag; holding {groups[g]['hold_error']:.2f} σ)" for g in lag)
+        lines.append(
+            f"lag: {lag}'s measured state trails the command ({numbers}): the state shows where "
+            "the command was, holding the previous action knows where it is. Give the policy "
+            "the previous command: actions relative to it "
+            "(data.delta_reference='previous_action', "
+            "pi0_armfix/configs/arm_focused_previous_action.py).")
     if magnitude:
         lines.append(
             f"magnitude: {magnitude} carry less than {MAGNITUDE_RATIO:.0%} of their dims' share "
@@ -221,5 +260,5 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
     constant = [g for g in groups if groups[g]["constant"]]
     if constant:
         lines.append(f"{constant} never move in these episodes (nothing to learn; left out).")
-    return {"state_copy": copy, "magnitude": magnitude, "offset": offset, "constant": constant,
-            "verdict": lines}
+    return {"state_copy": copy, "magnitude": magnitude, "offset": offset, "lag": lag,
+            "constant": constant, "verdict": lines}
