@@ -119,8 +119,7 @@ def closed_loop_replicates(outcomes: Mapping[str, Sequence[int]], key: str) -> n
     """`[B]`: a run's closed-loop rate `key` (one of `CLOSED_LOOP_COMPARED`, or of
     `CURVE_COMPARED` from the outcomes at that factor) on each of the study's resamples of its
     episodes (`intervals.episode_counts`, the same for every run of that many episodes)."""
-    *prefix, name, kind = key.split("/")
-    at = "".join(f"{p}/" for p in prefix)
+    at, name, kind = _rate_parts(key)
     counts = intervals.episode_counts(len(outcomes[f"{at}success/{kind}"]))  # [B, E]
     if name == "success":
         return counts @ np.asarray(outcomes[key], np.float64) / counts.sum(axis=1)
@@ -132,9 +131,15 @@ def closed_loop_replicates(outcomes: Mapping[str, Sequence[int]], key: str) -> n
 
 def has_outcomes(run: Mapping[str, Any], key: str) -> bool:
     """Whether a run kept the per-episode outcomes behind its closed-loop rate `key`."""
-    *prefix, _, kind = key.split("/")
-    return "".join(f"{p}/" for p in prefix) + f"success/{kind}" in run.get(
-        CLOSED_LOOP_EPISODES, {})
+    at, _, kind = _rate_parts(key)
+    return f"{at}success/{kind}" in run.get(CLOSED_LOOP_EPISODES, {})
+
+
+def _rate_parts(key: str) -> tuple[str, str, str]:
+    """`("curve/2x/", "phase_success", "navigation")` of a closed-loop rate's key (the prefix
+    empty at the world's own tolerances)."""
+    *prefix, name, kind = key.split("/")
+    return "".join(f"{p}/" for p in prefix), name, kind
 
 
 def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
