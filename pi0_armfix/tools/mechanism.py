@@ -79,10 +79,11 @@ class MechanismSums:
     yty: np.ndarray  # [A]
     change: np.ndarray  # [A] sum of (y_h - y_0)^2
     hold: np.ndarray  # [A] per frame: sum of (a_t - a_{t-1})^2, t past the episode's first frame
-    copy: np.ndarray  # [A] per frame: sum of (a_t - s_t)^2 on the dims the state places
     offset: np.ndarray  # [A] sum over episodes of frames * (mean a_t - s_t)^2
-    placed: np.ndarray  # [A] bool: the dims the state places (copy, offset)
-    lagged: np.ndarray  # [MAX_LAG + 1, A] sum of (a_{t-k} - s_t)^2 over frames t >= k
+    placed: np.ndarray  # [A] bool: the dims the state places (copy, offset, lag)
+    # [MAX_LAG + 1, A] sum of (a_{t-k} - s_t)^2 over frames t >= k on the dims the state places;
+    # k = 0 is copying the state
+    lagged: np.ndarray
     lagged_frames: np.ndarray  # [MAX_LAG + 1] those frames
     count: int = 0
     frames: int = 0
@@ -91,7 +92,7 @@ class MechanismSums:
     @classmethod
     def zeros(cls, state_width: int, action_width: int) -> "MechanismSums":
         return cls(np.zeros((state_width + 1,) * 2), np.zeros((state_width + 1, action_width)),
-                   *(np.zeros(action_width) for _ in range(5)), np.zeros(action_width, bool),
+                   *(np.zeros(action_width) for _ in range(4)), np.zeros(action_width, bool),
                    np.zeros((MAX_LAG + 1, action_width)), np.zeros(MAX_LAG + 1, np.int64))
 
 
@@ -130,11 +131,9 @@ def accumulate(blocks: Iterable[stats_lib.Block], action_stats: stats_lib.NormSt
         sums.frames += len(episode)
         if len(action_dims):
             sums.placed[action_dims] = True
-            gap = np.zeros_like(raw)
-            gap[:, action_dims] = (raw[:, action_dims] - np.asarray(
-                block["state"], np.float64)[:, state_dims]) / std[action_dims]
-            sums.copy += np.square(gap).sum(axis=0)
             measured = np.asarray(block["state"], np.float64)[:, state_dims]
+            gap = np.zeros_like(raw)
+            gap[:, action_dims] = (raw[:, action_dims] - measured) / std[action_dims]
             for start, stop in zip(starts[:-1], starts[1:]):
                 sums.offset += (stop - start) * np.square(gap[start:stop].mean(axis=0))
                 for lag in range(min(MAX_LAG, stop - start - 1) + 1):
@@ -194,8 +193,7 @@ def group_mechanisms(sums: MechanismSums, layout: ActionLayout) -> dict[str, dic
             "within_chunk_change": float(change[dims].mean()),
             "constant": not moving,
             "hold_error": float(np.sqrt(sums.hold[dims].mean() / max(sums.held_frames, 1))),
-            "copy_error": (float(np.sqrt(sums.copy[dims].mean() / sums.frames)) if copied
-                           else None),
+            "copy_error": float(lagged[0]) if copied else None,
             "steady_offset": (float(np.sqrt(sums.offset[dims].mean() / sums.frames)) if copied
                               else None),
             "state_lag": lag,
@@ -213,12 +211,12 @@ def verdict(groups: dict[str, dict[str, float]], layout: ActionLayout) -> dict[s
                  if groups[g]["loss_share"] < MAGNITUDE_RATIO * groups[g]["dim_share"]]
     copy = [g for g in watched if groups[g]["state_explained"] >= COPY_EXPLAINED
             and groups[g]["share_after_state"] < COPY_SHRINK * groups[g]["loss_share"]]
-    offset = [g for g in watched if groups[g].get("copy_error") is not None
-              and groups[g]["hold_error"] < OFFSET_HOLD_RATIO * groups[g]["copy_error"]
-              and groups[g]["steady_offset"] ** 2 >= OFFSET_SHARE * groups[g]["copy_error"] ** 2]
-    lag = [g for g in watched if groups[g].get("copy_error") is not None
-           and groups[g]["state_lag"] > 0
-           and groups[g]["hold_error"] < OFFSET_HOLD_RATIO * groups[g]["copy_error"]
+    # Holding the previous command beats copying the state: an offset or a lag hides behind R2.
+    held = [g for g in watched if groups[g].get("copy_error") is not None
+            and groups[g]["hold_error"] < OFFSET_HOLD_RATIO * groups[g]["copy_error"]]
+    offset = [g for g in held
+              if groups[g]["steady_offset"] ** 2 >= OFFSET_SHARE * groups[g]["copy_error"] ** 2]
+    lag = [g for g in held if groups[g]["state_lag"] > 0
            and groups[g]["lagged_copy_error"] ** 2 <= LAG_LEFT * groups[g]["copy_error"] ** 2]
     lines = []
     if copy:
