@@ -236,21 +236,21 @@ def tolerance_table(configs: Mapping[str, Any], versus: str) -> list[str]:
     if not any(CLOSED_LOOP + k in c[versus] for c in configs.values() for k in CURVE_COMPARED):
         return []
     rates = [f"phase_success/{k}" for k in PHASE_KINDS] + ["success/task"]
-    columns = [("" if f == 1 else curve_prefix(f)) + r
+    columns = [(f, ("" if f == 1 else curve_prefix(f)) + r)
                for f in CLOSED_LOOP_TOLERANCES for r in rates]
     against = ("the trained config it samples (paired seed for seed)" if versus == "vs_trained"
                else "the baseline (Welch, over seeds)")
     lines = ["", f"The same difference to {against} at the world's tolerances (1x) and with "
              "every tolerance times 2 and 4 (the same episodes; the intervals widened by their "
              "sampling error at each factor): navigation phases, manipulation phases, task.", "",
-             "| config | " + " | ".join(f"{r.split('/')[-1]} at {f:g}x"
-                                        for f in CLOSED_LOOP_TOLERANCES for r in rates) + " |",
+             "| config | " + " | ".join(f"{k.split('/')[-1]} at {f:g}x" for f, k in columns)
+             + " |",
              "|---" * (len(columns) + 1) + "|"]
     for name, c in configs.items():
         vs = c[versus]
         lines.append(f"| {name} | " + " | ".join(
             _interval(vs[CLOSED_LOOP + k]) if CLOSED_LOOP + k in vs else "n/a"
-            for k in columns) + " |")
+            for _, k in columns) + " |")
     return lines
 
 
