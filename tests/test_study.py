@@ -854,3 +854,15 @@ def test_each_groups_skill_gets_its_interval_against_holding(tmp_path):
     text = (tmp_path / "study.md").read_text()
     assert "## Each group against holding the previous action" in text
     assert "| fix:g1 | single | -1.000 [" in text
+
+
+def test_a_skill_axis_shows_values_far_below_doing_nothing_on_a_symlog_scale():
+    fig, (far, near) = report.plt.subplots(1, 2)
+    far.plot([1, 2], [-43.7, -0.1])
+    near.plot([1, 2], [-0.7, 0.2])
+    report.fit_skill_axis(far, top=1.05)
+    report.fit_skill_axis(near, top=1.05)
+    assert far.get_yscale() == "symlog" and far.get_ylim()[0] <= -43.7
+    assert near.get_yscale() == "linear" and near.get_ylim()[0] <= -0.7
+    assert far.get_ylim()[1] == near.get_ylim()[1] == 1.05
+    report.plt.close(fig)

@@ -353,6 +353,19 @@ def failure_table(configs: Mapping[str, Any]) -> list[str]:
 
 
 CLOSED_LOOP_PANEL = ("phase_success/navigation", "phase_success/manipulation", "success/task")
+# Below this skill a linear axis squeezes every value near 0 (where the levers differ) into a
+# sliver; the axis turns symmetric-log instead, linear within 1 of 0.
+LINEAR_SKILL_FLOOR = -3.0
+
+
+def fit_skill_axis(ax: Any, top: float) -> None:
+    """Sets a skill axis (at most 1, unbounded below) to show every value drawn on it: linear
+    where the lowest is above `LINEAR_SKILL_FLOOR`, symmetric-log (linear in [-1, 1]) where not,
+    so that a group tens of times worse than doing nothing stays on the figure beside groups near
+    0. `top`: the axis' upper end."""
+    if ax.get_ylim()[0] < LINEAR_SKILL_FLOOR:
+        ax.set_yscale("symlog", linthresh=1.0)
+    ax.set_ylim(top=top)
 
 
 def plot_study(study: Mapping[str, Any], path: Path) -> None:
@@ -387,7 +400,7 @@ def plot_study(study: Mapping[str, Any], path: Path) -> None:
         if metric == "motion_gain":
             ax.axhline(1.0, color="gray", lw=0.8)
         else:
-            ax.set_ylim(max(ax.get_ylim()[0], -3.0), 1.1)  # skill is at most 1
+            fit_skill_axis(ax, top=1.1)
         ax.set_xticks(x, groups, rotation=20)
         ax.set(title=title)
         ax.grid(axis="y", alpha=0.3)
@@ -462,8 +475,7 @@ def plot_curves(curves: Mapping[str, Sequence[Sequence[Mapping[str, Any]]]],
                             label=f"{name}: mean of the draws")
         if key != "loss":
             ax.axhline(0.0, color="black", lw=0.8, ls="--", label="persistence (do nothing)")
-            low = ax.get_ylim()[0]
-            ax.set_ylim(max(low, -3.0), 1.05)
+            fit_skill_axis(ax, top=1.05)
         ax.set(title=title, xlabel="training minutes" if timed else "step")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
