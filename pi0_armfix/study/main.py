@@ -22,9 +22,10 @@ first seeds). The results of all finished runs are gathered into:
   study.json  every run's metrics, the per-seed headline values and every aggregate.
   study.png   per-group skill and motion gain, mean with the seeds' spread as error bars, the
               do-nothing predictors as markers.
-  study_curves.png  the training loss and each group's held-out skill against the step (every
-              evaluation the runs logged), mean over seeds with their range; study.md's last
-              table holds the same per config and step.
+  study_curves.png  the training loss and each group's held-out skill against the training
+              minutes (the step where a run logged no timings) at every evaluation the runs
+              logged, mean over seeds with their range; study.md's last table holds the same
+              per config and step.
 
 Every held-out number is the single draw's (what a robot executes), with the mean of the
 `eval.num_draws` draws and the energy skill beside it (docs/evaluation.md).
