@@ -11,7 +11,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 import train_fixtures as tf
-from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+from train_fixtures import arm_delta_run, cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix.data.statistics import normalize
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import pretrained
@@ -24,8 +24,8 @@ CONFIG = "configs/arm_delta.py"
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, demo_root):  # noqa: F811
-    return tf.trained_tiny_run(CONFIG, tmp_path_factory.mktemp("run"), demo_root)
+def run(arm_delta_run):  # noqa: F811
+    return arm_delta_run
 
 
 @pytest.fixture(scope="module")

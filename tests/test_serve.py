@@ -21,7 +21,7 @@ from websockets import exceptions as websockets_exceptions
 from websockets.sync.client import connect
 
 import train_fixtures as tf
-from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+from train_fixtures import arm_delta_run, cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.formats import video
 from pi0_armfix.data.pipeline import batching
@@ -43,8 +43,8 @@ CONFIG = "configs/arm_delta.py"
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, demo_root):  # noqa: F811
-    return tf.trained_tiny_run(CONFIG, tmp_path_factory.mktemp("run"), demo_root)
+def run(arm_delta_run):  # noqa: F811
+    return arm_delta_run
 
 
 @pytest.fixture(scope="module")

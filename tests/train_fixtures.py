@@ -4,7 +4,7 @@ Runs go through `python -m pi0_armfix.train` in a subprocess (the entrypoint as 
 or `train.train_and_evaluate` in-process. Compiled programs are shared through JAX's persistent
 compilation cache in one folder per test process (xdist worker), so a run that another test
 module already compiled (the tiny `uniform` run, say) does not compile again.
-Test modules import the fixtures `cache_dir` and `demo_root` from here.
+Test modules import the fixtures `cache_dir`, `demo_root` and `arm_delta_run` from here.
 """
 
 from __future__ import annotations
@@ -42,6 +42,15 @@ def cache_dir(tmp_path_factory) -> Path:
 def demo_root(tmp_path_factory) -> Path:
     """The tiny demo dataset of a test module."""
     return write_tiny_demo(tmp_path_factory.mktemp("data") / "demo")
+
+
+@pytest.fixture(scope="session")
+def arm_delta_run(tmp_path_factory) -> Path:
+    """A tiny run of `configs/arm_delta.py` (delta torso and arms on a state reordered into the
+    action order, as on B1K) on its own tiny demo, shared by the modules that only read it and
+    write beside it (serving, export): one training for both."""
+    data = write_tiny_demo(tmp_path_factory.mktemp("arm_delta_data") / "demo")
+    return trained_tiny_run("configs/arm_delta.py", tmp_path_factory.mktemp("arm_delta_run"), data)
 
 
 def tiny_overrides(data_root: Path, **changes: Any) -> dict[str, Any]:
