@@ -55,7 +55,7 @@ def main(argv: Sequence[str]) -> None:
                               protocol=FLAGS.protocol, seed=FLAGS.seed, prompt=FLAGS.prompt)
     except ValueError as e:
         raise SystemExit(f"pi0_armfix.serve: {e}") from None
-    levers = policy.run.result_tag(closed_loop=True)
+    levers = policy.sampling.tag(closed_loop=True)  # every lever off its default, the run's own too
     meta = policy.metadata()
     print(f"serving step {meta['step']} of {FLAGS.workdir} ({meta['model']}, H = "
           f"{meta['action_horizon']}) on ws://{FLAGS.host}:{FLAGS.port}; observation keys "

@@ -1,6 +1,8 @@
 """The policy's levers in one typed place: read from a run's `eval` section with a command's in
 their place, each checked by name, and the same sampler for every reader."""
 
+import dataclasses
+
 import pytest
 
 from pi0_armfix.action_space import ActionLayout
@@ -36,6 +38,17 @@ def test_a_lever_out_of_its_range_is_named(levers, message):
 def test_the_tag_names_only_the_sampled_levers_off_their_defaults():
     assert Sampling().tag() == "" and Sampling(num_steps=5).tag() == ""
     assert Sampling(average_draws=4.0, temperature=0.5).tag() == "_avg4_temp0.5"
+
+
+def test_a_runs_own_levers_tag_nothing_and_a_lever_it_turns_off_is_named_off():
+    own = Sampling(n_exec=8, temporal_ensemble=0.01, group_draws="base=4+torso=4")
+    assert own.tag(closed_loop=True) == "_exec8_draws-base4-torso4_ens0.01"
+    assert own.tag(closed_loop=True, against=own) == ""
+    assert dataclasses.replace(own, temporal_ensemble=0.0, group_draws="").tag(
+        closed_loop=True, against=own) == "_draws-off_ens0"
+    assert dataclasses.replace(own, n_exec=4, rtc=True, deadband="torso=2").tag(
+        closed_loop=True, against=own) == "_exec4_rtc_deadband-torso2"
+    assert dataclasses.replace(own, n_exec=4).tag(against=own) == ""  # held-out: sampled only
 
 
 def test_a_hysteresis_on_a_layout_without_grippers_is_refused():

@@ -631,6 +631,16 @@ def test_a_lever_variant_is_its_config_less_the_inference_levers():
     assert study_run.lever_args("arm_focused") == []
 
 
+def test_a_lever_variant_finds_its_files_by_the_levers_it_changes_on_its_run(tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps({"eval": {
+        "n_exec": 8, "temporal_ensemble": 0.01, "group_draws": "base=4+torso=4"}}))
+    assert study_run.lever_tag("arm_focused", tmp_path, closed_loop=True) == ""
+    assert study_run.lever_tag("arm_focused@eval.temporal_ensemble=0", tmp_path,
+                               closed_loop=True) == "_ens0"
+    assert study_run.lever_tag("arm_focused@eval.deadband=torso=2", tmp_path) == \
+        "_deadband-torso2"
+
+
 def test_a_lever_variant_is_measured_after_its_trained_runs_and_trains_nothing(
         tmp_path, monkeypatch):
     variant = "uniform@eval.average_draws=4"

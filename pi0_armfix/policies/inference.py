@@ -146,12 +146,13 @@ class RestoredRun:
     ema_kept: bool = False  # the checkpoint holds EMA params (read unless "params" was asked)
 
     def result_tag(self, closed_loop: bool = False) -> str:
-        """The suffix of this evaluation's result files: `Sampling.tag` of its levers (the
-        execution levers too for a closed loop), and `_params` where the raw params were read
-        although the run kept an EMA, so that neither replaces the default evaluation's files
-        (the EMA's, plain sampler)."""
+        """The suffix of this evaluation's result files: `Sampling.tag` of its levers against the
+        run's own (the execution levers too for a closed loop), and `_params` where the raw
+        params were read although the run kept an EMA, so that neither replaces the default
+        evaluation's files (the EMA's, with the levers of the run's config)."""
         raw = self.ema_kept and self.params_name == "params"
-        return self.sampling.tag(closed_loop) + ("_params" if raw else "")
+        own = Sampling.from_eval(self.config.eval)
+        return self.sampling.tag(closed_loop, against=own) + ("_params" if raw else "")
 
 
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",

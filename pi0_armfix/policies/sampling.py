@@ -184,21 +184,32 @@ class Sampling:
                                               if self.rtc else ""))
         return n_exec
 
-    def tag(self, closed_loop: bool = False) -> str:
-        """The suffix of result files that another setting must not replace: `_avg<k>`,
-        `_temp<τ>`, `_draws-<group><k>...`, `_deadband-<group><k>...` for sampled levers off
-        their defaults and, for a closed loop, `_exec<n>`, `_rtc`, `_hysteresis`, `_ens<m>` for
-        execution levers (each part only when set)."""
-        tag = ((f"_avg{self.average_draws}" if self.average_draws != 1 else "")
-               + (f"_temp{self.temperature:g}" if self.temperature != 1.0 else "")
-               + ("_draws-" + "-".join(f"{g}{k}" for g, k in self.group_counts().items())
-                  if self.group_draws else "")
-               + ("_deadband-" + "-".join(f"{g}{k:g}" for g, k in self.deadbands().items())
-                  if self.deadband else ""))
+    def tag(self, closed_loop: bool = False, against: Sampling | None = None) -> str:
+        """The suffix of result files that another setting must not replace: one part per lever
+        that differs from `against` (a run's own levers, `Sampling.from_eval(run.config.eval)`;
+        None: the defaults here), so that the files a run's own levers write carry none.
+        Sampled levers: `_avg<k>`, `_temp<τ>`, `_draws-<group><k>...`,
+        `_deadband-<group><k>...`; for a closed loop also the execution levers: `_exec<n>`,
+        `_rtc`, `_hysteresis`, `_ens<m>`. A lever turned off where `against` has it on is named
+        off: `_draws-off`, `_deadband-off`, `_nortc`, `_nohysteresis`, `_ens0`."""
+        base = against or Sampling()
+
+        def part(field: str, text: str) -> str:
+            return text if getattr(self, field) != getattr(base, field) else ""
+
+        per_group = {field: "-".join(f"{g}{k:g}" for g, k in counts.items()) or "off"
+                     for field, counts in (("group_draws", self.group_counts()),
+                                           ("deadband", self.deadbands()))}
+        tag = (part("average_draws", f"_avg{self.average_draws}")
+               + part("temperature", f"_temp{self.temperature:g}")
+               + part("group_draws", f"_draws-{per_group['group_draws']}")
+               + part("deadband", f"_deadband-{per_group['deadband']}"))
         if closed_loop:
-            tag = ((f"_exec{self.n_exec}" if self.n_exec else "") + ("_rtc" if self.rtc else "")
-                   + ("_hysteresis" if self.gripper_hysteresis else "") + tag
-                   + (f"_ens{self.temporal_ensemble:g}" if self.temporal_ensemble else ""))
+            tag = (part("n_exec", f"_exec{self.n_exec}")
+                   + part("rtc", "_rtc" if self.rtc else "_nortc")
+                   + part("gripper_hysteresis",
+                          "_hysteresis" if self.gripper_hysteresis else "_nohysteresis")
+                   + tag + part("temporal_ensemble", f"_ens{self.temporal_ensemble:g}"))
         return tag
 
     def describe(self) -> dict[str, Any]:

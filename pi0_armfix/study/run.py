@@ -91,10 +91,11 @@ def lever_args(config: str) -> list[str]:
 
 def lever_tag(config: str, checkpoints: Path, closed_loop: bool = False) -> str:
     """`Sampling.tag` of a config's levers on its trained run (that run's `eval` with the
-    config's levers in place): the tag of the evaluation files its levers write (held-out, or
-    `closed_loop`)."""
+    config's levers in place, against the run's own): the tag of the evaluation files its levers
+    write (held-out, or `closed_loop`)."""
     saved = json.loads((checkpoints / "config.json").read_text())["eval"]
-    return Sampling.from_eval(saved, **inference_levers(config)).tag(closed_loop)
+    return Sampling.from_eval(saved, **inference_levers(config)).tag(
+        closed_loop, against=Sampling.from_eval(saved))
 
 
 def run_steps(config: str, steps: int) -> int:
