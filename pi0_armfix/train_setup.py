@@ -29,6 +29,7 @@ from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.model import flow_model, pretrained
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import checkpoint, fingerprint, freeze, workdir_lock
 from pi0_armfix.training import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
@@ -94,6 +95,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size",
                                   spec.train["microbatches"])
     batch_sharding = sharding_lib.batch_sharding(mesh)
+    # The levers serving and the closed loop will read from the run's config, fit to this model.
+    Sampling.from_eval(spec.eval).check(layout, model_config.action_horizon)
     if spec.evaluates:
         evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)
 

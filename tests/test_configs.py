@@ -318,3 +318,12 @@ def test_the_previous_action_config_is_the_main_job_relative_to_the_previous_com
     assert config.data.delta_reference == "previous_action"
     config.data.delta_reference = main.data.delta_reference
     assert config == main
+
+
+def test_levers_that_do_not_fit_the_model_are_refused_before_any_work(tmp_path, demo_root):
+    config = load("arm_focused")
+    config.update_from_flattened_dict(tf.tiny_overrides(demo_root, eval__n_exec=8))
+    with pytest.raises(ValueError, match=r"n_exec = 8 \(eval.n_exec or --n_exec\) must be in "
+                                         r"\[1, H = 4\]"):
+        train.train_and_evaluate(config, str(tmp_path / "run"))
+    assert not (tmp_path / "run").exists()

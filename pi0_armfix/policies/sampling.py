@@ -240,6 +240,17 @@ class Sampling:
             temperature=self.temperature, num_draws=num_draws,
             draw_counts=None if layout is None else self.draw_counts(layout))
 
+    def check(self, layout: ActionLayout, horizon: int) -> None:
+        """Every lever against a run's layout and horizon `H`, as a closed loop or a server
+        would use them (a training run checks its own before its first step).
+
+        Raises:
+          ValueError naming the lever: a group the layout lacks, `n_exec` beyond the horizon,
+          a hysteresis without grippers.
+        """
+        self.draw_counts(layout), self.deadbands(layout), self.executed(horizon)
+        self.latch(layout)
+
     def latch(self, layout: ActionLayout | None) -> hysteresis.GripperLatch | None:
         """The grippers' hysteresis on `layout`'s gripper dims, or None without one.
 
