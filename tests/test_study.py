@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -661,6 +662,25 @@ def test_a_lever_variant_is_measured_after_its_trained_runs_and_trains_nothing(
     assert sorted(calls[:2]) == [("uniform", 0), ("uniform", 1)]
     assert sorted(calls[2:]) == [(variant, 0), (variant, 1)]
     assert [r["config"] for r in results] == [variant, variant, "uniform", "uniform"]
+
+
+def test_a_lever_variant_takes_a_free_slot_while_another_seed_still_trains(tmp_path, monkeypatch):
+    variant, measured = "uniform@eval.average_draws=4", threading.Event()
+
+    def fake_run_one(config, seed, steps, workdir, *_):
+        if config == "uniform" and seed == 1:  # the last training waits for seed 0's variant
+            assert measured.wait(timeout=30), "seed 0's variant waited for every training"
+        if config == variant:
+            measured.set()
+        result = _result(config, seed, 0.1)
+        folder = study_run.run_folder(workdir, config, seed)
+        folder.mkdir(parents=True)
+        (folder / study_run.RESULT_FILE).write_text(json.dumps(result))
+        return result
+    monkeypatch.setattr(study_run, "run_one", fake_run_one)
+    results = study_run.run_study(["uniform", variant], [0, 1], 10, tmp_path, parallel=2)
+    assert [(r["config"], r["seed"]) for r in results] == [
+        ("uniform", 0), ("uniform", 1), (variant, 0), (variant, 1)]
 
 
 def test_a_lever_variant_without_its_trained_config_is_named_before_any_run(tmp_path):

@@ -49,9 +49,10 @@ variants of one file compare; `@train.total_steps=N` trains that config's runs N
 levers (`policies.sampling.LEVERS`: sampled, `@eval.average_draws=k`, `@eval.temperature=t`,
 `@eval.group_draws=base=4+torso=8`, `@eval.deadband=base=0.2`; executed, `@eval.n_exec=4`,
 `@eval.rtc=true`, `@eval.temporal_ensemble=0.1`) make a lever variant, which trains
-nothing: after the trained runs, it evaluates its trained config's checkpoints, seed for seed,
-with those levers, open and closed loop, so `--configs=uniform,arm_focused,arm_focused@eval.
-average_draws=4` adds the mean of 4 draws as executed for the cost of its evaluations); every
+nothing: once its seed's trained run has finished, it evaluates its trained config's
+checkpoints, seed for seed, with those levers, open and closed loop, so `--configs=uniform,
+arm_focused,arm_focused@eval.average_draws=4` adds the mean of 4 draws as executed for the cost
+of its evaluations); every
 `--override` is passed to every run as `--config.<key>=<value>`. Metrics are those of
 `pi0_armfix.evaluate` (evaluation units: absolute actions over the training split's std, so
 configs with other normalizations or delta actions compare).

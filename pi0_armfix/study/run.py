@@ -381,8 +381,8 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
     they were not), the others trained; with `train=False`, only the finished ones (a partial
     study's tables, labelled by their seed counts), read from `workdir`'s `study.json` where a
     run has no folder (a study kept as its report alone, `results/<study>/`). Lever variants
-    (`trained_config`) are measured after every trained run, on the checkpoints of their trained
-    config, which the study must hold."""
+    (`trained_config`) are measured on the checkpoints of their trained config, which the study
+    must hold, each once its seed's trained run has finished."""
     missing = sorted({trained_config(c) for c in configs} - set(configs))
     if train and missing:
         raise ValueError(f"--configs {[c for c in configs if trained_config(c) in missing]} "
@@ -422,16 +422,21 @@ def run_study(configs: Sequence[str], seeds: Sequence[int], steps: int, workdir:
                                          closed_loop_episodes) for c, s in unmeasured},
             **{(c, s): functools.partial(run_one, c, s, steps, workdir, overrides,
                                          closed_loop_episodes, evaluations) for c, s in todo}}
-    # Lever variants second: they are measured on checkpoints the first phase trains.
-    phases = [[key for key in jobs if (trained_config(key[0]) == key[0]) == first]
-              for first in (True, False)]
+    # A lever variant is measured on its trained run's checkpoints: it is queued once that run
+    # has finished, behind the trainings, so it takes a slot the last trainings leave free.
+    waiting = [key for key in jobs if trained_config(key[0]) != key[0]]
     with (concurrent.futures.ThreadPoolExecutor(max_workers=parallel) as pool,
           tqdm(total=len(jobs), desc="study runs", unit="run") as bar):
         try:
-            for phase in phases:
-                futures = {pool.submit(jobs[key]): key for key in phase}
-                for future in concurrent.futures.as_completed(futures):
-                    results[futures[future]] = future.result()
+            futures = {pool.submit(jobs[key]): key for key in jobs if key not in waiting}
+            while futures or waiting:
+                ready = [key for key in waiting if (trained_config(key[0]), key[1]) in results]
+                futures.update({pool.submit(jobs[key]): key for key in ready})
+                waiting = [key for key in waiting if key not in ready]
+                done, _ = concurrent.futures.wait(futures,
+                                                  return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in done:
+                    results[futures.pop(future)] = future.result()
                     bar.update()
         except StudyInterrupted:
             pool.shutdown(wait=True, cancel_futures=True)
