@@ -18,6 +18,7 @@ from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import checkpoint, sharding
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -327,3 +328,12 @@ def test_levers_that_do_not_fit_the_model_are_refused_before_any_work(tmp_path, 
                                          r"\[1, H = 4\]"):
         train.train_and_evaluate(config, str(tmp_path / "run"))
     assert not (tmp_path / "run").exists()
+
+
+def test_the_main_job_executes_with_its_adopted_levers_in_the_demo_world_only():
+    demo = Sampling.from_eval(load("arm_focused").eval)
+    assert (demo.n_exec, demo.temporal_ensemble, demo.group_counts(), demo.deadbands()) == (
+        8, 0.01, {"base": 4, "torso": 8}, {"torso": 2.0})
+    demo.check(B1K, model_config_lib.get_preset("demo").action_horizon)
+    for scale in ("b1k", "g1"):
+        assert Sampling.from_eval(load("arm_focused", scale).eval) == Sampling()
