@@ -642,6 +642,15 @@ def test_a_lever_variant_finds_its_files_by_the_levers_it_changes_on_its_run(tmp
         "_deadband-torso2"
 
 
+def _finished_run(config, seed, workdir):
+    """A run's result as `run_one` leaves it: written into its folder, and returned."""
+    result = _result(config, seed, 0.1)
+    folder = study_run.run_folder(workdir, config, seed)
+    folder.mkdir(parents=True)
+    (folder / study_run.RESULT_FILE).write_text(json.dumps(result))
+    return result
+
+
 def test_a_lever_variant_is_measured_after_its_trained_runs_and_trains_nothing(
         tmp_path, monkeypatch):
     variant = "uniform@eval.average_draws=4"
@@ -652,11 +661,7 @@ def test_a_lever_variant_is_measured_after_its_trained_runs_and_trains_nothing(
         if trained != config:  # the checkpoints it needs exist when it is measured
             assert study_run.load_result(study_run.run_folder(workdir, trained, seed))
         calls.append((config, seed))
-        result = _result(config, seed, 0.1)
-        folder = study_run.run_folder(workdir, config, seed)
-        folder.mkdir(parents=True)
-        (folder / study_run.RESULT_FILE).write_text(json.dumps(result))
-        return result
+        return _finished_run(config, seed, workdir)
     monkeypatch.setattr(study_run, "run_one", fake_run_one)
     results = study_run.run_study([variant, "uniform"], [0, 1], 10, tmp_path, parallel=2)
     assert sorted(calls[:2]) == [("uniform", 0), ("uniform", 1)]
@@ -672,11 +677,7 @@ def test_a_lever_variant_takes_a_free_slot_while_another_seed_still_trains(tmp_p
             assert measured.wait(timeout=30), "seed 0's variant waited for every training"
         if config == variant:
             measured.set()
-        result = _result(config, seed, 0.1)
-        folder = study_run.run_folder(workdir, config, seed)
-        folder.mkdir(parents=True)
-        (folder / study_run.RESULT_FILE).write_text(json.dumps(result))
-        return result
+        return _finished_run(config, seed, workdir)
     monkeypatch.setattr(study_run, "run_one", fake_run_one)
     results = study_run.run_study(["uniform", variant], [0, 1], 10, tmp_path, parallel=2)
     assert [(r["config"], r["seed"]) for r in results] == [
