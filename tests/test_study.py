@@ -632,6 +632,14 @@ def test_a_lever_variant_is_its_config_less_the_inference_levers():
     assert study_run.lever_args("arm_focused") == []
 
 
+def test_a_lever_whose_value_is_a_list_stays_one_config_of_the_comma_separated_flag():
+    parts = "arm_focused,arm_focused@eval.gripper_hysteresis=0.9,-0.98,uniform,".split(",")
+    assert study_run.config_names(parts) == [
+        "arm_focused", "arm_focused@eval.gripper_hysteresis=0.9,-0.98", "uniform"]
+    assert study_run.trained_config("arm_focused@eval.gripper_hysteresis=0.9,-0.98") == (
+        "arm_focused")
+
+
 def test_a_lever_variant_finds_its_files_by_the_levers_it_changes_on_its_run(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"eval": {
         "n_exec": 8, "temporal_ensemble": 0.01, "group_draws": "base=4+torso=4"}}))

@@ -48,7 +48,8 @@ variants of one file compare; `@train.total_steps=N` trains that config's runs N
 `--steps`, so that recipes whose steps cost differently compare at equal wall time; the inference
 levers (`policies.sampling.LEVERS`: sampled, `@eval.average_draws=k`, `@eval.temperature=t`,
 `@eval.group_draws=base=4+torso=8`, `@eval.deadband=base=0.2`; executed, `@eval.n_exec=4`,
-`@eval.rtc=true`, `@eval.temporal_ensemble=0.1`) make a lever variant, which trains
+`@eval.rtc=true`, `@eval.temporal_ensemble=0.1`, `@eval.gripper_hysteresis=0.9,-0.98`: a
+list's commas stay inside its config) make a lever variant, which trains
 nothing: once its seed's trained run has finished, it evaluates its trained config's
 checkpoints, seed for seed, with those levers, open and closed loop, so `--configs=uniform,
 arm_focused,arm_focused@eval.average_draws=4` adds the mean of 4 draws as executed for the cost
@@ -89,7 +90,7 @@ from pi0_armfix.study.aggregate import aggregate
 from pi0_armfix.study.report import (CURVES_HEADING, curve_table, markdown, plot_curves,
                                      plot_study)
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,
-                                  check_study_levers, closed_loop_plan,
+                                  check_study_levers, closed_loop_plan, config_names,
                                   default_closed_loop_episodes, parse_config, run_folder,
                                   run_study, trained_config)
 from pi0_armfix.training import metrics_log
@@ -175,7 +176,7 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
     console.quiet_library_logging()
-    configs = [c for c in FLAGS.configs if c]
+    configs = config_names(FLAGS.configs)
     if not configs:
         raise SystemExit("pi0_armfix.study: --configs names no config")
     missing = [c for c in configs

@@ -53,6 +53,19 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
     return name, arg, overrides
 
 
+def config_names(parts: Sequence[str]) -> list[str]:
+    """`--configs` as absl splits it, at every comma -> the study's configs: a part that cannot
+    begin a config name (`-0.98`, `0.5`) continues the one before it, so a lever whose value is
+    a list (`arm_focused@eval.gripper_hysteresis=0.9,-0.98`) stays one config."""
+    configs: list[str] = []
+    for part in filter(None, parts):
+        if configs and not (part[0].isalpha() or part[0] == "_"):
+            configs[-1] += f",{part}"
+        else:
+            configs.append(part)
+    return configs
+
+
 def inference_levers(config: str) -> dict[str, str]:
     """A study config's own inference levers: its `@eval.<lever>=<value>` overrides of
     `sampling.LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
