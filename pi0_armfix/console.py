@@ -168,8 +168,12 @@ def _check_config_file(program: str, path: str) -> None:
 
 
 def define_lever_flags() -> None:
-    """The policy's levers for this command (`policies.sampling.Sampling`, whose docstring says
-    what each does), unset = the run's `eval.<lever>` (`inference.restore_run`)."""
+    """How this command executes the policy (`policies.sampling.Sampling.for_run`, whose
+    docstrings say what each lever does): `--execution`, then each lever in place of the
+    execution's (unset: the run's `eval.<lever>`, else the execution's)."""
+    flags.DEFINE_enum("execution", None, ["adopted", "none"], "adopted: the world's adopted "
+                      "execution (the demo world's, else every lever off); none: every lever off "
+                      "(unset: the run's eval.execution, adopted by default)")
     flags.DEFINE_integer("average_draws", None, "each executed chunk the mean of this many draws "
                          "(unset: the run's eval.average_draws)")
     flags.DEFINE_float("temperature", None, "the initial noise scaled by this, in (0, 1] (unset: "
@@ -200,4 +204,5 @@ def lever_flags() -> dict[str, Any]:
     """The levers given on the command line (`define_lever_flags`), as `Sampling` fields."""
     # Here, not at the top: the console stays free of jax for the commands that never sample.
     from pi0_armfix.policies.sampling import LEVERS
-    return {key: flags.FLAGS[key].value for key in LEVERS if flags.FLAGS[key].value is not None}
+    return {key: flags.FLAGS[key].value for key in ("execution", *LEVERS)
+            if flags.FLAGS[key].value is not None}

@@ -4,17 +4,24 @@
         [--keys=observation/egocentric_camera=base_0_rgb,...,observation/state=state,prompt=prompt]
 
 Any openpi client works against it (`openpi_client.websocket_client_policy.WebsocketClientPolicy`,
-B1K's evaluation harness): on connect the server sends its metadata; then every binary message is
-an observation dict, answered by `{"actions": float32 [H, A], "server_timing": {"infer_ms"}}`,
-actions absolute and in the dataset's units (`pi0_armfix.policies.inference.RunPolicy`). Messages
+B1K's evaluation harness): on connect the server sends its metadata (`observation_keys` names
+every key the policy reads); then every binary message is an observation dict, answered by
+`{"actions": float32 [H, A], "server_timing": {"infer_ms"}}`, actions absolute and in the
+dataset's units (`pi0_armfix.policies.inference.RunPolicy`). A run relative to the previous
+command (`data.delta_reference=previous_action`) reads the request's `previous_action` (the
+action the client last executed); a request without it is answered relative to the action of
+this connection's last reply that the client executed last (the `--n_exec`-th, the chunk's last
+for 0), or, on a connection's first request, to the state, and the reply says which
+(`"relative_to"`: `previous_action`, `executed` or `state`). Messages
 are msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
 read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
 message naming the problem (openpi's client raises it as a RuntimeError); the connection and the
-server stay up. `GET /healthz` answers 200 (openpi's health check). The run's levers (its `eval`
-section, the flags in their place: `policies.sampling.Sampling`) shape every chunk; of the
-execution levers an openpi connection gets the per-chunk ones (the base's stop deadband, the
-grippers' hysteresis held across its requests as if the client executed `--n_exec` actions of
-every chunk), a B1K harness connection all (`policies.execution`).
+server stay up. `GET /healthz` answers 200 (openpi's health check). The run's execution
+(`--execution`, default the world's adopted one; its `eval` levers and the flags in their place:
+`policies.sampling.Sampling.for_run`) shapes every chunk; an openpi connection gets the per-chunk
+levers (the draws averaged, the deadband, the grippers' hysteresis held across its requests as if
+the client executed `--n_exec` actions of every chunk: it executes the chunks itself, so rtc and
+temporal ensembling are its own), a B1K harness connection every lever (`policies.execution`).
 """
 
 
@@ -49,6 +56,7 @@ def main(argv: Sequence[str]) -> None:
                              "pass another --port (or stop what holds it)") from None
         policy = inference.RunPolicy.from_workdir(
             FLAGS.workdir, FLAGS.step, FLAGS.params, levers=console.lever_flags(),
+            client_executes=FLAGS.protocol != "b1k",
             keys=inference.ObservationKeys.parse(FLAGS.keys))
         server = PolicyServer(policy, FLAGS.host, FLAGS.port, sock=sock,
                               max_message_bytes=FLAGS.max_message_mb << 20,

@@ -95,8 +95,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size",
                                   spec.train["microbatches"])
     batch_sharding = sharding_lib.batch_sharding(mesh)
-    # The levers serving and the closed loop will read from the run's config, fit to this model.
-    Sampling.from_eval(spec.eval).check(layout, model_config.action_horizon)
+    # The levers the commands will execute the run with by default, fit to this model.
+    sampling = Sampling.for_run(config)
+    sampling.check(layout, model_config.action_horizon)
     if spec.evaluates:
         evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)
 
@@ -157,7 +158,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         if spec.evaluates:
             evaluator = evaluator_lib.Evaluator(data, spec.eval, model_config, norm_stats, tokenize,
                                            mesh=mesh, params_sharding=state_shardings.params,
-                                           source=source, noise_factor=noise_factor)
+                                           source=source, noise_factor=noise_factor,
+                                           sampling=sampling)
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
                                        every=spec.train["checkpoint_every"],
                                        keep=spec.train["keep_checkpoints"])

@@ -18,7 +18,7 @@ from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
-from pi0_armfix.policies.sampling import Sampling
+from pi0_armfix.policies.sampling import LEVERS, Sampling
 from pi0_armfix.training import checkpoint, sharding
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
@@ -330,10 +330,54 @@ def test_levers_that_do_not_fit_the_model_are_refused_before_any_work(tmp_path, 
     assert not (tmp_path / "run").exists()
 
 
-def test_the_main_job_executes_with_its_adopted_levers_in_the_demo_world_only():
-    demo = Sampling.from_eval(load("arm_focused").eval)
-    assert (demo.n_exec, demo.temporal_ensemble, demo.group_counts(), demo.deadbands()) == (
-        8, 0.01, {"base": 4, "torso": 8}, {"torso": 2.0})
-    demo.check(B1K, model_config_lib.get_preset("demo").action_horizon)
+def test_no_shipped_config_sets_how_its_policy_is_executed():
+    for name in console.config_names():
+        for scale in ("", "b1k", "b1k2026", "g1"):
+            config = load(name, scale)
+            assert config.eval.execution == "adopted", (name, scale)
+            assert {k: config.eval[k] for k in LEVERS} == dict.fromkeys(LEVERS), (name, scale)
+
+
+def test_a_study_of_uniform_and_arm_focused_executes_both_alike_in_the_demo_world():
+    from pi0_armfix.study import run as study_run
+
+    executions = []
+    for name in ("uniform", "arm_focused"):
+        config = load(name)
+        command = study_run.train_command(name, 0, 4500, tf.REPO_ROOT, ["eval.execution=adopted"])
+        overrides = dict(a.removeprefix("--config.").split("=", 1) for a in command
+                         if a.startswith("--config.eval."))
+        config.update_from_flattened_dict({k: config.eval[k.removeprefix("eval.")].__class__(v)
+                                           for k, v in overrides.items()})
+        executions.append(Sampling.for_run(config))
+    assert executions[0] == executions[1]
+    assert (executions[0].n_exec, executions[0].temporal_ensemble, executions[0].group_counts(),
+            executions[0].deadbands()) == (8, 0.01, {"base": 4, "torso": 8}, {"torso": 2.0})
+
+
+def test_the_adopted_execution_is_the_demo_worlds_alone():
     for scale in ("b1k", "g1"):
-        assert Sampling.from_eval(load("arm_focused", scale).eval) == Sampling()
+        assert Sampling.for_run(load("arm_focused", scale)) == Sampling()
+    on_a_demo_written_elsewhere = load("arm_focused")
+    on_a_demo_written_elsewhere.data.root = "/data/demo"
+    assert Sampling.for_run(on_a_demo_written_elsewhere) == Sampling()
+    assert Sampling.for_run(load("arm_focused"), execution="none") == Sampling()
+
+
+@pytest.mark.parametrize("preset", model_config_lib.PRESETS)
+def test_the_main_job_fits_its_execution_to_every_preset_without_a_flag(preset):
+    config = load("arm_focused")
+    config.model.preset = preset
+    config.model.sizes.siglip.conv_stem = 3 if preset == "demo" else 0  # the demo's stem alone
+    horizon = model_config_lib.from_model_config(config.model).action_horizon
+    sampling = Sampling.for_run(config)
+    sampling.check(B1K, horizon)
+    assert sampling.executed(horizon) == max(horizon // 4, 1)
+
+
+def test_a_run_that_sets_a_lever_keeps_it_over_the_execution_and_a_flag_over_both():
+    config = load("arm_focused")
+    config.eval.deadband = ""
+    assert Sampling.for_run(config).deadbands() == {}
+    assert Sampling.for_run(config, deadband="base=0.2").deadbands() == {"base": 0.2}
+    assert Sampling.for_run(config).group_counts() == {"base": 4, "torso": 8}

@@ -454,3 +454,82 @@ def test_a_run_folder_serves_without_its_data(tmp_path, cache_dir, demo_root):  
     shutil.rmtree(data)  # the robot-side machine has the run folder only
     policy = inference.RunPolicy.from_workdir(workdir)
     np.testing.assert_allclose(policy.infer([observation]), expected, atol=1e-6)
+
+
+def _as_main_job_world(run, folder):
+    """A copy of `run` whose config names the embedded demo (`data.root=''`), as the main job's
+    does: the world whose adopted execution the commands default to (the run folder keeps its
+    inputs, so nothing reads the data)."""
+    copy = shutil.copytree(run, folder)
+    for path in copy.glob("checkpoints/*/config/metadata"):
+        config = json.loads(path.read_text())
+        config["data"]["root"] = ""
+        path.write_text(json.dumps(config))
+    return copy
+
+
+def _serve_in_thread(policy, **kwargs):
+    policy_server = server_lib.PolicyServer(policy, "127.0.0.1", 0, **kwargs)
+    loop, ready = asyncio.new_event_loop(), asyncio.Event()
+    threading.Thread(target=lambda: loop.run_until_complete(policy_server.serve(ready)),
+                     daemon=True).start()
+    while not ready.is_set():
+        time.sleep(0.02)
+    return policy_server
+
+
+def test_the_readme_serve_command_on_a_main_job_run_answers_the_openpi_client(
+        run, tmp_path, cache_dir):  # noqa: F811
+    workdir = _as_main_job_world(run, tmp_path / "run")
+    with socket.create_server(("127.0.0.1", 0)) as probe:
+        port = probe.getsockname()[1]
+    server = subprocess.Popen(
+        [sys.executable, "-m", "pi0_armfix.serve", f"--workdir={workdir}", "--host=127.0.0.1",
+         f"--port={port}"], env=tf.env(cache_dir), cwd=tf.REPO_ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        assert "serving step 2" in server.stdout.readline(), server.stderr.read()[-3000:]
+        client = WebsocketClientPolicy(host="127.0.0.1", port=port)
+        metadata = client.get_server_metadata()
+        # the adopted execution's per-chunk levers; the chunk's execution is the client's
+        assert (metadata["group_draws"], metadata["deadband"], metadata["temporal_ensemble"],
+                metadata["rtc"]) == ("base=4+torso=8", "torso=2", 0.0, False)
+        assert client.infer(_observation())["actions"].shape == (4, 23)
+    finally:
+        server.terminate()
+        server.wait(30)
+
+
+def test_the_b1k_harness_executes_a_main_job_run_with_the_adopted_execution(run, tmp_path):
+    policy = inference.RunPolicy.from_workdir(_as_main_job_world(run, tmp_path / "run"))
+    sampling = policy.sampling
+    assert (sampling.n_exec, sampling.temporal_ensemble, sampling.group_draws,
+            sampling.deadband) == (1, 0.01, "base=4+torso=8", "torso=2")  # H = 4: every quarter
+    server = server_lib.PolicyServer(policy, "127.0.0.1", 0, protocol="b1k")
+    assert server.session("client")._replanning.sampling == sampling
+
+
+def test_a_previous_action_run_never_answers_a_mid_episode_request_relative_to_the_state(run):
+    policy = inference.RunPolicy.from_workdir(run)
+    policy.delta_reference = "previous_action"  # its actions relative to the previous command
+    twin = inference.RunPolicy.from_workdir(run)
+    twin.delta_reference = "previous_action"
+    server = _serve_in_thread(policy)
+    client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
+    assert client.get_server_metadata()["observation_keys"]["previous_action"] == (
+        "previous_action")
+    observation = _observation()
+    first = client.infer(observation)
+    assert first["relative_to"] == "state"  # a connection's first request: nothing executed yet
+    second = client.infer(observation)  # the client sends no previous_action
+    assert second["relative_to"] == "executed"
+    executed = first["actions"][-1]  # n_exec 0: an openpi client executes the whole chunk
+    twin._draws = 1
+    np.testing.assert_allclose(second["actions"],
+                               twin.infer([observation], previous=executed[None])[0], atol=1e-5)
+    held = np.full(23, 0.3, np.float32)
+    third = client.infer({**observation, "previous_action": held})
+    assert third["relative_to"] == "previous_action"
+    twin._draws = 2
+    np.testing.assert_allclose(third["actions"], twin.infer(
+        [{**observation, "previous_action": held}])[0], atol=1e-5)

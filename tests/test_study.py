@@ -14,6 +14,7 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+from pi0_armfix.configs import arm_focused
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
@@ -641,13 +642,27 @@ def test_a_lever_whose_value_is_a_list_stays_one_config_of_the_comma_separated_f
 
 
 def test_a_lever_variant_finds_its_files_by_the_levers_it_changes_on_its_run(tmp_path):
-    (tmp_path / "config.json").write_text(json.dumps({"eval": {
-        "n_exec": 8, "temporal_ensemble": 0.01, "group_draws": "base=4+torso=4"}}))
+    config = arm_focused.get_config()
+    config.eval.update(dict(n_exec=8, temporal_ensemble=0.01, group_draws="base=4+torso=4"))
+    (tmp_path / "config.json").write_text(json.dumps(config.to_dict()))
     assert study_run.lever_tag("arm_focused", tmp_path, closed_loop=True) == ""
     assert study_run.lever_tag("arm_focused@eval.temporal_ensemble=0", tmp_path,
                                closed_loop=True) == "_ens0"
-    assert study_run.lever_tag("arm_focused@eval.deadband=torso=2", tmp_path) == \
-        "_deadband-torso2"
+    assert study_run.lever_tag("arm_focused@eval.deadband=base=0.4", tmp_path) == \
+        "_deadband-base0.4"
+
+
+def test_a_lever_variant_of_a_study_without_execution_is_measured_on_a_fresh_workdir(tmp_path):
+    config = arm_focused.get_config()  # as the study trains it: --config.eval.execution=none
+    config.eval.execution = "none"
+    (tmp_path / "config.json").write_text(json.dumps(config.to_dict()))
+    adopted = ("arm_focused@eval.n_exec=8@eval.temporal_ensemble=0.01"
+               "@eval.group_draws=base=4+torso=8@eval.deadband=torso=2")
+    assert study_run.lever_tag(adopted, tmp_path, closed_loop=True) == (
+        "_exec8_draws-base4-torso8_deadband-torso2_ens0.01")
+    assert study_run.lever_tag("arm_focused@eval.execution=adopted", tmp_path) == (
+        "_draws-base4-torso8_deadband-torso2")
+    assert study_run.lever_tag("arm_focused", tmp_path, closed_loop=True) == ""
 
 
 def _finished_run(config, seed, workdir):

@@ -68,7 +68,6 @@ def tiny_overrides(data_root: Path, **changes: Any) -> dict[str, Any]:
         "eval.episodes": 2,
         "eval.batch_size": 8,
         "eval.max_chunks": 16,
-        "eval.n_exec": 0,  # half the tiny preset's 4-step horizon, whatever the config replans at
     }
     overrides.update({key.replace("__", "."): value for key, value in changes.items()})
     return overrides

@@ -5,8 +5,8 @@ jitter. On a G1 (`:g1`) the relative groups are both arms and both hands. Delta
 actions remove the state-copy shortcut (the current joint positions explain most of an absolute arm
 target, so a uniform loss learns to repeat them); the extra draws give the small deltas more
 gradient per prefix compute; the conv stem lets the 32 px cameras' arm targets be learned within
-the budget, and without the jitter the base is learned within it too. In the demo world the
-policy executes with temporal ensembling and averaged draws for the base and torso.
+the budget, and without the jitter the base is learned within it too. How its policy executes is the commands'
+choice, alike for every config (`eval.execution`, `policies/sampling.py`).
 The seed's 3x weighting is `arm_weights_3x`. What it does, measured over seeds against doing
 nothing: README, "Results".
 
@@ -30,13 +30,4 @@ def get_config(arg=None):
         # The demo world never changes its colours; with the stem, the jitter only slows the
         # base (RESULTS.md, "The main job without colour jitter"). Real cameras keep it (b1k, g1).
         config.model.augment.jitter_p = 0.0
-        # How the demo world's policy executes (`policies/sampling.py`), chosen on a validation
-        # world and measured over 5 seeds on the evaluation's (RESULTS.md, "Closed loop at the
-        # world's own tolerance"): every executed action the ensemble of the chunks covering it,
-        # replanned every 8 of 32 steps; the base the mean of 4 draws (it stops where the
-        # demonstrations stop), the torso of 8 and held within 2 action stds (it holds still).
-        config.eval.n_exec = 8
-        config.eval.temporal_ensemble = 0.01
-        config.eval.group_draws = "base=4+torso=8"
-        config.eval.deadband = "torso=2"
     return config

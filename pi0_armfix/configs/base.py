@@ -247,30 +247,37 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # single draw (what a robot executes: the headline), the mean of the draws (its own spread
     # averaged away) and the energy score of the draws (a proper scoring rule).
     config.eval.num_draws = 8
-    # The policy's inference levers (held-out evaluation, closed loop, server, export caveats):
-    # each executed chunk the mean of this many draws (the grippers' hysteresis, when set, sees
-    # the mean) ...
-    config.eval.average_draws = 1
-    config.eval.temperature = 1.0  # ... each draw from the initial noise scaled by this (0, 1]
+    # How the policy is executed (held-out evaluation, closed loop, server, study): a choice of
+    # those commands, never of what a config trains (pi0_armfix.policies.sampling, README
+    # "Execution"). 'adopted': the world's adopted execution (the demo world's: replanning every
+    # quarter of the horizon with temporal ensembling, the base the mean of 4 draws, the torso of
+    # 8 held within 2 action stds; elsewhere every lever off); 'none': every lever off. A study
+    # sets it alike for every config it compares (`--execution`).
+    config.eval.execution = "adopted"
+    # The levers one at a time, in place of the execution's (None: the execution's; no shipped
+    # config sets one, so that configs compared in a table execute alike): each executed chunk
+    # the mean of this many draws (the grippers' hysteresis, when set, sees the mean) ...
+    config.eval.average_draws = config_dict.placeholder(int)
+    # ... each draw from the initial noise scaled by this, in (0, 1]
+    config.eval.temperature = config_dict.placeholder(float)
     config.eval.batch_size = 32
     config.eval.max_chunks = 512  # chunks tiling the held-out episodes (each step once), at most
     config.eval.gripper_groups = ()  # gripper switch precision/recall/F1; () = the gripper role
     config.eval.switch_tolerance = 2  # steps by which a predicted gripper switch may miss
-    # Closed loop and server: (open_above, close_below) of the grippers' hysteresis in action units
+    # (open_above, close_below) of the grippers' hysteresis in action units
     # (pi0_armfix.policies.hysteresis; B1K 2025's winners: about (0.9, -0.98)); () = commands
     # pass as sampled.
-    config.eval.gripper_hysteresis = ()
-    # Execution levers (closed loop, B1K harness; pi0_armfix.policies.execution), off until
-    # measured: actions executed per chunk before replanning (0: half the horizon), each new chunk
+    config.eval.gripper_hysteresis = config_dict.placeholder(tuple)
+    # Actions executed per chunk before replanning (0: half the horizon), each new chunk
     # following the last one's unexecuted tail (real-time chunking), ACT's temporal ensembling
     # (its decay m > 0; 0: off); per-group draws ("base=4+torso=8": those groups the mean of k
     # draws) and a per-group deadband ("base=0.2+torso=0.5": a group holds still where it is
     # commanded less motion than k action stds), which the held-out evaluation measures too.
-    config.eval.n_exec = 0
-    config.eval.rtc = False
-    config.eval.temporal_ensemble = 0.0
-    config.eval.group_draws = ""
-    config.eval.deadband = ""
+    config.eval.n_exec = config_dict.placeholder(int)
+    config.eval.rtc = config_dict.placeholder(bool)
+    config.eval.temporal_ensemble = config_dict.placeholder(float)
+    config.eval.group_draws = config_dict.placeholder(str)
+    config.eval.deadband = config_dict.placeholder(str)
     config.eval.plot_groups = ()  # trajectory plots; () = the layout's arm and gripper roles
 
     if scale in B1K_STATE_PRESETS:

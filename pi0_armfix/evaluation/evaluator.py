@@ -132,14 +132,14 @@ class Evaluator:
       mesh: the run's mesh; params_sharding: NamedShardings of the params.
       source: the run's opened data source (None = open the one `spec` names).
       noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
-      sampling: the policy's levers (None: `eval_cfg`'s), as a served policy samples with them.
+      sampling: the policy's levers (`Sampling.for_run`), as a command executes it.
     """
 
     def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
                  model_config: model_config_lib.Pi0Config,
                  norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
                  mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
-                 noise_factor: np.ndarray | None = None, sampling: Sampling | None = None):
+                 noise_factor: np.ndarray | None = None, sampling: Sampling):
         layout = spec.layout
         check_eval_config(eval_cfg, layout, mesh.size)
         self.layout = layout
@@ -147,7 +147,7 @@ class Evaluator:
         self.groups = eval_groups(eval_cfg, layout)
         self.chunks = heldout_chunks(spec, eval_cfg, model_config, norm_stats, tokenize, source)
         self.batch_sharding = sharding_lib.batch_sharding(mesh)
-        self.sampling = sampling or Sampling.from_eval(eval_cfg)
+        self.sampling = sampling
         self.draws, self.average = eval_cfg["num_draws"], self.sampling.most_draws
         self.draw_counts = self.sampling.draw_counts(layout)
         self.bands = execution.deadband_groups(

@@ -47,7 +47,7 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.policies.sampling import Sampling
+from pi0_armfix.policies.sampling import EXECUTIONS, Sampling
 from pi0_armfix.training import checkpoint
 from pi0_armfix.training import sharding as sharding_lib
 
@@ -151,21 +151,26 @@ class RestoredRun:
         params were read although the run kept an EMA, so that neither replaces the default
         evaluation's files (the EMA's, with the levers of the run's config)."""
         raw = self.ema_kept and self.params_name == "params"
-        own = Sampling.from_eval(self.config.eval)
+        own = Sampling.for_run(self.config)
         return self.sampling.tag(closed_loop, against=own) + ("_params" if raw else "")
 
 
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",
-                levers: Mapping[str, Any] | None = None) -> RestoredRun:
+                levers: Mapping[str, Any] | None = None, client_executes: bool = False
+                ) -> RestoredRun:
     """The checkpoint of `step` (latest if None) of a run folder, on one device. `params_name`:
     "ema" (the EMA params when the run kept them, else the params) or "params"; `levers`: the
-    `Sampling` fields that replace the run's (None values: the run's), checked before any
-    checkpoint is read. Only the params are read. A damaged latest checkpoint falls back
+    `Sampling` fields that replace the run's (None values: the run's) and `execution` in place of
+    the run's `eval.execution`, checked before any checkpoint is read; `client_executes`: for a
+    client that executes the chunks itself (`Sampling.for_run`). Only the params are read. A damaged latest checkpoint falls back
     to the newest older one that reads (said on stderr); a damaged `step` asked for is a ValueError
     naming the steps that read."""
     workdir = epath.Path(workdir)
     levers = dict(levers or {})
+    execution = levers.pop("execution", None)
     Sampling.from_eval({}, **levers)  # a bad lever fails before the checkpoint is read
+    if execution is not None and execution not in EXECUTIONS:
+        raise ValueError(f"--execution={execution!r} must be one of {EXECUTIONS}")
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
     steps = ckpts.all_steps()
     if step is not None and step not in steps or not steps:
@@ -195,7 +200,8 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
                        model_config_lib.from_model_config(config.model),
                        state["ema_params"] if use_ema else state["params"],
                        "ema_params" if use_ema else "params", norm_stats_from_json(norm_stats),
-                       Sampling.from_eval(config.eval, **levers), bool(state.get("ema_params")))
+                       Sampling.for_run(config, execution, client_executes, **levers),
+                       bool(state.get("ema_params")))
 
 
 def soft_mask(horizon: int, overlap: int, delay: int = 0) -> np.ndarray:
@@ -287,9 +293,9 @@ class RunPolicy:
 
     @classmethod
     def from_workdir(cls, workdir: epath.PathLike, step: int | None = None,
-                     params_name: str = "ema", levers: Mapping[str, float] | None = None,
-                     **kwargs) -> "RunPolicy":
-        return cls(restore_run(workdir, step, params_name, levers), **kwargs)
+                     params_name: str = "ema", levers: Mapping[str, Any] | None = None,
+                     client_executes: bool = False, **kwargs) -> "RunPolicy":
+        return cls(restore_run(workdir, step, params_name, levers, client_executes), **kwargs)
 
     def metadata(self) -> dict[str, Any]:
         """What a client needs to know about the policy (sent on connect by the server)."""
@@ -302,8 +308,16 @@ class RunPolicy:
                 "state_width": self.stored_state_width,
                 "delta_reference": self.delta_reference,
                 "observation_keys": {**self.keys.cameras, self.keys.state: "state",
-                                     self.keys.prompt: "prompt"},
+                                     self.keys.prompt: "prompt",
+                                     **({self.keys.previous_action: "previous_action"}
+                                        if self.needs_previous_action else {})},
                 "actions": "absolute, in the dataset's units"}
+
+    @property
+    def needs_previous_action(self) -> bool:
+        """Whether the policy's actions are relative to the previous command, which a client
+        sends as `keys.previous_action` (else the server's record of what it executed)."""
+        return self.delta_mask is not None and self.delta_reference == "previous_action"
 
     def infer(self, observations: Sequence[Mapping[str, Any]],
               follow: np.ndarray | None = None, rng: jax.Array | None = None,
@@ -336,26 +350,33 @@ class RunPolicy:
                   previous: np.ndarray | None = None) -> np.ndarray:
         """What the relative dims are relative to (`transforms.delta_reference`): the selected
         `state` `[B, S]`, or for a previous-action run the previous actions `[B, real_dim]`
-        (`previous`, else each observation's `keys.previous_action`), the state in the action
-        order where a robot has none yet.
+        (each observation's `keys.previous_action` where it has one, else `previous`'s row: what
+        the caller executed), the state in the action order where a robot has none yet (a NaN
+        row).
 
         Raises:
           ValueError naming the key, for a previous action of the wrong shape or not finite.
         """
-        if self.delta_mask is None or self.delta_reference == "state":
+        if not self.needs_previous_action:
             return state
         width, key = self.layout.real_dim, self.keys.previous_action
-        if previous is None:
-            previous = np.full((len(observations), width), np.nan, np.float32)
-            for i, observation in enumerate(observations):
-                if observation.get(key) is not None:
-                    given = np.asarray(observation[key], np.float32).reshape(-1)
-                    if given.shape != (width,) or not np.isfinite(given).all():
-                        raise ValueError(f"{key!r} must be the {width} finite values of the "
-                                         f"action last commanded (dataset units), got shape "
-                                         f"{np.shape(observation[key])}")
-                    previous[i] = given
-        previous = np.asarray(previous, np.float32)
+        previous = (np.full((len(observations), width), np.nan, np.float32) if previous is None
+                    else np.array(previous, np.float32))
+        for i, observation in enumerate(observations):
+            if observation.get(key) is None:
+                continue
+            expected = (f"{key!r} must be the {width} finite values of the action last "
+                        "commanded (dataset units)")
+            try:
+                given = np.asarray(observation[key], np.float32).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"{expected}, got {observation[key]!r:.40}") from None
+            if given.shape != (width,):
+                raise ValueError(f"{expected}, got shape {np.shape(observation[key])}")
+            if not np.isfinite(given).all():
+                bad = np.flatnonzero(~np.isfinite(given))
+                raise ValueError(f"{expected}; dim(s) {bad[:8].tolist()} are NaN or inf")
+            previous[i] = given
         start = transforms.pad_last(state[..., :width], width).astype(np.float32)
         return np.where(np.isnan(previous).any(-1, keepdims=True), start, previous)
 

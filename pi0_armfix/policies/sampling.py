@@ -9,9 +9,13 @@ server and the export.
 
 Sampled levers (`SAMPLED_LEVERS`) change the chunks the flow gives, so an open-loop evaluation
 measures them; execution levers (`EXECUTION_LEVERS`) change what is executed of them over time
-(`policies.execution`), so only a closed loop (or a robot) does. A run keeps its levers in its
-config's `eval` section (`pi0_armfix/configs/base.py`); a command may replace them for its own use
-(`console.define_lever_flags`); keys a run predates take their defaults here.
+(`policies.execution`), so only a closed loop (or a robot) does.
+
+How a policy executes is a choice of the command that runs it, never of what it trained on
+(`Sampling.for_run`): the execution (`eval.execution`, a command's `--execution`; `EXECUTIONS`)
+sets every lever, `eval.<lever>` keys that a run sets (None: unset) replace its values, and a
+command's lever flags (`console.define_lever_flags`) replace those. No shipped config sets a lever,
+so every config a study compares executes alike; the study names the execution in its tables.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ import numpy as np
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import noise as noise_lib
-from pi0_armfix.model.config import Pi0Config
+from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.policies import hysteresis
 
 # The levers a study's lever variant may set on a trained config
@@ -38,6 +42,29 @@ from pi0_armfix.policies import hysteresis
 SAMPLED_LEVERS = ("average_draws", "temperature", "group_draws", "deadband")
 EXECUTION_LEVERS = ("n_exec", "rtc", "temporal_ensemble", "gripper_hysteresis")
 LEVERS = SAMPLED_LEVERS + EXECUTION_LEVERS
+
+# The executions a command may choose (`eval.execution`, `--execution`): 'adopted' is the world's
+# adopted execution where the run's world has one (`adopted_execution`), else every lever off;
+# 'none' is every lever off (each chunk as sampled, `n_exec` half the horizon).
+EXECUTIONS = ("adopted", "none")
+# The levers a chunk-executing client (openpi's protocol) runs itself: a server leaves the
+# adopted execution's out of its defaults and refuses them asked for.
+CLIENT_LEVERS = ("rtc", "temporal_ensemble")
+
+
+def adopted_execution(data_cfg: Mapping[str, Any], horizon: int) -> dict[str, Any]:
+    """The adopted execution of the run's world: `{lever: value}`, {} where there is none.
+
+    The demo world's (a run on the embedded demo, `data.root=''`), chosen on a validation world
+    and measured over 5 seeds on the evaluation's (RESULTS.md, "Closed loop at the world's own
+    tolerance"): every executed action the ensemble of the chunks covering it, replanned every
+    quarter of the horizon (8 of 32 steps); the base the mean of 4 draws (it stops where the
+    demonstrations stop), the torso of 8 and held within 2 action stds (it holds still).
+    """
+    if data_cfg.get("root", "") != "" or data_cfg.get("format", "lerobot") != "lerobot":
+        return {}
+    return {"n_exec": max(horizon // 4, 1), "temporal_ensemble": 0.01,
+            "group_draws": "base=4+torso=8", "deadband": "torso=2"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,9 +160,38 @@ class Sampling:
         if unknown:
             raise ValueError(f"unknown inference lever(s) {unknown}; the levers are "
                              f"{list(fields)}")
-        values = {name: eval_cfg.get(name, default) for name, default in fields.items()}
+        values = {name: default if eval_cfg.get(name) is None else eval_cfg[name]
+                  for name, default in fields.items()}
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**values)
+
+    @classmethod
+    def for_run(cls, config: Mapping[str, Any], execution: str | None = None,
+                client_executes: bool = False, **overrides: Any) -> Sampling:
+        """The levers a command runs a trained config with: `execution` (None: the run's
+        `eval.execution`, 'adopted' where it predates the key; `EXECUTIONS`), then the `eval`
+        levers the run sets, then `overrides` (a command's; None = unset).
+        `client_executes`: the client runs the chunks (openpi's protocol), so the execution's
+        `CLIENT_LEVERS` are not among the defaults.
+
+        Args:
+          config: the run's config (its `eval`, `data` and `model` sections).
+        Raises:
+          ValueError naming the execution or the lever, for one that is unknown or out of its
+          range.
+        """
+        eval_cfg = config["eval"]
+        execution = execution or eval_cfg.get("execution") or "adopted"
+        if execution not in EXECUTIONS:
+            raise ValueError(f"execution = {execution!r} (eval.execution or --execution) must be "
+                             f"one of {EXECUTIONS}")
+        horizon = model_config_lib.from_model_config(config["model"]).action_horizon
+        adopted = adopted_execution(config["data"], horizon) if execution == "adopted" else {}
+        if client_executes:
+            adopted = {k: v for k, v in adopted.items() if k not in CLIENT_LEVERS}
+        own = {k: eval_cfg.get(k) for k in LEVERS if eval_cfg.get(k) is not None}
+        return cls.from_eval({**adopted, **own, "num_steps": eval_cfg.get("num_steps")},
+                             **overrides)
 
     def group_counts(self, layout: ActionLayout | None = None) -> dict[str, int]:
         """`group_draws` as `{group: k}` ({} when unset), its groups checked against `layout`.
@@ -221,13 +277,22 @@ class Sampling:
                 "deadband": self.deadband or None,
                 "gripper_hysteresis": list(self.gripper_hysteresis) or None}
 
+    def summary(self) -> str:
+        """The levers off their defaults in words ("every lever off" where none is): what a
+        table names as the execution its numbers were measured with."""
+        default, parts = Sampling(), []
+        for name, value in self.describe().items():
+            if value != default.describe()[name]:
+                parts.append(f"{name} {value if not isinstance(value, list) else tuple(value)}")
+        return ", ".join(parts) or "every lever off"
+
     def noise(self, rng: jax.Array, shape: Sequence[int],
               noise_factor: np.ndarray | None = None) -> jax.Array:
         """The initial noise of `shape` `[N, H, A]` scaled by the temperature, as the sampler
         draws it from `rng` (`noise.flow_noise`)."""
         return self.temperature * noise_lib.flow_noise(rng, tuple(shape), noise_factor)
 
-    def sampler(self, model_config: Pi0Config, noise_factor: np.ndarray | None = None,
+    def sampler(self, model_config: model_config_lib.Pi0Config, noise_factor: np.ndarray | None = None,
                 num_draws: int | None = None, layout: ActionLayout | None = None
                 ) -> Callable[..., jax.Array]:
         """`flow_model.sample_actions` with these levers: `(params, rng, observation, **kw) ->

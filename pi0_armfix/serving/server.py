@@ -116,6 +116,7 @@ class PolicyServer:
         self.sock, self.max_message_bytes = sock, max_message_bytes
         self.protocol, self.seed, self.prompt = protocol, seed, prompt
         self.sessions: dict[Any, harness.HarnessSession] = {}
+        self._executed: dict[Any, np.ndarray] = {}  # per openpi client: its last executed action
         self.warm = threading.Event()  # /healthz answers 200 once set (the sampler compiled)
         self._metadata = pack(policy.metadata())
 
@@ -148,13 +149,34 @@ class PolicyServer:
                 return pack({**reply, "server_timing": {
                     "infer_ms": 1000 * (time.monotonic() - start)}})
             start = time.monotonic()
-            actions = self.rules(client, self.policy.infer([observation])[0])
-            return pack({"actions": actions,
-                         "server_timing": {"infer_ms": 1000 * (time.monotonic() - start)}})
+            kwargs, relative_to = self._previous(client, observation)
+            actions = self.rules(client, self.policy.infer([observation], **kwargs)[0])
+            reply = {"actions": actions,
+                     "server_timing": {"infer_ms": 1000 * (time.monotonic() - start)}}
+            if relative_to:
+                self._executed[client] = actions[min(self.rules.executed or len(actions),
+                                                     len(actions)) - 1]
+                reply["relative_to"] = relative_to
+            return pack(reply)
         except ValueError as e:
             return f"pi0_armfix.serve: {e}"
         except Exception:  # a bug of ours: report it, keep serving
             return f"pi0_armfix.serve: internal error\n{traceback.format_exc()}"
+
+    def _previous(self, client: Any, observation: dict) -> tuple[dict[str, Any], str]:
+        """For a policy relative to the previous command: `infer`'s `previous` and what the
+        chunk is relative to, which the reply names (`relative_to`): the client's
+        `previous_action`; else the action of this server's last reply to the client that the
+        client executed last (`ChunkRules.executed`, the `--n_exec`-th: 'executed'); else, on a
+        connection's first request, the state ('state'). ({}, '') for any other policy."""
+        if not getattr(self.policy, "needs_previous_action", False):
+            return {}, ""
+        if observation.get(self.policy.keys.previous_action) is not None:
+            return {}, "previous_action"
+        executed = self._executed.get(client)
+        if executed is None:
+            return {}, "state"
+        return {"previous": executed[None]}, "executed"
 
     async def _handle(self, websocket) -> None:
         try:
@@ -171,6 +193,7 @@ class PolicyServer:
         finally:
             self.rules.forget(websocket.id)
             self.sessions.pop(websocket.id, None)
+            self._executed.pop(websocket.id, None)
 
     def _health(self, connection, request):
         if request.path == "/healthz":

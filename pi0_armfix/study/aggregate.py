@@ -242,6 +242,8 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         headline = {k: np.asarray([s[k] for s in summary]) for k in summary[0]}
         per_config[config] = {
             "seeds": [r["seed"] for r in runs],
+            # how its policy was executed (`Sampling.summary`); runs kept before it: unrecorded
+            "execution": "; ".join(sorted({r.get("execution") or "not recorded" for r in runs})),
             "mean": {k: nanmean(v) for k, v in {**values, **headline}.items()},
             "std": {k: nanstd(v) for k, v in {**values, **headline}.items()},
             "headline": {k: v.tolist() for k, v in headline.items()},

@@ -30,6 +30,10 @@ first seeds). The results of all finished runs are gathered into:
 Every held-out number is the single draw's (what a robot executes), with the mean of the
 `eval.num_draws` draws and the energy skill beside it (docs/evaluation.md).
 
+Execution (`--execution`, default `adopted`): how every config's policy is executed, set alike for
+every run (`eval.execution`; `policies.sampling.Sampling.for_run`), so that two configs differ in
+the table only in what they train; study.md names the execution of every row.
+
 Closed loop (`--closed_loop_episodes=N`; the default, -1, is one episode per 120 training steps
 within [10, 50] on the embedded demo, announced at start with its estimated time, and off for a
 study on other data, `--override=data.root=...` or a config's scale `:b1k` / `:g1`, whose actions
@@ -86,6 +90,7 @@ from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.policies import inference
+from pi0_armfix.policies.sampling import EXECUTIONS
 from pi0_armfix.study.aggregate import aggregate
 from pi0_armfix.study.report import (CURVES_HEADING, curve_table, markdown, plot_curves,
                                      plot_study)
@@ -203,7 +208,7 @@ def main(argv: Sequence[str]) -> None:
         raise SystemExit(f"pi0_armfix.study: --configs {bad}: what follows a config's '@' must "
                          "be key=value (e.g. arm_focused@data.video_access=random)")
     try:
-        check_study_levers(configs)
+        check_study_levers(configs, FLAGS.execution)
     except ValueError as err:
         raise SystemExit(f"pi0_armfix.study: {err}") from None
     if FLAGS.primary and FLAGS.primary not in configs:
@@ -221,7 +226,8 @@ def main(argv: Sequence[str]) -> None:
     signal.signal(signal.SIGTERM, CHILDREN.stop)
     try:
         results = run_study(configs, list(range(FLAGS.seeds)), FLAGS.steps, workdir,
-                            FLAGS.override, FLAGS.parallel, episodes,
+                            [f"eval.execution={FLAGS.execution}", *FLAGS.override],
+                            FLAGS.parallel, episodes,
                             train=not FLAGS.report_only, evaluations=FLAGS.evaluations)
     except StudyInterrupted as stopped:
         raise SystemExit(f"pi0_armfix.study: stopped; {stopped}. Rerun the same command to go "
@@ -256,6 +262,11 @@ def cli() -> None:
                          "final checkpoint drives at each tolerance (0: no closed-loop "
                          "evaluation; -1: one per "
                          f"{CLOSED_LOOP_STEPS_PER_EPISODE} training steps, within [10, 50])")
+    flags.DEFINE_enum("execution", "adopted", list(EXECUTIONS), "how every config's policy is "
+                      "executed, alike (eval.execution of every run; policies/sampling.py): "
+                      "adopted, the world's adopted execution (the demo world's; elsewhere every "
+                      "lever off); none, every lever off. A lever variant changes it for itself "
+                      "(@eval.execution=none, @eval.deadband=...)")
     flags.DEFINE_integer("evaluations", 4, "held-out evaluations per run, evenly spaced, the last "
                          "at --steps (the learning curves)")
     app.run(main, flags_parser=console.flags_parser("pi0_armfix.study"))

@@ -75,6 +75,16 @@ def _reference_rows(study: Mapping[str, Any], key_of_group, digits: int = 3) -> 
     return rows
 
 
+def execution_lines(configs: Mapping[str, Any]) -> list[str]:
+    """How each config's policy was executed (`eval.execution` with its levers,
+    `policies/sampling.py`): one line where every config shares it, else one per config."""
+    executions = {name: c.get("execution", "not recorded") for name, c in configs.items()}
+    if len(set(executions.values())) == 1:
+        return [f"Execution, every config alike: {next(iter(executions.values()))}."]
+    return ["Execution, by config:", "", *(f"- `{name}`: {text}"
+                                          for name, text in executions.items())]
+
+
 def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
     """`study.md`: the tables of `aggregate`, every one with the do-nothing rows."""
     groups, configs = study["groups"], study["configs"]
@@ -86,7 +96,7 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
     most = max(counts.values())
     per_config = f"{most}" if seeds == most else f"{seeds}-{most}"
     lines = [f"# Study: {len(configs)} configs x {per_config} seeds, {steps} steps", "",
-             f"`{command}`", ""]
+             f"`{command}`", "", *execution_lines(configs), ""]
     if study["anecdotal"]:
         few = [f"{name} ({n})" for name, n in counts.items() if n < intervals.MIN_SEEDS]
         lines += [f"**Fewer than {intervals.MIN_SEEDS} seeds for {', '.join(few)}: their "

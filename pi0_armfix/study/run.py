@@ -28,7 +28,7 @@ from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         LOOSER_TOLERANCES, closed_loop_outcomes, curve_prefix,
                                         episode_replicates, group_keys, has_outcomes)
-from pi0_armfix.policies.sampling import LEVERS, SAMPLED_LEVERS, Sampling
+from pi0_armfix.policies.sampling import EXECUTIONS, LEVERS, SAMPLED_LEVERS, Sampling
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -68,23 +68,39 @@ def config_names(parts: Sequence[str]) -> list[str]:
 
 def inference_levers(config: str) -> dict[str, str]:
     """A study config's own inference levers: its `@eval.<lever>=<value>` overrides of
-    `sampling.LEVERS` (`{"average_draws": "4"}`), the rest of its overrides left out."""
+    `sampling.LEVERS` and `@eval.execution` (`{"average_draws": "4"}`), the rest of its
+    overrides left out."""
     own = (o.partition("=")[::2] for o in parse_config(config)[2])
     return {key.removeprefix("eval."): value for key, value in own
-            if key.startswith("eval.") and key.removeprefix("eval.") in LEVERS}
+            if key.startswith("eval.") and key.removeprefix("eval.") in ("execution", *LEVERS)}
 
 
-def check_study_levers(configs: Sequence[str]) -> None:
-    """Refuses, before any run trains, a lever variant whose levers are out of range.
+def check_study_levers(configs: Sequence[str], execution: str = "adopted") -> None:
+    """Refuses, before any run trains, the study's `execution` or a lever variant whose levers
+    are out of range.
 
     Raises:
       ValueError naming the config and the lever's range.
     """
+    if execution not in EXECUTIONS:
+        raise ValueError(f"--execution={execution!r} must be one of {EXECUTIONS}")
     for config in configs:
+        levers = inference_levers(config)
         try:
-            Sampling.from_eval({}, **inference_levers(config))
+            if levers.get("execution", execution) not in EXECUTIONS:
+                raise ValueError(f"eval.execution = {levers['execution']!r} must be one of "
+                                 f"{EXECUTIONS}")
+            Sampling.from_eval({}, **{k: v for k, v in levers.items() if k != "execution"})
         except ValueError as err:
             raise ValueError(f"--configs {config}: {err}") from None
+
+
+def run_execution(checkpoints: Path, config: str) -> Sampling:
+    """How a study config is executed on its trained run (`checkpoints`: that run's folder):
+    the run's own execution (`Sampling.for_run` of its `config.json`, which the study's
+    `--execution` set alike for every config) with the config's levers in place."""
+    saved = json.loads((checkpoints / "config.json").read_text())
+    return Sampling.for_run(saved, **inference_levers(config))
 
 
 def trained_config(config: str) -> str:
@@ -106,9 +122,8 @@ def lever_tag(config: str, checkpoints: Path, closed_loop: bool = False) -> str:
     """`Sampling.tag` of a config's levers on its trained run (that run's `eval` with the
     config's levers in place, against the run's own): the tag of the evaluation files its levers
     write (held-out, or `closed_loop`)."""
-    saved = json.loads((checkpoints / "config.json").read_text())["eval"]
-    return Sampling.from_eval(saved, **inference_levers(config)).tag(
-        closed_loop, against=Sampling.from_eval(saved))
+    saved = json.loads((checkpoints / "config.json").read_text())
+    return run_execution(checkpoints, config).tag(closed_loop, against=Sampling.for_run(saved))
 
 
 def run_steps(config: str, steps: int) -> int:
@@ -283,6 +298,7 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
                            f"not {trained}")
     layout = json.loads((folder / "config.json").read_text())["layout"]
     result = {"config": config, "seed": seed, "steps": trained, "layout": layout,
+              "execution": run_execution(folder, config).summary(),
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     result = add_episode_replicates(result, folder, evaluate_missing=True)
@@ -314,7 +330,8 @@ def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
     else:  # execution levers alone sample the trained config's chunks: its held-out metrics
         metrics = {k: v for k, v in base["metrics"].items() if not k.startswith(CLOSED_LOOP)}
     result = {"config": config, "seed": seed, "steps": base["steps"], "layout": base["layout"],
-              "trained": trained, "metrics": metrics,
+              "trained": trained, "execution": run_execution(checkpoints, config).summary(),
+              "metrics": metrics,
               EPISODE_REPLICATES: episode_replicates(heldout_lib.load_chunk_sums(sums_path),
                                                      layout)}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
