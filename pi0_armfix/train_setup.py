@@ -24,6 +24,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.pipeline import batching, pipeline, run_inputs, video_stream
 from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.model import flow_model, pretrained
@@ -137,6 +138,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         if spec.uses_chunk_stats:
             chunk = chunk_stats_lib.load_or_compute_chunk_stats(
                 data, action_horizon=model_config.action_horizon, folder=workdir,
+                constant=stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
+                                             "norm stats 'actions'").constant(data.norm),
                 source=source, resuming=resuming)
             if data.get("norm_per_timestep"):
                 norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}

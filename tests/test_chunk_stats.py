@@ -11,6 +11,7 @@ from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import noise as noise_lib
 
 H = 4
+MOVING = np.zeros(3, bool)  # `_table`'s dims, none held constant by the normalizer
 
 
 def _table(lengths=(9, 6, 12), width=3, seed=0):
@@ -43,7 +44,7 @@ def test_per_timestep_stats_are_those_of_each_chunk_position_over_valid_steps(de
     table = _table()
     mask = np.array([True, False, True]) if delta else None
     stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=mask,
-                                            max_chunks=1000)
+                                            max_chunks=1000, constant=MOVING)
     chunks, pads = _chunks(table, mask)
     for h in range(H):
         steps = chunks[~pads[:, h], h]
@@ -56,7 +57,7 @@ def test_per_timestep_stats_are_those_of_each_chunk_position_over_valid_steps(de
 def test_chunk_correlation_is_that_of_the_unpadded_chunks():
     table = _table()
     stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
-                                            max_chunks=1000)
+                                            max_chunks=1000, constant=MOVING)
     chunks, pads = _chunks(table)
     whole = chunks[~pads.any(1)].reshape(-1, H * 3)
     np.testing.assert_allclose(stats.correlation, np.corrcoef(whole, rowvar=False), atol=1e-9)
@@ -66,7 +67,17 @@ def test_a_constant_entry_is_uncorrelated():
     table = _table()
     table.actions[:, 1] = 2.0
     stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
-                                            max_chunks=1000)
+                                            max_chunks=1000, constant=np.array([0, 1, 0], bool))
+    constant = np.arange(H) * 3 + 1
+    np.testing.assert_array_equal(stats.correlation[constant][:, constant], np.eye(H))
+    assert not stats.correlation[constant][:, np.arange(0, H * 3, 3)].any()
+
+
+def test_the_chunk_correlation_takes_constancy_from_the_normalizer_not_from_its_sample():
+    table = _table()
+    table.actions[:, 1] = 2.0 + 1e-3 * np.arange(len(table.actions)) % 2  # moves in the sample
+    stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
+                                            max_chunks=1000, constant=np.array([0, 1, 0], bool))
     constant = np.arange(H) * 3 + 1
     np.testing.assert_array_equal(stats.correlation[constant][:, constant], np.eye(H))
     assert not stats.correlation[constant][:, np.arange(0, H * 3, 3)].any()
@@ -80,7 +91,7 @@ def test_chunk_starts_are_every_frame_or_an_even_sample():
 
 def test_per_timestep_stats_round_trip_through_their_file(tmp_path):
     stats = chunk_stats.compute_chunk_stats(_table(), action_horizon=H, delta_mask=None,
-                                            max_chunks=1000).per_timestep
+                                            max_chunks=1000, constant=MOVING).per_timestep
     chunk_stats.save_per_timestep(tmp_path / "s.json", stats)
     loaded = chunk_stats.load_per_timestep(tmp_path / "s.json")
     for field in ("mean", "std", "q01", "q99"):
@@ -148,7 +159,7 @@ def test_a_slow_joint_at_30_fps_keeps_its_first_chunk_steps_under_per_timestep_n
     horizon, mask = 32, np.array([True])
     table = _slow_joint_table(horizon)
     stats = chunk_stats.compute_chunk_stats(table, action_horizon=horizon, delta_mask=mask,
-                                            max_chunks=100_000)
+                                            max_chunks=100_000, constant=np.array([False]))
     assert stats.per_timestep.spread(mode)[0, 0] < stats_lib.CONSTANT_SPREAD  # the trap
     norm_stats = {"actions": _pooled(table, horizon, mask),
                   "actions_per_timestep": stats.per_timestep}
@@ -164,7 +175,8 @@ def test_a_slow_joint_at_30_fps_keeps_its_first_chunk_steps_under_per_timestep_n
 def test_a_slow_joints_first_chunk_steps_are_in_the_chunk_correlation():
     horizon = 32
     stats = chunk_stats.compute_chunk_stats(_slow_joint_table(horizon), action_horizon=horizon,
-                                            delta_mask=np.array([True]), max_chunks=100_000)
+                                            delta_mask=np.array([True]), max_chunks=100_000,
+                                            constant=np.array([False]))
     # the deltas of one episode grow linearly with h: every pair of steps is correlated
     assert stats.correlation[0, 1] > 0.9 and stats.correlation[0, horizon - 1] > 0.9
 
@@ -173,7 +185,7 @@ def test_a_constant_dim_stays_constant_under_per_timestep_normalization():
     table = _table()
     table.actions[:, 1] = 2.0
     stats = chunk_stats.compute_chunk_stats(table, action_horizon=H, delta_mask=None,
-                                            max_chunks=1000)
+                                            max_chunks=1000, constant=MOVING)
     flat = table.actions.astype(np.float64)
     pooled = stats_lib.NormStats(mean=flat.mean(0), std=flat.std(0),
                                  q01=np.quantile(flat, 0.01, axis=0),

@@ -383,8 +383,26 @@ def _evaluate_in_process(workdir, **eval_changes):
     with jax.set_mesh(mesh):
         evaluator = evaluator_lib.Evaluator(
             spec, config.eval, run.model_config, run.norm_stats, tokenize, mesh=mesh,
-            params_sharding=sharding_lib.tree_shardings(run.params, mesh), source=source)
+            params_sharding=sharding_lib.tree_shardings(run.params, mesh), source=source,
+            sampling=run.sampling)
         return evaluator(run.params)
+
+
+def test_the_held_out_truth_is_the_stored_actions_on_every_dim_never_the_normalizers(trained):
+    from pi0_armfix.policies import inference
+    from pi0_armfix.data.pipeline import dataset as dataset_lib
+    from pi0_armfix.data.pipeline import transforms
+    from pi0_armfix.data.pipeline.data_spec import DataSpec
+    run = inference.restore_run(trained)  # delta torso: its constant dim 6 relative to the state
+    spec = DataSpec.from_config(run.config, run.layout)
+    chunks = evaluator_lib.heldout_chunks(spec, run.config.eval, run.model_config,
+                                          run.norm_stats, tokenize=None)
+    table = dataset_lib.heldout_table(spec, images=False)
+    index, is_pad = transforms.chunk_indices(chunks.frames, table.episode_starts,
+                                             run.model_config.action_horizon)
+    np.testing.assert_array_equal(chunks.valid, ~is_pad)
+    np.testing.assert_array_equal(chunks.true,
+                                  np.asarray(table.actions[index], np.float64) / chunks.scale)
 
 
 def test_a_held_out_set_smaller_than_a_batch_is_padded_and_scores_as_unpadded(trained):

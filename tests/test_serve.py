@@ -362,13 +362,26 @@ def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
             key, (3 * len(batch["actions"]), *evaluator.noise.shape[2:]))), atol=1e-6)
 
 
-def test_a_deadband_wider_than_any_motion_scores_as_holding_the_previous_action(run):
-    restored = inference.restore_run(run, levers={"deadband": "torso=1e9"})
-    evaluator, mesh = evaluator_lib.run_evaluator(restored)
-    with jax.set_mesh(mesh):
-        metrics = evaluator(restored.params).metrics
-    assert metrics["skill/torso"] == pytest.approx(0.0, abs=1e-12)
-    assert metrics["skill/base"] != pytest.approx(0.0, abs=1e-3)  # the other groups as sampled
+def test_a_wide_deadband_holds_the_previous_action_but_leaves_an_episodes_first_chunk_alone(run):
+    draws = {}
+    for band in ("torso=1e9", None):
+        restored = inference.restore_run(run, levers={"deadband": band})
+        evaluator, mesh = evaluator_lib.run_evaluator(restored)
+        with jax.set_mesh(mesh):
+            draws[band] = evaluator.absolute_draws(restored.params)[0]  # [N, H, A]
+    chunks, torso = evaluator.chunks, list(range(3, 7))
+    first = chunks.chunk_names[:, 1] == 0  # nothing executed yet, as in the closed loop
+    assert first.sum() == 2 and (~first).sum() > 0
+    held = (chunks.previous / chunks.scale)[~first][:, None, torso]
+    np.testing.assert_allclose(draws["torso=1e9"][~first][..., torso],
+                               np.broadcast_to(held, draws[None][~first][..., torso].shape))
+    # ... whose first command passes, the band then holding it, as the closed loop does
+    np.testing.assert_array_equal(draws["torso=1e9"][first][:, 0], draws[None][first][:, 0])
+    np.testing.assert_array_equal(draws["torso=1e9"][first][..., torso],
+                                  np.broadcast_to(draws[None][first][:, :1, torso],
+                                                  draws[None][first][..., torso].shape))
+    np.testing.assert_array_equal(np.delete(draws["torso=1e9"], torso, -1),
+                                  np.delete(draws[None], torso, -1))  # the others as sampled
 
 
 @pytest.mark.parametrize("levers, message", [

@@ -200,7 +200,7 @@ class Evaluator:
                           for d in self.sample(params)])
         if self.bands:  # as executed: each chunk held still from the command before it
             draws = execution.hold_still(draws, self.bands,
-                                         np.broadcast_to(chunks.previous, draws[:, :, 0].shape))
+                                         np.broadcast_to(chunks.executed, draws[:, :, 0].shape))
         return draws / chunks.scale
 
     def __call__(self, params: Any) -> Evaluation:

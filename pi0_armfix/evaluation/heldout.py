@@ -104,7 +104,10 @@ class HeldOutChunks:
       `[A]`, gripper_threshold `[A]`, transform, reference: `{name: metrics}` of `persistence`,
       `state_copy` and, on the embedded demo, `ceiling`, each with its `skill/<g>` over
       persistence, and reference_sums: `{name: per-chunk sums}` of the same; previous `[N, A]`:
-      the action before each chunk (dataset units).
+      the action before each chunk (dataset units; at an episode's first chunk, the true first
+      action: persistence's row); executed `[N, A]`: what a robot executing the policy has
+      executed before each chunk, the previous action, NaN at an episode's first chunk (nothing
+      yet, as in the closed loop and the server).
     """
 
     def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
@@ -130,11 +133,10 @@ class HeldOutChunks:
         self.batches = [self.transform(np.pad(self.frames[i:i + batch_size],
                                               (0, batch_size - rows), mode="edge"))
                         for i, rows in zip(starts, self.batch_rows)]
-        actions = np.concatenate([b["actions"][:rows]
-                                  for b, rows in zip(self.batches, self.batch_rows)])
-        self.valid = ~np.concatenate([b["action_is_pad"][:rows]
-                                      for b, rows in zip(self.batches, self.batch_rows)])
-        true = self.transform.absolute_actions(actions, self.frames)
+        # The truth as stored, never through the normalizer (which pins a constant dim to its
+        # mean, differently for each representation).
+        true, is_pad = self.transform.true_chunks(self.frames)
+        true, self.valid = np.asarray(true, np.float64), ~is_pad
         self.scale, self.gripper_threshold = evaluation_scale(norm_stats, true, self.valid)
         self.true = true / self.scale
         self.layout = layout
@@ -145,6 +147,7 @@ class HeldOutChunks:
         if not spec.get("root") and spec.get("format", "lerobot") == "lerobot":
             chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
         self.previous = chunks["persistence"][:, 0, :layout.real_dim]  # dataset units
+        self.executed = np.where(self.chunk_names[:, 1:2] == 0, np.nan, self.previous)
         self.reference_sums = {name: self.sums(c[None, ..., :layout.real_dim] / self.scale)
                                for name, c in chunks.items()}
         self.reference = {name: self._measure(s) for name, s in self.reference_sums.items()}

@@ -152,8 +152,7 @@ class BatchTransform:
         `{camera: uint8 [b, h, w, 3]}` of those frames already decoded (a stream's,
         `video_stream`); None reads them from the table."""
         frames = np.asarray(frames, np.int64)
-        index, is_pad = transforms.chunk_indices(frames, self.table.episode_starts, self.horizon)
-        actions = self.table.actions[index]  # [b, H, A]
+        actions, is_pad = self.true_chunks(frames)
         raw_state = self.table.state[frames]  # [b, S]
         if self.delta_mask is not None:
             actions = transforms.to_delta(actions, self.reference(frames), self.delta_mask)
@@ -169,6 +168,14 @@ class BatchTransform:
                 prompts, self.token_state(raw_state) if self.tokens.state_in_prompt else state)
             batch["image"], batch["image_mask"] = self._images(frames, images)
         return batch
+
+    def true_chunks(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The stored absolute actions of the chunks starting at `frames` `[b, H, A]` (data
+        units; past an episode's end its last action) and their padding `[b, H]`: the truth a
+        sampled chunk is scored against, whatever the run's representation or normalization."""
+        index, is_pad = transforms.chunk_indices(np.asarray(frames, np.int64),
+                                                 self.table.episode_starts, self.horizon)
+        return self.table.actions[index], is_pad
 
     def absolute_actions(self, actions: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """Normalized chunks `[b, H, >= A]` of the chunks starting at `frames` -> absolute actions

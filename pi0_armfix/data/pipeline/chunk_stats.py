@@ -15,8 +15,8 @@ frames (every frame when there are fewer): a sample, because Σ is `[H A, H A]` 
 frames. Per-timestep statistics skip the padded steps of a chunk at an episode end (position h of
 a chunk that ran out of episode is not an observation of position h); Σ uses the chunks without
 padding. A correlation is unchanged by any per-entry affine map, so Σ of the raw chunks is Σ of
-the normalized ones whatever the normalization; the entries of a constant dim (its pooled spread
-below `stats.CONSTANT_SPREAD`, decided per dim as the normalization does) are uncorrelated.
+the normalized ones whatever the normalization; the entries of a dim the normalizer holds
+constant (its pooled stats' spread below `stats.CONSTANT_SPREAD`) are uncorrelated.
 
 Files, beside the run's `norm_stats.json`: `norm_stats_per_timestep.json` (openpi's format with
 `[H][A]` lists per field) and `action_chunk_correlation.npy`, each keyed (`*.key.json`) to what it
@@ -69,10 +69,12 @@ def chunk_starts(num_frames: int, max_chunks: int) -> np.ndarray:
 
 
 def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
-                        delta_mask: np.ndarray | None, max_chunks: int,
+                        delta_mask: np.ndarray | None, max_chunks: int, constant: np.ndarray,
                         delta_reference: str = "state") -> ChunkStats:
     """Per-timestep statistics and Σ of the chunks of `table` (see the module docstring);
-    `delta_reference`: what the relative dims are relative to (`transforms.delta_reference`)."""
+    `constant` `[A]`: the dims the run's normalizer holds constant (`NormStats.constant` of its
+    pooled action stats), uncorrelated in Σ; `delta_reference`: what the relative dims are
+    relative to (`transforms.delta_reference`)."""
     frames = chunk_starts(table.num_frames, max_chunks)
     index, is_pad = transforms.chunk_indices(frames, table.episode_starts, action_horizon)
     chunks = np.asarray(table.actions[index], np.float64)  # [N, H, A]
@@ -95,10 +97,13 @@ def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
                          "correlation of loss.noise_beta")
     flat = whole.reshape(len(whole), -1)
     std = flat.std(0)
-    # Constancy per dim, from its pooled spread (`normalize`): a slow joint's first steps move
-    # less than the threshold and still belong to the chunk's correlation.
-    moving = chunks[valid].std(0) >= stats_lib.CONSTANT_SPREAD
-    live = np.tile(moving, action_horizon) & (std > 0)
+    # Constancy per dim as the normalizer decides it, from the pooled stats: a slow joint's
+    # first steps move less than the threshold and still belong to the chunk's correlation.
+    constant = np.asarray(constant, bool)
+    if constant.shape != chunks.shape[-1:]:
+        raise ValueError(f"constant has shape {constant.shape}; the actions have "
+                         f"{chunks.shape[-1]} dims")
+    live = np.tile(~constant, action_horizon) & (std > 0)
     correlation = np.eye(flat.shape[1])
     centred = (flat[:, live] - flat[:, live].mean(0)) / std[live]
     correlation[np.ix_(live, live)] = centred.T @ centred / len(flat)
@@ -116,10 +121,12 @@ def chunk_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str,
 
 
 def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: str | Path,
-                                source=None, resuming: bool = False) -> ChunkStats:
+                                constant: np.ndarray, source=None, resuming: bool = False
+                                ) -> ChunkStats:
     """The run's chunk statistics: read from `folder` when their key equals this run's, else
-    computed from the training episodes and written there. A run with checkpoints refuses stats
-    of other data (its weights were trained with the old ones)."""
+    computed from the training episodes and written there (`constant`: as
+    `compute_chunk_stats`'). A run with checkpoints refuses stats of other data (its weights were
+    trained with the old ones)."""
     folder = Path(folder)
     source = source if source is not None else sources.open_source(spec.options, spec.layout)
     key = chunk_stats_key(spec, source, action_horizon=action_horizon)
@@ -137,7 +144,7 @@ def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: 
                              "start a new --workdir")
     table = source.load_table(dataset_lib.training_episodes(spec, source), images=False)
     stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=spec.delta_mask,
-                                delta_reference=spec.delta_reference,
+                                delta_reference=spec.delta_reference, constant=constant,
                                 max_chunks=int(spec.get("chunk_stats_chunks")))
     save_per_timestep(paths[0], stats.per_timestep)
     # Through a temporary file and a rename, like the norm stats: every process of a run writes.
