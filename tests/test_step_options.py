@@ -5,6 +5,7 @@ nothing), at the tiny preset in float32 (exactly, up to summation order) and bfl
 import functools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -97,3 +98,27 @@ def test_microbatches_that_do_not_divide_a_devices_rows_are_refused_naming_the_k
                                     changes=("train.microbatches=3",))
     with pytest.raises(ValueError, match=r"train.microbatches = 3 must be >= 1 and divide the 4"):
         bench_step.Step(config)
+
+
+@pytest.mark.parametrize("parts", [2, 4])
+def test_microbatched_gradients_equal_the_full_batchs_with_unequal_padding(parts):
+    from pi0_armfix.training import step as step_lib
+    rng = np.random.default_rng(0)
+    is_pad = np.zeros((8, 4), bool)
+    is_pad[1, 1:] = True  # one row of eight padded on 3 of its 4 steps
+    batch = {"x": rng.normal(size=(8, 4, 3)).astype(np.float32),
+             "y": rng.normal(size=(8, 4)).astype(np.float32), "action_is_pad": is_pad}
+
+    def masked_mean_loss(w, _, rows):  # a loss over the valid steps, as `loss.training_loss`
+        valid = ~rows["action_is_pad"]
+        error = jnp.square(jnp.sum(rows["x"] * w, -1) - rows["y"])
+        return jnp.sum(error * valid) / jnp.maximum(valid.sum(), 1), {"error": error.max()}
+
+    value_and_grad = jax.value_and_grad(masked_mean_loss, has_aux=True)
+    w, key = jnp.array([0.5, -1.0, 2.0]), jax.random.key(0)
+    (loss, _), grads = value_and_grad(w, key, batch)
+    (micro_loss, _), micro_grads = jax.jit(step_lib.microbatched, static_argnums=(0, 4))(
+        value_and_grad, w, key, batch, parts)
+    # float32, summed in another order: within 1e-6 of the full batch's
+    np.testing.assert_allclose(micro_loss, loss, rtol=1e-6)
+    np.testing.assert_allclose(micro_grads, grads, rtol=1e-6)

@@ -119,6 +119,28 @@ def microbatch(batch: Mapping[str, Any], n: int) -> Any:
         lambda x: jnp.swapaxes(x.reshape(x.shape[0] // n, n, *x.shape[1:]), 0, 1), batch)
 
 
+def microbatched(value_and_grad: Any, params: Any, rng: jax.Array, batch: Mapping[str, Any],
+                 n: int) -> Any:
+    """`value_and_grad(params, rng, batch) -> ((loss, aux), grads)` of a mean over the batch's
+    valid steps (`action_is_pad` `[B, H]` False), computed over `n` strided parts one after
+    another (`microbatch`; part i with `fold_in(rng, i)`): each part's outputs weigh by its
+    share of the batch's valid steps, so that a part's masked mean counts as its numerator and
+    the loss, aux and gradients are the full batch's, however unevenly the parts are padded."""
+    parts = microbatch(batch, n)
+    counts = jnp.sum(~jnp.asarray(parts["action_is_pad"], bool), axis=(1, 2)).astype(jnp.float32)
+    shares = counts / jnp.maximum(counts.sum(), 1.0)  # [n]
+
+    def accumulate(total, part):
+        i, share, micro = part
+        out = value_and_grad(params, jax.random.fold_in(rng, i), micro)
+        return jax.tree.map(lambda t, x: t + share * x, total, out), None
+
+    zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(
+        lambda: value_and_grad(params, rng, jax.tree.map(lambda x: x[0], parts))))
+    out, _ = jax.lax.scan(accumulate, zeros, (jnp.arange(n), shares, parts))
+    return out
+
+
 def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Array,
                model_config: Pi0Config, loss_cfg: Mapping[str, Any], layout: ActionLayout,
                tx: optax.GradientTransformation, schedule: optax.Schedule, ema_decay: float,
@@ -131,9 +153,11 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
     `switch_threshold`: see `loss_kwargs`; `loss_mask`: see `flow_model.compute_loss`.
     `loss.flow_samples` draws per sample share one prefix pass. Under LoRA only the adapters and
     the weights outside the adapted experts get gradients (`training/freeze.py`).
-    `microbatches` n > 1 (`train.microbatches`) computes the loss and gradients of the batch as
-    the mean over n strided parts (`microbatch`), one after another, each with its own noise
-    (`fold_in(rng, i)`): the activations of B / n samples at a time, one optimizer step.
+    `microbatches` n > 1 (`train.microbatches`) computes the loss and gradients of the batch
+    over n strided parts (`microbatched`), one after another, each with its own noise
+    (`fold_in(rng, i)`), weighed by their valid steps: the batch's loss with the activations of
+    B / n samples at a time, one optimizer step (`original`'s temporal weights, normalized over
+    the batch, normalize over each part).
 
     Returns:
       the new state and scalar metrics: `loss`, `grad_norm` (of the trained params), `lr`,
@@ -159,17 +183,8 @@ def train_step(state: TrainState, batch: Mapping[str, Any], *, base_rng: jax.Arr
         (loss, (aux, weights)), grads = jax.value_and_grad(loss_fn, has_aux=True)(before, rng,
                                                                                    batch)
     else:
-        def accumulate(total, part):
-            i, micro = part
-            out = jax.value_and_grad(loss_fn, has_aux=True)(before, jax.random.fold_in(rng, i),
-                                                            micro)
-            return jax.tree.map(lambda t, x: t + x / microbatches, total, out), None
-
-        parts = (jnp.arange(microbatches), microbatch(batch, microbatches))
-        zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(
-            lambda: jax.value_and_grad(loss_fn, has_aux=True)(
-                before, rng, jax.tree.map(lambda x: x[0], parts[1]))))
-        ((loss, (aux, weights)), grads), _ = jax.lax.scan(accumulate, zeros, parts)
+        (loss, (aux, weights)), grads = microbatched(
+            jax.value_and_grad(loss_fn, has_aux=True), before, rng, batch, microbatches)
     updates, opt_state = tx.update(grads, state.opt_state, before)
     trainable = optax.apply_updates(before, updates)
 
