@@ -920,3 +920,32 @@ def test_a_skill_axis_shows_values_far_below_doing_nothing_on_a_symlog_scale():
     assert near.get_yscale() == "linear" and near.get_ylim()[0] <= -0.7
     assert far.get_ylim()[1] == near.get_ylim()[1] == 1.05
     report.plt.close(fig)
+
+
+def _printed_levels(text):
+    """`{config: level}` of study.md's comparison table (its `comparison (level%)` column)."""
+    start = text.index("## Against `")
+    rows = [line.split(" | ") for line in text[start:].splitlines()
+            if line.startswith("| ") and "%)" in line]
+    return {row[0].removeprefix("| "): float(row[1].rsplit("(", 1)[1].rstrip("%)")) / 100
+            for row in rows}
+
+
+def test_every_printed_interval_level_is_the_level_computed(tmp_path):
+    results = [_result(c, s, g + 0.05 * s) for c, g in (("uniform", 0.0), ("a", 0.3),
+                                                         ("b", 0.3), ("c", 0.3)) for s in range(5)]
+    primary = "a@eval.average_draws=4"  # a lever variant as the study's question
+    results += [{**_result(f"a@eval.average_draws={k}", s, 0.35 + 0.05 * s), "trained": "a"}
+                for k in (2, 4, 8) for s in range(5)]
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study",
+                             primary=primary)
+    computed = {name: c["confidence"] for name, c in
+                json.loads((tmp_path / "study.json").read_text())["configs"].items()
+                if c["comparison"] != "baseline"}
+    text = (tmp_path / "study.md").read_text()
+    assert _printed_levels(text) == pytest.approx(computed, abs=5e-4)
+    assert computed[primary] == 0.95  # the primary at 95 %, though a lever variant
+    assert computed["a@eval.average_draws=2"] == pytest.approx(0.975)  # two other levers
+    assert computed["b"] == pytest.approx(1 - 0.05 / 3)  # three secondary: a, b, c
+    assert f"the primary comparison, `{primary}`, at 95.0%" in text
+    assert "95 % interval per cell, uncorrected" in text

@@ -235,8 +235,8 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
     draws = int(metrics.get("draws", 1))
     mean = heldout_lib.MEAN_OF_DRAWS
     lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action) of "
-             "the single draw (what a robot executes; its interval a bootstrap over the held-out "
-             f"episodes), of the mean of {draws} draws, and of the energy score of the {draws} "
+             "the single draw (what a robot executes; its interval a t interval over the held-out "
+             f"episodes, their sampling variance from resamples of them), of the mean of {draws} draws, and of the energy score of the {draws} "
              "draws (spread counted fairly); gain: 1 = moves like the data, 0 = still or "
              "unrelated",
              f"{'group':<15}{'err':>9}{'skill':>9}{'[95 % over episodes]':>22}"

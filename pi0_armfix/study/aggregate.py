@@ -196,10 +196,12 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
     intervals, the do-nothing rows, and the targets each config meets. `ceiling`: metrics of a
     perfect sampler on the same chunks (`evaluation.ceiling`), where known.
 
-    Two families of comparisons, each Bonferroni-corrected within itself: the trained configs
-    with >= 2 seeds against the baseline (95 % for the `primary` config, the others secondary),
-    and the lever variants (each against its trained config, paired, and against the baseline).
-    A 1-seed config has no interval, so it is in no family."""
+    The `primary` comparison at 95 % (a lever variant too); two families of the others, each
+    Bonferroni-corrected over its members per compared quantity: the other trained configs with
+    >= 2 seeds against the baseline (secondary), and the other lever variants (each against its
+    trained config, paired, and against the baseline). A 1-seed config has no interval, so it is
+    in no family. Each group against holding (`group_intervals`) is an uncorrected 95 % per
+    cell. Each config's level is its `confidence`."""
     check_same_chunks(results)
     configs = list(dict.fromkeys(r["config"] for r in results))
     layout = ActionLayout.from_config(results[0]["layout"])
@@ -208,7 +210,10 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         primary = configs[1] if len(configs) > 1 else baseline
     if primary not in configs:
         raise ValueError(f"--primary={primary!r} is not one of the study's configs {configs}")
-    levers = [c for c in configs if any(r.get("trained") for r in results if r["config"] == c)]
+    # The primary comparison holds at 95 % whatever it is (a lever variant too); each family
+    # of the others is Bonferroni-corrected over its members, per compared quantity (column).
+    levers = [c for c in configs if c != primary
+              and any(r.get("trained") for r in results if r["config"] == c)]
     secondary = [c for c in configs if c not in (baseline, primary, *levers)
                  and sum(r["config"] == c for r in results) >= 2]
     lever_confidence = intervals.comparison_confidence(False, len(levers))
@@ -274,8 +279,9 @@ def aggregate(results: Sequence[Mapping[str, Any]], targets: Targets = Targets()
         entry["vs_baseline_groups"] = {
             k: versus_baseline(config, k, groups_of(runs, k), groups_of(base_runs, k),
                                confidence) for k in group_keys(layout)}
-        entry["group_intervals"] = {  # each group against holding: is it above 0?
-            k: intervals.mean_interval(groups_of(runs, k), episodes=episodes, episode_variance=(
+        entry["group_intervals"] = {  # each group against holding, uncorrected 95 % per cell
+            k: intervals.mean_interval(groups_of(runs, k), intervals.CONFIDENCE,
+                                       episodes=episodes, episode_variance=(
                 intervals.episode_variance(replicates(config, k), episodes)
                 if replicates(config, k) is not None else 0.0)) for k in group_keys(layout)}
         entry["groups_resampled"] = all(replicates(c, k) is not None for c in (config, baseline)

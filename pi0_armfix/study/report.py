@@ -133,11 +133,13 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
                 "so the interval speaks for these held-out episodes alone")
     lines += ["", f"## Against `{study['baseline']}` (difference of means over seeds, Welch t "
               "interval)", "",
-              f"Primary comparison: `{study['primary']}` (95 % interval); the other trained "
-              "configs with >= 2 seeds are secondary, their intervals Bonferroni-corrected so "
-              "that together they hold at 95 %; the lever variants are a family of their own, "
-              f"corrected the same way among themselves. The intervals hold {sampling}. An interval that excludes 0 is a "
-              "difference these seeds and episodes can tell.", "",
+              f"Levels: the primary comparison, `{study['primary']}`, at "
+              f"{configs[study['primary']]['confidence']:.1%}; the other trained configs with "
+              ">= 2 seeds (secondary) and the other lever variants are two families, each "
+              "Bonferroni-corrected over its members, so that in each column a family's "
+              "intervals hold together at 95 %; each row's level is in its comparison column. "
+              f"The intervals hold {sampling}. An interval that excludes 0 is a difference "
+              "these seeds and episodes can tell.", "",
               "| config | comparison | " + " | ".join(COMPARED_HEADINGS) + " |",
               "|---" * (len(COMPARED) + 2) + "|"]
     for name, c in configs.items():
@@ -179,9 +181,10 @@ def group_skill_table(study: Mapping[str, Any], sampling: str) -> list[str]:
     configs = {n: c for n, c in study["configs"].items() if "group_intervals" in c}
     return _group_table(study, configs, "group_intervals", sampling, [
         "## Each group against holding the previous action (skill over persistence, 95 % "
-        "interval)", "Each group's mean skill over seeds; the interval holds {episodes}. Above "
-        "0: the group beats holding the previous action at these seeds and episodes. Single "
-        "draw, then the mean of the draws."])
+        "interval per cell, uncorrected)", "Each group's mean skill over seeds; each cell's "
+        "95 % interval stands alone (no correction over groups or configs) and holds "
+        "{episodes}. Above 0: the group beats holding the previous action at these seeds and "
+        "episodes. Single draw, then the mean of the draws."])
 
 
 def group_comparison_table(study: Mapping[str, Any], sampling: str) -> list[str]:
@@ -226,9 +229,9 @@ def lever_table(configs: Mapping[str, Any]) -> list[str]:
     lines = ["", "## Inference levers against the trained config they sample (paired)", "",
              "Each lever variant samples its trained config's checkpoints, seed for seed: the "
              "difference of the two, mean over seeds with the t interval of the per-seed "
-             "differences (95 % over the lever variants together: Bonferroni-corrected among "
-             "them, the level in the table above), widened by the held-out (world) episodes' sampling error of the "
-             "difference. The executed chunk is the variant's (the single draw of its sampler); "
+             "differences at the variant's level in the table above (the primary's 95 %; the "
+             "others Bonferroni-corrected over the lever variants, per column), widened by the "
+             "held-out (world) episodes' sampling error of the difference. The executed chunk is the variant's (the single draw of its sampler); "
              "the closed-loop columns are phase and task success in the demo world.", "",
              "| lever variant | against | " + " | ".join(headings) + " |",
              "|---" * (len(headings) + 2) + "|"]
