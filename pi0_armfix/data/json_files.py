@@ -11,14 +11,15 @@ from pathlib import Path
 from typing import Any
 
 
-def write_json_atomic(path: str | Path, payload: Any) -> None:
-    """Writes `payload` as JSON through a temporary file and a rename, readable as any file the
-    user writes (the temporary file is created 0600; colleagues on a shared cluster read it)."""
+def write_json_atomic(path: str | Path, payload: Any, indent: int | None = 2) -> None:
+    """Writes `payload` as JSON (`indent`: None for one line) through a temporary file and a
+    rename, readable as any file the user writes (the temporary file is created 0600; colleagues
+    on a shared cluster read it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
                                      delete=False) as tmp:
-        tmp.write(json.dumps(payload, indent=2))
+        tmp.write(json.dumps(payload, indent=indent))
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp.name, 0o666 & ~umask)

@@ -145,9 +145,10 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
     study = aggregate(results, primary=primary, ceiling=ceiling)
     kept_curves = kept_curve_section(workdir / "study.md")
     (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
+    # One line: every run's episode resamples make a study's report megabytes.
     json_files.write_json_atomic(workdir / "study.json",
                                 {"command": command, "steps": steps, "runs": list(results),
-                                 **study})
+                                 **study}, indent=None)
     plot_study(study, workdir / "study.png")
     curves: dict[str, list[list[dict]]] = {}
     for result in results:

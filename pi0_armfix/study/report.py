@@ -79,6 +79,10 @@ def execution_lines(configs: Mapping[str, Any]) -> list[str]:
     """How each config's policy was executed (`eval.execution` with its levers,
     `policies/sampling.py`): one line where every config shares it, else one per config."""
     executions = {name: c.get("execution", "not recorded") for name, c in configs.items()}
+    if set(executions.values()) == {"not recorded"}:
+        return ["Execution: not recorded by these runs (kept before the study recorded it); a "
+                "lever variant executes its trained config's way with the levers its name "
+                "sets."]
     if len(set(executions.values())) == 1:
         return [f"Execution, every config alike: {next(iter(executions.values()))}."]
     return ["Execution, by config:", "", *(f"- `{name}`: {text}"
