@@ -362,6 +362,27 @@ def test_study_trains_every_run_once_and_skips_finished_ones(tmp_path, cache_dir
     assert again.stdout.count("| uniform |") == first.stdout.count("| uniform |")
 
 
+@pytest.mark.slow  # the slow lane: the study's processes (training, evaluation, closed loop)
+def test_the_closed_loop_studys_command_measures_its_variants_on_a_fresh_workdir(
+        tmp_path, cache_dir, demo_root):  # noqa: F811
+    overrides = {k: v for k, v in tf.tiny_overrides(demo_root).items()
+                 if not k.startswith("train.total_steps") and k != "eval.every"}
+    variant = "arm_focused@eval.n_exec=1@eval.temporal_ensemble=0.01@eval.deadband=torso=2"
+    result = subprocess.run(
+        [sys.executable, "-m", "pi0_armfix.study", f"--configs=arm_focused,{variant}",
+         "--seeds=1", "--steps=2", "--execution=none", f"--workdir={tmp_path}",
+         "--closed_loop_episodes=1", *[f"--override={k}={v}" for k, v in overrides.items()]],
+        capture_output=True, text=True, env=tf.env(cache_dir), cwd=tf.REPO_ROOT)
+    assert result.returncode == 0, result.stderr[-3000:]
+    step = study_run.run_folder(tmp_path, "arm_focused", 0) / "eval" / "step_2"
+    assert (step / "metrics_deadband-torso2.json").exists()  # the variant's, not the base's
+    assert (step / "closed_loop_1ep_exec1_deadband-torso2_ens0.01.json").exists()
+    runs = json.loads((tmp_path / "study.json").read_text())["runs"]
+    assert runs[0]["execution"] == "every lever off"
+    assert runs[1]["execution"] == ("n_exec 1, temporal_ensemble 0.01, deadband torso=2")
+    assert f"- `{variant}`: n_exec 1, temporal_ensemble 0.01, deadband torso=2" in result.stdout
+
+
 def test_report_only_tables_the_finished_runs_and_trains_nothing(tmp_path):
     for seed in (0, 1):
         folder = study_run.run_folder(tmp_path, "uniform", seed)
