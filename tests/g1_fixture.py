@@ -1,6 +1,6 @@
 """A small Unitree G1 (Inspire hands) dataset in the exact layout of the published one, written here.
 
-The layout of `YifanTian07/G1-policy-train` (README, "The fix on a real robot's data"), independent
+The layout of `YifanTian07/G1-policy-train` (docs/data.md, "A real robot"), independent
 of the project's own LeRobotWriter so that the reader meets the real layout, not its own: LeRobot
 v2.1, `meta/info.json` with its keys (`robot_type` "Unitree_G1_Inspire", `chunks_size` 1000,
 `total_chunks`, `splits`, the joint names of both 26-D vectors), `meta/episodes.jsonl`,

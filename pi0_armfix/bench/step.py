@@ -26,7 +26,7 @@ card, asked of the compiler without running a step (on the card's platform; anot
 compiler plans its buffers differently, so a CPU's answer is an estimate).
 
 On a CPU it runs small presets (`tests/test_bench.py` runs `tiny`); the full-size presets are for
-a GPU (README, "GPU").
+a GPU (docs/gpu.md).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ gradient per prefix compute; the conv stem lets the 32 px cameras' arm targets b
 the budget, and without the jitter the base is learned within it too. How its policy executes is the commands'
 choice, alike for every config (`eval.execution`, `policies/sampling.py`).
 The seed's 3x weighting is `arm_weights_3x`. What it does, measured over seeds against doing
-nothing: README, "Results".
+nothing: README, "Results at a glance".
 
   python -m pi0_armfix.train --config=configs/arm_focused.py
 """

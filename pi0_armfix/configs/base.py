@@ -13,8 +13,8 @@ only the `loss` (and, for a few, the `data`) section. `arg` picks the scale:
                          it, at `--config.data.root` (layout `g1_inspire`: each arm's 7 joints,
                          each hand's 6 finger joints, joint positions at 30 fps, the state in the
                          same order; its head camera scaled to the preset's 32 px), held out: the
-                         last 20 episodes; learning curves every quarter of the run. README, "The
-                         fix on a real robot's data".
+                         last 20 episodes; learning curves every quarter of the run. docs/data.md, "A
+                         real robot".
 
 The config is locked by the entrypoint: every key a run can set exists here, and an unknown key on
 the command line is an error.
@@ -98,7 +98,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # openpi's LoRA fine-tuning: the experts named here ("paligemma", "action_expert") get its
     # adapters (rank 16 / 32) and keep their own weights frozen in bfloat16; () = all weights train.
     config.model.lora = ()
-    # Speed and memory of the step, the same function (README, "GPU"): what a rematerialized layer
+    # Speed and memory of the step, the same function (docs/gpu.md): what a rematerialized layer
     # keeps for the backward pass (model.config.REMAT_POLICIES), and the attention's kernel
     # ("einsum": XLA's; "fused": jax.nn.dot_product_attention, cuDNN's where it takes the shapes).
     config.model.remat_policy = "nothing_saveable"
@@ -198,7 +198,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # What they are relative to: 'state' (the current state), or 'previous_action' (the action
     # commanded one frame before, which holding the previous action exploits where a command sits
     # at an offset from the measured state; a policy needs it at inference: the closed loop and
-    # the harness pass the last executed action, a server client sends it: README, "Serve").
+    # the harness pass the last executed action, a server client sends it: docs/serving.md).
     config.data.delta_reference = "state"
     config.data.norm_per_timestep = False  # action stats per chunk position h ([H, A])
     config.data.chunk_stats_chunks = 20_000  # chunks sampled for per-timestep stats / correlation
@@ -209,7 +209,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train = ml_collections.ConfigDict()
     # The demo's main-job budget: 4500 steps of batch 32 is ~2 epochs of the 100 training
     # episodes, where `arm_focused` beats holding the previous action on the base, both arms and
-    # both grippers (README, "Results"); 1500 (0.7 epoch) is too short for any config to.
+    # both grippers (README, "Results at a glance"); 1500 (0.7 epoch) is too short for any config to.
     config.train.total_steps = 4500
     config.train.batch_size = 32  # global, over all processes
     # Gradients of the batch as the mean over this many strided parts computed one after another:
@@ -248,8 +248,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # averaged away) and the energy score of the draws (a proper scoring rule).
     config.eval.num_draws = 8
     # How the policy is executed (held-out evaluation, closed loop, server, study): a choice of
-    # those commands, never of what a config trains (pi0_armfix.policies.sampling, README
-    # "Execution"). 'adopted': the world's adopted execution (the demo world's: replanning every
+    # those commands, never of what a config trains (pi0_armfix.policies.sampling,
+    # docs/closed_loop.md "Execution"). 'adopted': the world's adopted execution (the demo world's: replanning every
     # quarter of the horizon with temporal ensembling, the base the mean of 4 draws, the torso of
     # 8 held within 2 action stds; elsewhere every lever off); 'none': every lever off. A study
     # sets it alike for every config it compares (`--execution`).
