@@ -140,3 +140,11 @@ def test_the_step_benchmark_knows_the_peak_of_the_gpus_users_have():
     assert step_bench.peak_tflops("NVIDIA H200") == 989.0
     assert step_bench.peak_tflops("NVIDIA A100-SXM4-80GB") == 312.0
     assert step_bench.peak_tflops("cpu") is None and step_bench.peak_tflops("cpu", 2.0) == 2.0
+
+
+def test_the_bench_dispatcher_prints_its_usage_on_help_and_exits_0(capsys):
+    from pi0_armfix.bench import __main__ as bench_main
+    bench_main.main(["pi0-armfix-bench", "--help"])
+    assert "NAME --help" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="'nope' is no benchmark"):
+        bench_main.main(["pi0-armfix-bench", "nope"])

@@ -381,3 +381,8 @@ def test_a_run_that_sets_a_lever_keeps_it_over_the_execution_and_a_flag_over_bot
     assert Sampling.for_run(config).deadbands() == {}
     assert Sampling.for_run(config, deadband="base=0.2").deadbands() == {"base": 0.2}
     assert Sampling.for_run(config).group_counts() == {"base": 4, "torso": 8}
+
+
+def test_an_unknown_scale_is_refused_naming_every_scale():
+    with pytest.raises(ValueError, match=r"':b1k2026' \(BEHAVIOR-1K 2026\) or ':g1'"):
+        base.get_config("h1")

@@ -142,3 +142,10 @@ def test_group_draws_map_to_the_layouts_dims_and_an_unknown_group_is_named():
     assert Sampling().draw_counts(B1K) is None
     with pytest.raises(ValueError, match=r"group_draws names \['wheels'\]"):
         Sampling(group_draws="wheels=2").draw_counts(B1K)
+
+
+def test_a_replanner_started_on_a_rollouts_envs_refuses_an_index_past_them():
+    replanning = execution.Replanner(_Scripted())
+    replanning.start([object(), object()])
+    with pytest.raises(ValueError, match=r"envs \[2\] were not started: start\(\) was given 2"):
+        replanning([0, 2], [{}, {}])

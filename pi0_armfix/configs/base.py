@@ -72,7 +72,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     scale = arg or ""
     if scale not in SCALES:
         raise ValueError(f"config argument {arg!r} is not a scale; use no argument (demo), "
-                         "':b1k' (BEHAVIOR-1K 2025) or ':b1k2026' (BEHAVIOR-1K 2026)")
+                         "':b1k' (BEHAVIOR-1K 2025), ':b1k2026' (BEHAVIOR-1K 2026) or ':g1' (a "
+                         "Unitree G1 with Inspire hands)")
 
     config = ml_collections.ConfigDict()
     config.seed = 0

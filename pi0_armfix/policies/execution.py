@@ -139,9 +139,12 @@ class Replanner:
         self.latch = self.sampling.latch(layout)
         self.start()
 
-    def start(self, envs=None):
-        """A new episode: no tails, plans or executed action, the latch's held commands
-        forgotten."""
+    def start(self, envs: Sequence[Any] | None = None) -> None:
+        """A new episode of every env: no tails, plans or executed action, the latch's held
+        commands forgotten. `envs`: the environments that start it together (`sim.rollout.
+        Driver.start`), whose indices `__call__` then takes (one past them is an error); None:
+        any index (a harness connection's envs, known only as they come)."""
+        self._envs = None if envs is None else len(envs)
         self._tails: dict[int, np.ndarray] = {}
         self._executed: dict[int, np.ndarray] = {}
         self._plans: dict[int, list[tuple[int, np.ndarray]]] = {}
@@ -153,6 +156,10 @@ class Replanner:
         """Chunks `[len(active), H, A]` for the envs `active` (their tails followed under `rtc`
         when every one has a tail: a chunk at an episode's start has none); `rng`: the draw's
         key (a caller with its own noise stream), else the policy's next."""
+        outside = [i for i in active if self._envs is not None and not 0 <= i < self._envs]
+        if outside:
+            raise ValueError(f"envs {outside} were not started: start() was given "
+                             f"{self._envs} environments")
         sampling, follow = self.sampling, None
         if sampling.rtc and all(i in self._tails for i in active):
             follow = np.stack([self._tails[i] for i in active])
