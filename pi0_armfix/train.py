@@ -63,7 +63,8 @@ from pi0_armfix.data import background
 from pi0_armfix.data.pipeline import pipeline
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.training import checkpoint, finite_checkpoints, plots, preemption
+from pi0_armfix.evaluation import figures
+from pi0_armfix.training import checkpoint, finite_checkpoints, preemption
 from pi0_armfix.training import metrics_log
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.train_setup import ConfigurationError, Run, prepare, say
@@ -203,7 +204,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     if not is_main:
         return {}
     records = metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE)
-    plots.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
+    figures.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
     return [r for r in records if "loss" in r][-1]
 
 
@@ -260,7 +261,7 @@ def _evaluate(evaluator: evaluator_lib.Evaluator, state: state_lib.TrainState, s
     if jax.process_index() == 0:
         _, sums_path = evaluator_lib.heldout_paths(workdir, step)
         heldout_lib.save_chunk_sums(sums_path, sums)
-        plots.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
+        figures.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
     say(f"step {step} held-out evaluation (sampled actions):\n"
          + evaluator_lib.format_metrics(metrics, layout))

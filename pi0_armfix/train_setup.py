@@ -32,7 +32,7 @@ from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import checkpoint, fingerprint, freeze, workdir_lock
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 from pi0_armfix.training.run_spec import RunSpec

@@ -12,13 +12,13 @@ import pytest
 
 import b1k2026_fixture as fixture
 import train_fixtures as tf
+from pi0_armfix import evaluate as evaluate_command
 from pi0_armfix.configs import arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import selection
 from pi0_armfix.data.formats.lerobot import LeRobotSource
-from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.policies import inference
 
 LAYOUT = ActionLayout.preset("b1k_r1pro")
@@ -95,7 +95,7 @@ def test_b1k2026_scale_trains_and_evaluates_on_the_fixture_and_says_what_it_read
     assert ("61-D 'observation.state' -> state preset 'b1k2026_r1pro' (23-D in the action "
             "order; written for BEHAVIOR-1K 2026") in out
     assert "hevc 24x24 (observation.rgb.zed_link_camera_0), a keyframe every 8 frames" in out
-    step, metrics, _, _ = evaluator_lib.evaluate_checkpoint(workdir)
+    step, metrics, _, _ = evaluate_command.evaluate_checkpoint(workdir)
     assert step == 2 and np.isfinite(metrics["err/left_arm"])
 
 

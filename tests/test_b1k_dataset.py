@@ -9,6 +9,7 @@ import pytest
 
 import b1k_fixture
 import train_fixtures as tf
+from pi0_armfix import evaluate as evaluate_command
 from pi0_armfix.configs import arm_curriculum, arm_focused
 from data_fixtures import identify_frame
 from pi0_armfix import train
@@ -16,8 +17,8 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import selection
 from pi0_armfix.data.formats.lerobot import LeRobotSource
 from pi0_armfix.data.pipeline import video_stream
-from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix import sharding
+from pi0_armfix.training import checkpoint
 from pi0_armfix.tools import (analyze_action_magnitudes, compute_norm_stats,
                               filter_arm_heavy_episodes, recompute_balanced_norm_stats)
 
@@ -93,7 +94,7 @@ def test_b1k_scale_trains_and_evaluates_on_the_fixture(b1k, tmp_path, capsys):
     assert np.isfinite(record["loss"]) and (workdir / "checkpoints" / "2").is_dir()
     # One keyframe per episode: the run streams its episodes, and says so.
     assert "one keyframe in its first packets (a long GOP): streamed" in capsys.readouterr().out
-    step, metrics, _, _ = evaluator_lib.evaluate_checkpoint(workdir)
+    step, metrics, _, _ = evaluate_command.evaluate_checkpoint(workdir)
     assert step == 2 and np.isfinite(metrics["err/left_arm"])
     assert (workdir / "eval" / "step_2" / "trajectories.png").is_file()
 

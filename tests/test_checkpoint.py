@@ -11,7 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix import sharding
+from pi0_armfix.training import checkpoint
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NORM_STATS = {"norm_stats": {"actions": {"mean": [0.5, 1.0], "std": [2.0, 3.0]}}}

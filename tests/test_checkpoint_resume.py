@@ -12,7 +12,8 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
-from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix import sharding
+from pi0_armfix.training import checkpoint
 
 pytestmark = pytest.mark.slow  # the slow lane: a run killed and restarted
 

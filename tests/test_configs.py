@@ -19,7 +19,8 @@ from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.policies.sampling import LEVERS, Sampling
-from pi0_armfix.training import checkpoint, sharding
+from pi0_armfix import sharding
+from pi0_armfix.training import checkpoint
 
 CONFIGS = ("arm_focused", "very_arm_focused", "simple_arm_focused", "uniform", "original",
            "arm_focused_balanced", "arm_curriculum", "loss_balanced", "uncertainty", "arm_delta",

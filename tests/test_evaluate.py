@@ -10,6 +10,7 @@ import pytest
 
 import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
+from pi0_armfix import evaluate as evaluate_command
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.evaluation import baselines, ceiling
@@ -372,7 +373,7 @@ def _evaluate_in_process(workdir, **eval_changes):
     from pi0_armfix.data.formats import sources
     from pi0_armfix.data.pipeline.data_spec import DataSpec
     from pi0_armfix.model import tokenizer as tokenizer_lib
-    from pi0_armfix.training import sharding as sharding_lib
+    from pi0_armfix import sharding as sharding_lib
     run = inference.restore_run(workdir)
     config = run.config
     config.eval.update(eval_changes)
@@ -429,7 +430,7 @@ def test_a_trained_runs_output_on_a_constant_dim_is_the_constant(trained):
 
 def test_the_switch_timing_tool_times_the_evaluations_own_draws(trained):
     from pi0_armfix.tools import switch_timing
-    _, metrics, _, _ = evaluator_lib.evaluate_checkpoint(trained)
+    _, metrics, _, _ = evaluate_command.evaluate_checkpoint(trained)
     step, result = switch_timing.run_switch_timing(str(trained), None, tolerances=(0, 2))
     single = result["single_draw"]
     assert (single["predicted"], single["true"]) == (
@@ -459,8 +460,8 @@ def test_the_expert_redraw_is_deterministic_and_differs_only_by_its_own_draws():
 
 
 def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(trained):
-    _, ema_metrics, _, ema_path = evaluator_lib.evaluate_checkpoint(trained)
-    _, raw_metrics, _, raw_path = evaluator_lib.evaluate_checkpoint(trained, params_name="params")
+    _, ema_metrics, _, ema_path = evaluate_command.evaluate_checkpoint(trained)
+    _, raw_metrics, _, raw_path = evaluate_command.evaluate_checkpoint(trained, params_name="params")
     assert ema_path.name == "metrics.json" and raw_path.name == "metrics_params.json"
     assert json.loads(ema_path.read_text())["params"] == "ema_params"
     assert json.loads(raw_path.read_text())["params"] == "params"
@@ -468,7 +469,7 @@ def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(train
 
 
 def test_an_evaluation_names_the_chunks_it_scored(trained):
-    _, metrics, _, path = evaluator_lib.evaluate_checkpoint(trained)
+    _, metrics, _, path = evaluate_command.evaluate_checkpoint(trained)
     sums = heldout.load_chunk_sums(path.parent / heldout.CHUNK_SUMS_FILE)
     chunks = sums[heldout.CHUNKS]  # episode id, first frame in it, horizon
     assert chunks.shape == (metrics["chunks"], 3) and (chunks[:, 2] == chunks[0, 2]).all()

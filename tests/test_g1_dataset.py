@@ -8,6 +8,7 @@ import pytest
 
 import g1_fixture
 from data_fixtures import identify_frame
+from pi0_armfix import evaluate as evaluate_command
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import arm_focused, arm_focused_previous_action, arm_weights_3x, uniform
@@ -90,7 +91,7 @@ def test_the_g1_scale_trains_and_evaluates_without_the_episodes_missing_their_vi
     record = train.train_and_evaluate(
         g1_config(root, **{"data.skip_missing_videos": True}), str(workdir))
     assert np.isfinite(record["loss"]) and (workdir / "checkpoints" / "2").is_dir()
-    step, metrics, _, _ = evaluator_lib.evaluate_checkpoint(workdir)
+    step, metrics, _, _ = evaluate_command.evaluate_checkpoint(workdir)
     assert step == 2
     for group in LAYOUT.group_names:
         assert np.isfinite(metrics[f"skill/{group}"])

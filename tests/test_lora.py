@@ -26,7 +26,8 @@ from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.model.tree import flatten_tree
 from pi0_armfix.tools import export_openpi
 from pi0_armfix.torch_mirror import checkpoint as torch_checkpoint
-from pi0_armfix.training import checkpoint, freeze, sharding
+from pi0_armfix import sharding
+from pi0_armfix.training import checkpoint, freeze
 
 BOTH = ("paligemma", "action_expert")
 

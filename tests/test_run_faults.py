@@ -17,7 +17,8 @@ from pi0_armfix.configs import base
 from pi0_armfix import train
 from pi0_armfix.policies import inference
 from pi0_armfix.training import finite_checkpoints
-from pi0_armfix.training import checkpoint, fingerprint, preemption, sharding
+from pi0_armfix import sharding
+from pi0_armfix.training import checkpoint, fingerprint, preemption
 from pi0_armfix import train_setup as setup_lib
 
 pytestmark = pytest.mark.slow  # the slow lane: fault injection into training runs

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from jax.sharding import PartitionSpec as P
 
-from pi0_armfix.training import sharding
+from pi0_armfix import sharding
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -85,7 +85,7 @@ def _run_on_cpu_devices(n: int, code: str) -> str:
 def test_optimizer_moments_and_batch_are_placed_like_their_params_on_four_devices():
     out = _run_on_cpu_devices(4, """
         import jax, jax.numpy as jnp, optax
-        from pi0_armfix.training import sharding
+        from pi0_armfix import sharding
         mesh = sharding.make_mesh(2)
         params = {"mlp": {"kernel": jnp.ones((256, 512))}, "norm": {"scale": jnp.ones((512,))}}
         state = {"params": params, "opt": optax.adam(1e-3).init(params)}

@@ -124,7 +124,8 @@ def _resumed_steps(log: Path) -> list[int]:
 def _state(workdir: Path, step: int):
     import jax
 
-    from pi0_armfix.training import checkpoint, sharding
+    from pi0_armfix import sharding
+    from pi0_armfix.training import checkpoint
 
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
     state, _, _ = ckpts.restore_for_eval(step, sharding.make_mesh(1), items=None)

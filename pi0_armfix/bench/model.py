@@ -6,7 +6,7 @@ memory      per-device memory of the compiled `pi0` and `pi05` train steps (loss
             update) on an 8-device CPU mesh with fsdp=8, from `compiled.memory_analysis()`. Every
             input is an abstract `jax.ShapeDtypeStruct` with its sharding, so nothing is
             allocated. Params and AdamW moments are placed by the training rule table
-            (`training.sharding`).
+            (`pi0_armfix.sharding`).
 flow_time   K flow-matching samples per prefix pass (`loss.flow_samples`): train-step time per
             flow-matching sample at each K of `--flow_samples` on the `demo` preset, against K
             separate K=1 steps. The K variants run interleaved round by round on one batch, so
@@ -121,7 +121,7 @@ def _example_batch(config: model_config.Pi0Config, batch_size: int) -> dict:
 def lower_train_step(config: model_config.Pi0Config, batch_size: int,
                      flow_samples: int = 1) -> jax.stages.Lowered:
     """The fsdp train step over every device, lowered from abstract inputs (nothing allocated)."""
-    from pi0_armfix.training import sharding  # the rule table the trainer uses
+    from pi0_armfix import sharding  # the rule table the trainer uses
 
     mesh = sharding.make_mesh(fsdp=jax.device_count())
     tx = optax.adamw(1e-4)

@@ -52,7 +52,7 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model.inputs import fake_observation
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 from pi0_armfix.training.run_spec import RunSpec

@@ -46,7 +46,7 @@ from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import metrics_log
 from pi0_armfix.training import optimizer as optimizer_lib
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 

@@ -20,7 +20,6 @@ previous action. Figures: predicted vs true trajectories (data units) of the chu
 from __future__ import annotations
 
 import functools
-import json
 import math
 from collections.abc import Mapping
 from typing import Any, NamedTuple
@@ -36,19 +35,16 @@ from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.policies import execution, inference
-from pi0_armfix.policies.sampling import SAMPLED_LEVERS, Sampling
-from pi0_armfix.training import metrics_log
-from pi0_armfix.training import plots
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix.policies.sampling import Sampling
+from pi0_armfix.evaluation import figures
+from pi0_armfix import sharding as sharding_lib
 
 TRAJECTORY_ROWS = 3  # chunks shown in a trajectory figure
 METRICS_FILE = "metrics.json"  # of an offline evaluation, in eval/step_<N>/
-STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluations, in eval/
 
 
 def eval_groups(eval_cfg: Mapping[str, Any], layout: ActionLayout
@@ -221,7 +217,7 @@ class Evaluator:
             eval_metrics.displacement(true, self.chunks.valid, np.zeros(true.shape[-1], bool))[:, dims], axis=-1)
         rows = np.argsort(-motion)[:TRAJECTORY_ROWS]
         scale = self.chunks.scale
-        plots.plot_trajectories(predicted[rows] * scale, true[rows] * scale, self.layout,
+        figures.plot_trajectories(predicted[rows] * scale, true[rows] * scale, self.layout,
                                 shown, path, title)
 
 
@@ -282,40 +278,6 @@ def run_evaluator(run: inference.RestoredRun) -> tuple[Evaluator, jax.sharding.M
     return evaluator, mesh
 
 
-def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
-                        params_name: str = "ema", levers: Mapping[str, float] | None = None
-                        ) -> tuple[int, dict[str, float], ActionLayout, epath.Path]:
-    """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
-    writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
-    the run kept them, else the params) or "params"; `levers`: inference levers in place of the
-    run's (`inference.restore_run`). The metrics go to `metrics.json` there (with levers other
-    than the plain sampler's, or the raw params of a run with an EMA,
-    `metrics<RestoredRun.result_tag>.json`, which the stagnation figure and the study leave out).
-    Returns `(step, metrics, layout, metrics path)`."""
-    run = inference.restore_run(workdir, step, params_name, levers)
-    tag = run.result_tag()
-    workdir, step, layout = run.workdir, run.step, run.layout
-    out = workdir / "eval" / f"step_{step}"
-    writable_folder(out)  # before the sampling, not after
-    evaluator, mesh = run_evaluator(run)
-    with jax.set_mesh(mesh):
-        metrics, predicted, true, sums = evaluator(run.params)
-    metrics_path, chunk_sums_path = heldout_paths(workdir, step, tag)
-    heldout_lib.save_chunk_sums(chunk_sums_path, sums)
-    # Strict JSON: a metric with nothing to measure (NaN) is null.
-    metrics_path.write_text(json.dumps(
-        {"step": step, "params": run.params_name,
-         **{key: getattr(run.sampling, key) for key in SAMPLED_LEVERS},
-         **strict_json({k: float(v) for k, v in metrics.items()})},
-        indent=2, allow_nan=False) + "\n")
-    evaluator.plot(predicted, true, out / f"trajectories{tag}.png", f"step {step}: predicted "
-                   "(dashed) vs true (solid)")
-    plots.plot_group_losses(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE), layout,
-                            out / "group_losses.png")
-    plots.plot_stagnation(offline_records(workdir), layout, workdir / "eval" / STAGNATION_FILE)
-    return step, metrics, layout, metrics_path
-
-
 def heldout_paths(workdir: epath.PathLike, step: int, levers: str = ""
                   ) -> tuple[epath.Path, epath.Path]:
     """An offline evaluation's `eval/step_<N>/metrics[levers].json` and its per-chunk sums
@@ -325,14 +287,3 @@ def heldout_paths(workdir: epath.PathLike, step: int, levers: str = ""
     sums = epath.Path(heldout_lib.CHUNK_SUMS_FILE)
     return (out / f"{epath.Path(METRICS_FILE).stem}{levers}.json",
             out / f"{sums.stem}{levers}{sums.suffix}")
-
-
-def offline_records(workdir: epath.PathLike) -> list[dict[str, Any]]:
-    """Every offline evaluation of a run (`eval/step_<N>/metrics.json`), in step order: a run
-    evaluated at several checkpoints draws its stagnation figure from them (`eval/`
-    `stagnation.png`), like the one training draws from its in-run evaluations."""
-    found = []
-    for path in epath.Path(workdir).glob(f"eval/step_*/{METRICS_FILE}"):
-        record = json.loads(path.read_text())
-        found.append({k: math.nan if v is None else v for k, v in record.items()})
-    return sorted(found, key=lambda r: r["step"])

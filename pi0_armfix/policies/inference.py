@@ -49,7 +49,7 @@ from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.policies.sampling import EXECUTIONS, Sampling
 from pi0_armfix.training import checkpoint
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix import sharding as sharding_lib
 
 
 @dataclasses.dataclass(frozen=True)

@@ -52,7 +52,7 @@ from pi0_armfix.model import flow_model, pi0
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.model.inputs import preprocess_observation
 from pi0_armfix.tools.export_openpi import code_version
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix import sharding as sharding_lib
 
 RESULT_FILE = "regressor.json"
 TABLE_FILE = "regressor.md"

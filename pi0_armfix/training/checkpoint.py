@@ -34,7 +34,7 @@ import orbax.checkpoint as ocp
 from etils import epath
 from jax.experimental import multihost_utils
 
-from pi0_armfix.training import sharding as sharding_lib
+from pi0_armfix import sharding as sharding_lib
 
 
 def has_checkpoints(directory: epath.PathLike) -> bool:
