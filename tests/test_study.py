@@ -19,6 +19,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.study import aggregate, report
+from pi0_armfix.study import curves as curves_lib
 from pi0_armfix.study import main as study_main
 from pi0_armfix.study import run as study_run
 
@@ -158,7 +159,7 @@ def test_a_curve_is_taken_at_the_steps_every_seed_logged():
     runs = [[{"step": 5, "skill/left_arm": -1.0}, {"step": 10, "skill/left_arm": 0.5}],
             [{"step": 10, "skill/left_arm": 0.1}, {"step": 15, "skill/left_arm": 0.2}],
             [{"step": 10, "loss": 1.0}]]  # never evaluated: left out
-    steps, values = report._curve_values(runs, "skill/left_arm")
+    steps, values = curves_lib._curve_values(runs, "skill/left_arm")
     assert steps == [10]
     np.testing.assert_allclose(values, [[0.5], [0.1]])
 
@@ -617,7 +618,7 @@ def test_the_learning_curve_table_has_a_row_per_config_and_evaluated_step():
                                record(1000, 0.1)],
                               [timing(500, 2.5), record(500, -0.4), timing(1000, 5.0),
                                record(1000, 0.3)]]}
-    table = report.curve_table(curves, {"groups": groups,
+    table = curves_lib.curve_table(curves, {"groups": groups,
                                               "arm_groups": ["left_arm", "right_arm"]})
     rows = [line for line in table if line.startswith("| arm_focused")]
     assert len(rows) == 2
@@ -631,15 +632,15 @@ def test_the_learning_curve_table_has_a_row_per_config_and_evaluated_step():
 def test_training_seconds_sum_the_logged_windows_and_skip_evaluation_records():
     records = [{"step": 25, "steps_per_sec": 0.5}, {"step": 50, "steps_per_sec": 5.0},
                {"step": 50, "skill/base": 0.1}, {"step": 75, "steps_per_sec": 25.0}]
-    assert report.training_seconds(records) == {25: 50.0, 50: 55.0, 75: 56.0}
-    assert report.training_seconds([{"step": 50, "skill/base": 0.1}]) == {}
+    assert curves_lib.training_seconds(records) == {25: 50.0, 50: 55.0, 75: 56.0}
+    assert curves_lib.training_seconds([{"step": 50, "skill/base": 0.1}]) == {}
 
 
 def test_minutes_at_an_evaluation_between_log_records_are_interpolated():
     seconds = {25: 60.0, 50: 120.0}
-    assert report.minutes_at(seconds, 40) == pytest.approx(1.6)
-    assert report.minutes_at(seconds, 50) == 2.0
-    assert math.isnan(report.minutes_at({}, 50))
+    assert curves_lib.minutes_at(seconds, 40) == pytest.approx(1.6)
+    assert curves_lib.minutes_at(seconds, 50) == 2.0
+    assert math.isnan(curves_lib.minutes_at({}, 50))
 
 
 def test_a_lever_variant_is_its_config_less_the_inference_levers():
@@ -813,7 +814,7 @@ def test_the_report_names_the_configs_with_fewer_seeds_than_a_result_needs(tmp_p
 def test_a_study_kept_as_its_report_alone_is_reported_again_from_its_study_json(tmp_path):
     results = [_result(c, s, 0.1 * s) for c in ("uniform", "arm_focused") for s in range(2)]
     study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
-    curves = ["", f"{report.CURVES_HEADING} (held-out skill)", "", "| config | step |",
+    curves = ["", f"{curves_lib.CURVES_HEADING} (held-out skill)", "", "| config | step |",
               "| uniform | 10 |"]
     with open(tmp_path / "study.md", "a") as study_md:
         study_md.write("\n".join(curves) + "\n")

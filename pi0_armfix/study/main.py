@@ -92,8 +92,8 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.policies import inference
 from pi0_armfix.policies.sampling import EXECUTIONS
 from pi0_armfix.study.aggregate import aggregate
-from pi0_armfix.study.report import (CURVES_HEADING, curve_table, markdown, plot_curves,
-                                     plot_study)
+from pi0_armfix.study.curves import CURVES_HEADING, curve_table, plot_curves
+from pi0_armfix.study.report import markdown, plot_study
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,
                                   check_study_levers, closed_loop_plan, config_names,
                                   default_closed_loop_episodes, parse_config, run_folder,
