@@ -302,6 +302,16 @@ def test_skip_missing_videos_with_no_video_left_is_an_error(tmp_path):
                       skip_missing_videos=True)
 
 
+def test_videos_under_another_folder_are_named_by_the_path_template_looked_for(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3), "v2.1", image_format="video")
+    (root / "videos").rename(root / "video")
+    with pytest.raises(ValueError) as err:
+        LeRobotSource(root, LAYOUT).load_table()
+    message = str(err.value)
+    assert "no video file of the 3 episodes" in message and "'videos/chunk-" in message
+    assert "set video_path in" in message and "skip_missing_videos" not in message
+
+
 def test_skip_missing_videos_is_read_from_the_config(tmp_path):
     config = _config(_without_videos_of(tmp_path, [2]), skip_missing_videos=True)
     assert open_source(config.data, LAYOUT).episode_index.tolist() == [0, 1, 3]
@@ -449,7 +459,7 @@ def test_a_pass_that_reads_no_images_never_probes_the_videos(tmp_path):
     config = _config(root)
     source = open_source(config.data, LAYOUT)
     dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=False)  # the stats and analysis tools
-    with pytest.raises(ValueError, match="missing video file"):
+    with pytest.raises(ValueError, match="no video file of the 3 episodes"):
         dataset_lib.check_data(DataSpec.from_config(config, LAYOUT), source, images=True)
 
 

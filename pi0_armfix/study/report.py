@@ -1,5 +1,5 @@
 """A study's report: `study.md` (every table beside the do-nothing rows) and `study.png`, from
-`aggregate.aggregate`; `study_curves.png` from the runs' metrics logs."""
+`aggregate.aggregate` (the learning curves: `study/curves.py`)."""
 
 from __future__ import annotations
 

@@ -73,6 +73,7 @@ from pi0_armfix.data.formats import image_store
 from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 from pi0_armfix.data.formats.frame_store import FrameStore
 from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, segment_time
+from pi0_armfix.data.formats.missing_videos import MissingVideos
 from pi0_armfix.data.formats.lerobot_meta import (
     ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3, major_version, matrix, open_parquet,
     task_prompts_of, task_rows, vector, with_prompts)
@@ -190,14 +191,14 @@ class LeRobotSource:
         self._episodes = with_prompts(load(self.root, info, video_keys), rows)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
-        missing = self._missing(video_keys)  # one `stat` per file, once
-        self._missing_videos = self._missing_videos_message(missing, video_keys)
+        self._missing_videos = MissingVideos.find(self.root, self._episodes, video_keys,
+                                                  info.get("video_path"))
         self.skipped_episodes: tuple[int, ...] = ()
-        if self._missing_videos and skip_missing_videos:
-            self._episodes, self.skipped_episodes = self._without_missing_videos(missing)
+        if self._missing_videos.message and skip_missing_videos:
+            self._episodes, self.skipped_episodes = self._missing_videos.kept(self._episodes)
             logging.warning("%s; left out of training and evaluation (data.skip_missing_videos)",
-                            self._missing_videos)
-            self._missing_videos = None
+                            self._missing_videos.message.partition("; fetch the files")[0])
+            self._missing_videos = MissingVideos((), None)
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
@@ -205,39 +206,6 @@ class LeRobotSource:
         self._position = {int(i): p for p, i in enumerate(self.episode_index)}
 
     block_keys = BLOCK_KEYS
-
-    def _missing(self, video_keys: Sequence[str]) -> list[EpisodeRecord]:
-        """The episodes whose video file of a camera in `video_keys` is missing (one `stat` per
-        file)."""
-        return [e for e in self._episodes if any(not e.videos[k][0].is_file() for k in video_keys)]
-
-    def _missing_videos_message(self, missing: Sequence[EpisodeRecord],
-                                video_keys: Sequence[str]) -> str | None:
-        """One line naming every episode of `missing` (`_missing`), or None."""
-        if not missing:
-            return None
-        example = next(e.videos[k][0] for e in missing for k in video_keys
-                       if not e.videos[k][0].is_file())
-        return (f"missing video files for {len(missing)} of {len(self._episodes)} episodes of "
-                f"{self.root} (e.g. {example}): episodes "
-                f"{', '.join(str(e.index) for e in missing)}")
-
-    def _without_missing_videos(self, missing: Sequence[EpisodeRecord]
-                                ) -> tuple[list[EpisodeRecord], tuple[int, ...]]:
-        """`(the episodes with every video file, the ids of those of `missing`)`."""
-        kept = [e for e in self._episodes if e not in missing]
-        if not kept:
-            raise ValueError(f"{self._missing_videos}: no episode is left "
-                             "(data.skip_missing_videos=True)")
-        return kept, tuple(e.index for e in missing)
-
-    def _check_videos_present(self) -> None:
-        """Refuses, before a pass reads images, a dataset with episodes whose videos are
-        missing, naming them all (the fix: the files, or `data.skip_missing_videos`)."""
-        if self._missing_videos:
-            raise ValueError(f"{self._missing_videos}; fetch the files, or set "
-                             "data.skip_missing_videos=True to leave these episodes out of "
-                             "training and evaluation")
 
     @property
     def num_episodes(self) -> int:
@@ -285,7 +253,7 @@ class LeRobotSource:
         """
         videos = [k for k, kind in self._camera_kind.items() if kind == "video"] if videos else []
         if videos:
-            self._check_videos_present()
+            self._missing_videos.check()
         if num_episodes <= 0:
             return
         positions = np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round())
@@ -336,7 +304,7 @@ class LeRobotSource:
         videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
         if not videos:
             return None
-        self._check_videos_present()
+        self._missing_videos.check()
         path = self._episodes[0].videos[videos[0]][0]
         codec, height, width, interval = keyframe_interval(path)
         return f"{codec} {height}x{width} ({videos[0]})", interval
@@ -519,7 +487,7 @@ class LeRobotSource:
         chosen = [self._episodes[p] for p in positions]
         videos = images and any(kind == "video" for kind in self._camera_kind.values())
         if videos:
-            self._check_videos_present()
+            self._missing_videos.check()
         store = self.frame_store
         starts = np.concatenate([[0], np.cumsum([e.length for e in chosen])]).astype(np.int64)
         reader = None
