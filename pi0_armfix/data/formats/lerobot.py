@@ -72,7 +72,7 @@ from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.formats import image_store
 from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 from pi0_armfix.data.formats.frame_store import FrameStore
-from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, segment_time
+from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, probe_frame, segment_time
 from pi0_armfix.data.formats.missing_videos import MissingVideos
 from pi0_armfix.data.formats.lerobot_meta import (
     ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3, major_version, matrix, open_parquet,
@@ -82,13 +82,6 @@ from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder, key
 # Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
 PROBE_DECODE_FRAMES = 1800
 FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
-
-
-def probe_frame(decoder: VideoDecoder, seconds: float, where: str) -> None:
-    try:
-        decoder.frame_at(seconds)
-    except ValueError as err:
-        raise ValueError(f"{err} ({where})") from None
 
 
 BLOCK_KEYS = ("actions", "state", "timestamp")

@@ -230,3 +230,11 @@ class EpisodeReader:
         for decoder in self._decoders.values():
             decoder.close()
         self._decoders.clear()
+
+
+def probe_frame(decoder: VideoDecoder, seconds: float, where: str) -> None:
+    """Decodes the frame at `seconds`; an error names `where` (the episode and row)."""
+    try:
+        decoder.frame_at(seconds)
+    except ValueError as err:
+        raise ValueError(f"{err} ({where})") from None
