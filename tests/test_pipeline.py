@@ -500,21 +500,29 @@ def test_a_state_in_prompt_tokenizer_gets_openpis_float64_normalization_exactly(
 PREVIOUS = {**ARM_DELTA, "delta_reference": "previous_action"}
 
 
-def test_previous_action_reference_is_the_command_one_frame_before_and_the_state_at_a_start():
+def test_previous_action_reference_is_the_command_one_frame_before_and_the_start_at_a_first_frame():
     table = arm_table()
     frames = np.array([0, 1, 6, 7, 8])  # episodes start at 0 and 7
+    start = table.actions.mean(0)
     reference = transforms.delta_reference("previous_action", table.actions, table.state,
-                                           frames, table.episode_starts)
+                                           frames, table.episode_starts, start)
     np.testing.assert_array_equal(reference[[1, 2, 4]], table.actions[[0, 5, 7]])
-    np.testing.assert_array_equal(reference[[0, 3], :20], table.state[[0, 7]])
-    assert not reference[[0, 3], 20:].any()  # the state has no dims there: nothing relative
+    np.testing.assert_array_equal(reference[[0, 3]], np.stack([start, start]))
+
+
+def _previous_action_stats(table, block_frames=5):
+    """The norm stats of a previous-action run on `table`, as `dataset_norm_stats` makes them:
+    the plain stats first (where each episode starts), then the chunk deltas."""
+    absolute = stats_lib.compute_norm_stats(stats_lib.table_blocks(table), progress=False)
+    return dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=block_frames),
+                                        spec_of(PREVIOUS), action_horizon=HORIZON,
+                                        progress=False, absolute=absolute)
 
 
 def test_delta_actions_relative_to_the_previous_action_round_trip_to_the_true_chunks():
     table = arm_table()
     spec = spec_of(PREVIOUS)
-    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5), spec,
-                                         action_horizon=HORIZON, progress=False)
+    stats = _previous_action_stats(table)
     transform = batching.BatchTransform(table, LAYOUT, norm_stats=stats, norm_mode="zscore",
                                         action_horizon=HORIZON, delta_mask=spec.delta_mask,
                                         delta_reference=spec.delta_reference,
@@ -527,19 +535,58 @@ def test_delta_actions_relative_to_the_previous_action_round_trip_to_the_true_ch
 
 def test_previous_action_delta_stats_are_over_the_chunk_steps_the_batches_hold():
     table = arm_table()
-    stats = dataset_lib.block_norm_stats(stats_lib.table_blocks(table, block_frames=5),
-                                         spec_of(PREVIOUS), action_horizon=HORIZON,
-                                         progress=False)
+    stats = _previous_action_stats(table)
     frames = np.arange(table.num_frames)
     index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
     previous = transforms.previous_frames(frames, table.episode_starts)
     first = previous == frames
-    reference = np.where(first[:, None], table.state[frames, 7:14], table.actions[previous, 7:14])
+    start = stats[dataset_lib.ABSOLUTE_ACTIONS].mean[7:14]
+    np.testing.assert_allclose(start, table.actions[:, 7:14].mean(0, dtype=np.float64), atol=1e-6)
+    reference = np.where(first[:, None], start, table.actions[previous, 7:14])
     targets = (table.actions[index][..., 7:14] - reference[:, None]).reshape(-1, 7)
     np.testing.assert_allclose(stats["actions"].mean[7:14], targets.mean(0, dtype=np.float64),
-                               atol=1e-6)
+                               atol=1e-5)
     np.testing.assert_allclose(stats["actions"].std[7:14], targets.std(0, dtype=np.float64),
-                               atol=1e-6)
+                               atol=1e-5)
+
+
+def _velocity_arm_table() -> EpisodeTable:
+    """A single arm commanded by joint velocities (dims 7..13, ~0.01) whose state holds its joint
+    positions (~1.5 rad, dims 7..13 too): subtracting the state from a velocity mixes units."""
+    table = frame_table()
+    rng = np.random.default_rng(2)
+    velocity = 0.01 * rng.normal(size=(table.num_frames, 7))
+    table.actions[:, 7:14] = velocity
+    table.state[:, 7:14] = 1.5 + np.cumsum(velocity, axis=0)
+    return table
+
+
+def test_an_episodes_start_never_mixes_a_velocity_command_with_the_position_state():
+    table = _velocity_arm_table()
+    stats = _previous_action_stats(table)
+    transform = batching.BatchTransform(
+        table, LAYOUT, norm_stats=stats, norm_mode="zscore", action_horizon=HORIZON,
+        delta_mask=spec_of(PREVIOUS).delta_mask, delta_reference="previous_action",
+        actions_only=True)
+    firsts = table.episode_starts[:-1]
+    reference = transform.reference(firsts)[:, 7:14]
+    np.testing.assert_allclose(reference, np.broadcast_to(table.actions[:, 7:14].mean(0),
+                                                          reference.shape), atol=1e-6)
+    assert np.abs(reference).max() < 0.1  # a velocity, never the ~1.5 rad of the state
+    deltas = transform(firsts)["actions"][..., 7:14]  # normalized: no chunk sits far off
+    assert np.abs(deltas).max() < 10
+
+
+def test_the_previous_action_reference_needs_no_state_map():
+    # another set than the demo (whose state preset would place the groups)
+    data = {"root": "/data/velocity_arm", "delta_action_mask": list(range(7, 14))}
+    spec, table = spec_of({**data, "delta_reference": "previous_action"}), _velocity_arm_table()
+    pipeline._batch_transform(table, spec, norm_stats=_previous_action_stats(table),
+                                  action_horizon=HORIZON, tokenize=None, actions_only=True)
+    with pytest.raises(ValueError, match="data.delta_action_mask needs data.state_groups"):
+        pipeline._batch_transform(table, spec_of(data),
+                                      norm_stats=table_stats(table), action_horizon=HORIZON,
+                                      tokenize=None, actions_only=True)
 
 
 def test_the_statistics_of_previous_action_runs_have_their_own_cache_key():

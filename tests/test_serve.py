@@ -25,6 +25,7 @@ from train_fixtures import arm_delta_run, cache_dir, demo_root  # noqa: F401  (p
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.formats import video
 from pi0_armfix.data.pipeline import batching
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import outputs
@@ -523,17 +524,17 @@ def test_the_b1k_harness_executes_a_main_job_run_with_the_adopted_execution(run,
 
 
 def test_a_previous_action_run_never_answers_a_mid_episode_request_relative_to_the_state(run):
-    policy = inference.RunPolicy.from_workdir(run)
-    policy.delta_reference = "previous_action"  # its actions relative to the previous command
-    twin = inference.RunPolicy.from_workdir(run)
-    twin.delta_reference = "previous_action"
+    policy, twin = inference.RunPolicy.from_workdir(run), inference.RunPolicy.from_workdir(run)
+    for p in (policy, twin):  # its actions relative to the previous command
+        p.delta_reference = "previous_action"
+        p.start = stats_lib.start_reference(p.run.norm_stats, 23)
     server = _serve_in_thread(policy)
     client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
     assert client.get_server_metadata()["observation_keys"]["previous_action"] == (
         "previous_action")
     observation = _observation()
     first = client.infer(observation)
-    assert first["relative_to"] == "state"  # a connection's first request: nothing executed yet
+    assert first["relative_to"] == "start"  # a connection's first request: nothing executed yet
     second = client.infer(observation)  # the client sends no previous_action
     assert second["relative_to"] == "executed"
     executed = first["actions"][-1]  # n_exec 0: an openpi client executes the whole chunk

@@ -193,13 +193,16 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # Phases (until_step, {source: weight}), sources `full` and `arm_heavy`; () = `full` throughout.
     config.data.curriculum = ()
     config.data.arm_heavy_episodes = ""  # filter_arm_heavy_episodes JSON; '' = default thresholds
-    # Action dims made relative to the state: group names, e.g. ("torso", "left_arm",
-    # "right_arm"), or dim indices; () = absolute. Needs the state in the action order.
+    # Action dims made relative: group names, e.g. ("torso", "left_arm", "right_arm"), or dim
+    # indices; () = absolute.
     config.data.delta_action_mask = ()
-    # What they are relative to: 'state' (the current state), or 'previous_action' (the action
-    # commanded one frame before, which holding the previous action exploits where a command sits
-    # at an offset from the measured state; a policy needs it at inference: the closed loop and
-    # the harness pass the last executed action, a server client sends it: docs/serving.md).
+    # What they are relative to: 'state' (the current state, which must hold the same joints in
+    # the action order: data.state_groups or a preset), or 'previous_action' (the action commanded
+    # one frame before, which holding the previous action exploits where a command sits at an
+    # offset from the measured state or is a velocity; at an episode's first frame the training
+    # split's mean action, in the action's units; no state map needed; a policy needs it at
+    # inference: the closed loop and the harness pass the last executed action, a server client
+    # sends it: docs/serving.md).
     config.data.delta_reference = "state"
     config.data.norm_per_timestep = False  # action stats per chunk position h ([H, A])
     config.data.chunk_stats_chunks = 20_000  # chunks sampled for per-timestep stats / correlation

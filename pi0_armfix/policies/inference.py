@@ -249,6 +249,9 @@ class RunPolicy:
                                                       self.horizon)
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
         self.delta_reference = config.data.get("delta_reference") or "state"
+        # where an episode relative to the previous command starts (`stats.start_reference`)
+        self.start = (stats_lib.start_reference(run.norm_stats, layout.real_dim)
+                      if self.needs_previous_action else None)
         model_cfg, own = config.model, run_inputs.tokenizer_path(run.workdir)
         if own is not None:  # the tokenizer it trained with, wherever model.tokenizer pointed
             model_cfg = {**model_cfg.to_dict(), "tokenizer": str(own)}
@@ -351,8 +354,8 @@ class RunPolicy:
         """What the relative dims are relative to (`transforms.delta_reference`): the selected
         `state` `[B, S]`, or for a previous-action run the previous actions `[B, real_dim]`
         (each observation's `keys.previous_action` where it has one, else `previous`'s row: what
-        the caller executed), the state in the action order where a robot has none yet (a NaN
-        row).
+        the caller executed), the episode's start (`stats.start_reference`, in the action's
+        units, as training had it) where a robot has none yet (a NaN row).
 
         Raises:
           ValueError naming the key, for a previous action of the wrong shape or not finite.
@@ -377,8 +380,8 @@ class RunPolicy:
                 bad = np.flatnonzero(~np.isfinite(given))
                 raise ValueError(f"{expected}; dim(s) {bad[:8].tolist()} are NaN or inf")
             previous[i] = given
-        start = transforms.pad_last(state[..., :width], width).astype(np.float32)
-        return np.where(np.isnan(previous).any(-1, keepdims=True), start, previous)
+        return np.where(np.isnan(previous).any(-1, keepdims=True),
+                        self.start.astype(np.float32), previous)
 
     def _inpaint(self, follow: np.ndarray, reference: np.ndarray) -> dict[str, np.ndarray]:
         batch, overlap = follow.shape[:2]

@@ -168,14 +168,15 @@ class PolicyServer:
         chunk is relative to, which the reply names (`relative_to`): the client's
         `previous_action`; else the action of this server's last reply to the client that the
         client executed last (`ChunkRules.executed`, the `--n_exec`-th: 'executed'); else, on a
-        connection's first request, the state ('state'). ({}, '') for any other policy."""
+        connection's first request, the episode's start, as training had it ('start':
+        `stats.start_reference`). ({}, '') for any other policy."""
         if not getattr(self.policy, "needs_previous_action", False):
             return {}, ""
         if observation.get(self.policy.keys.previous_action) is not None:
             return {}, "previous_action"
         executed = self._executed.get(client)
         if executed is None:
-            return {}, "state"
+            return {}, "start"
         return {"previous": executed[None]}, "executed"
 
     async def _handle(self, websocket) -> None:

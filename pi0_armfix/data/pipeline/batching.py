@@ -137,6 +137,8 @@ class BatchTransform:
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
         self.delta_reference = delta_reference
+        self.start = (stats_lib.start_reference(norm_stats, layout.real_dim)
+                      if delta_mask is not None and delta_reference == "previous_action" else None)
         self.tokens = None if actions_only else PromptTokens(tokenize)
         self.actions_only = actions_only
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")
@@ -187,7 +189,8 @@ class BatchTransform:
     def reference(self, frames: np.ndarray) -> np.ndarray:
         """`[b, W]` what the relative dims of the chunks starting at `frames` are relative to."""
         return transforms.delta_reference(self.delta_reference, self.table.actions,
-                                          self.table.state, frames, self.table.episode_starts)
+                                          self.table.state, frames, self.table.episode_starts,
+                                          self.start)
 
     def _images(self, frames: np.ndarray, decoded: Mapping[str, np.ndarray] | None = None
                 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:

@@ -70,17 +70,18 @@ def chunk_starts(num_frames: int, max_chunks: int) -> np.ndarray:
 
 def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
                         delta_mask: np.ndarray | None, max_chunks: int, constant: np.ndarray,
-                        delta_reference: str = "state") -> ChunkStats:
+                        delta_reference: str = "state", start: np.ndarray | None = None
+                        ) -> ChunkStats:
     """Per-timestep statistics and Σ of the chunks of `table` (see the module docstring);
     `constant` `[A]`: the dims the run's normalizer holds constant (`NormStats.constant` of its
-    pooled action stats), uncorrelated in Σ; `delta_reference`: what the relative dims are
-    relative to (`transforms.delta_reference`)."""
+    pooled action stats), uncorrelated in Σ; `delta_reference` and `start`: what the relative
+    dims are relative to (`transforms.delta_reference`)."""
     frames = chunk_starts(table.num_frames, max_chunks)
     index, is_pad = transforms.chunk_indices(frames, table.episode_starts, action_horizon)
     chunks = np.asarray(table.actions[index], np.float64)  # [N, H, A]
     if delta_mask is not None:
         reference = transforms.delta_reference(delta_reference, table.actions, table.state,
-                                               frames, table.episode_starts)
+                                               frames, table.episode_starts, start)
         chunks = transforms.to_delta(chunks, np.asarray(reference, np.float64), delta_mask)
     valid = ~is_pad
     fields = {name: np.zeros(chunks.shape[1:]) for name in stats_lib.FIELDS}
@@ -121,10 +122,10 @@ def chunk_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str,
 
 
 def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: str | Path,
-                                constant: np.ndarray, source=None, resuming: bool = False
-                                ) -> ChunkStats:
+                                constant: np.ndarray, start: np.ndarray | None = None,
+                                source=None, resuming: bool = False) -> ChunkStats:
     """The run's chunk statistics: read from `folder` when their key equals this run's, else
-    computed from the training episodes and written there (`constant`: as
+    computed from the training episodes and written there (`constant`, `start`: as
     `compute_chunk_stats`'). A run with checkpoints refuses stats of other data (its weights were
     trained with the old ones)."""
     folder = Path(folder)
@@ -145,6 +146,7 @@ def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: 
     table = source.load_table(dataset_lib.training_episodes(spec, source), images=False)
     stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=spec.delta_mask,
                                 delta_reference=spec.delta_reference, constant=constant,
+                                start=start,
                                 max_chunks=int(spec.get("chunk_stats_chunks")))
     save_per_timestep(paths[0], stats.per_timestep)
     # Through a temporary file and a rename, like the norm stats: every process of a run writes.

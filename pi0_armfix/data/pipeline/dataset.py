@@ -39,10 +39,7 @@ from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.data.statistics import motion as motion_lib
 from pi0_armfix.data.statistics import stats as stats_lib
-# The per-frame statistics of the absolute actions, kept beside openpi's two entries: the
-# evaluation's units (`pi0_armfix.evaluation.heldout.evaluation_scale`) whatever the normalization
-# (balanced stats rescale "actions") or representation (delta dims hold chunk deltas in "actions").
-ABSOLUTE_ACTIONS = "actions_absolute"
+ABSOLUTE_ACTIONS = stats_lib.ABSOLUTE_ACTIONS
 EPISODE_CHOICES = ("train", "all")
 
 
@@ -164,7 +161,7 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
             f"{source.state_width} dims, more than layout.action_dim={layout.action_dim}: it "
             f"cannot be padded into the model's state. Select the dims the policy needs: "
             f"{hint}data.state_indices=(...)")
-    if spec.delta_mask is not None:
+    if spec.delta_mask is not None and spec.delta_reference == "state":
         transforms.check_delta_state_layout(spec.delta_mask, layout, spec.state_groups,
                                             source.state_width)
     curriculum = spec.curriculum
@@ -205,7 +202,8 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
 
 # ---------------------------------------------------------------------- normalization statistics
 def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, action_horizon: int,
-                     total_frames: int | None = None, progress: bool = True
+                     total_frames: int | None = None, progress: bool = True,
+                     absolute: Mapping[str, stats_lib.NormStats] | None = None
                      ) -> dict[str, stats_lib.NormStats]:
     """Statistics `{"actions", "state", "actions_absolute"}` of a stream of blocks
     (`Source.iter_blocks`), with the actions in the model's action space, and the absolute actions
@@ -225,6 +223,9 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
       spec: the run's data spec (its layout, delta mask and state groups).
       action_horizon: H of the model's chunks (`config.model.action_horizon` resolved against the
         preset by the caller).
+      absolute: for actions relative to the previous action, the plain per-frame stats of the
+        same blocks (a first pass): their mean action is where each episode starts
+        (`stats.start_reference`), and they are kept as the `ABSOLUTE_ACTIONS` entry.
     """
     mask, layout = spec.delta_mask, spec.layout
     if mask is None:
@@ -237,23 +238,31 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
     def chunk_steps(block: stats_lib.Block) -> stats_lib.Block:
         actions = np.asarray(block["actions"], np.float32)  # the table's dtype
         state = np.asarray(block["state"], np.float32)
-        transforms.check_delta_state_layout(mask, layout, spec.state_groups, state.shape[1])
+        if spec.delta_reference == "state":
+            transforms.check_delta_state_layout(mask, layout, spec.state_groups, state.shape[1])
         episode = np.asarray(block["episode_index"])
         starts = np.concatenate([[0], np.flatnonzero(episode[1:] != episode[:-1]) + 1,
                                  [len(episode)]])
         frames = np.arange(len(episode))
         index, _ = transforms.chunk_indices(frames, starts, action_horizon)
         reference = transforms.delta_reference(spec.delta_reference, actions, state, frames,
-                                               starts)
+                                               starts, start)
         steps = (transforms.to_delta(actions[index[:, h]], reference, mask)[:, mask]
                  for h in range(action_horizon))
         return {"actions": actions, "delta_actions": steps, "state": state}
 
+    start = None
+    if spec.delta_reference == "previous_action":
+        if absolute is None:
+            raise ValueError("statistics of actions relative to the previous action need the "
+                             "plain stats of the same frames first (absolute=)")
+        start = stats_lib.start_reference(
+            {ABSOLUTE_ACTIONS: absolute["actions"]}, layout.real_dim)
     stats = stats_lib.compute_norm_stats(
         stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
         total_frames=total_frames, transform=chunk_steps, progress=progress)
     delta = stats.pop("delta_actions")
-    stats[ABSOLUTE_ACTIONS] = stats["actions"]
+    stats[ABSOLUTE_ACTIONS] = absolute["actions"] if absolute is not None else stats["actions"]
     fields = {}
     for field in stats_lib.FIELDS:
         fields[field] = getattr(stats["actions"], field).copy()
@@ -268,10 +277,15 @@ def dataset_norm_stats(spec: DataSpec, *, action_horizon: int, progress: bool = 
     """Plain statistics `{"actions", "state"}` of `episodes` (default: the training episodes),
     one streaming pass (`block_norm_stats`: the relative dims of `data.delta_action_mask` over
     chunks of H = `action_horizon`)."""
+    absolute = None
+    if spec.delta_mask is not None and spec.delta_reference == "previous_action":
+        blocks, total = training_blocks(spec, ("actions", "state"), source=source,
+                                        episodes=episodes)
+        absolute = stats_lib.compute_norm_stats(blocks, total_frames=total, progress=progress)
     blocks, total = training_blocks(spec, ("actions", "state"), source=source,
                                     episodes=episodes)
     return block_norm_stats(blocks, spec, action_horizon=action_horizon, total_frames=total,
-                            progress=progress)
+                            progress=progress, absolute=absolute)
 
 
 def dataset_motion(spec: DataSpec, action_stats: stats_lib.NormStats,

@@ -84,7 +84,7 @@ def _batch_transform(table: EpisodeTable, spec: DataSpec, *,
                      image_size: tuple[int, int] = (224, 224)) -> BatchTransform:
     """The run's `BatchTransform` (either chain's), its delta actions checked against the state
     layout."""
-    if spec.delta_mask is not None:
+    if spec.delta_mask is not None and spec.delta_reference == "state":
         transforms.check_delta_state_layout(spec.delta_mask, spec.layout, spec.state_groups,
                                             table.state.shape[1])
     return BatchTransform(table, spec.layout, norm_stats=norm_stats, norm_mode=spec.norm,

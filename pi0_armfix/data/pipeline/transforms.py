@@ -67,25 +67,31 @@ DELTA_REFERENCES = ("state", "previous_action")
 
 
 def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
-                    episode_starts: np.ndarray) -> np.ndarray:
+                    episode_starts: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
     """`[..., W]` what the relative dims of chunks starting at `frames` are relative to.
 
     Args:
-      kind: `data.delta_reference`: "state" (the state at the frame, `[..., S]`) or
-        "previous_action" (the action at the frame before, `[..., A]`; at an episode's first
-        frame, where no command precedes, the state in the action order).
+      kind: `data.delta_reference`: "state" (the state at the frame, `[..., S]`, which must hold
+        the same joints in the action order: `check_delta_state_layout`) or "previous_action"
+        (the action at the frame before, `[..., A]`; at an episode's first frame, where no
+        command precedes, `start`).
       actions, state: row-indexable `[N, A]` / `[N, S]` columns of a table (or arrays).
       frames: `[...]` frame indices; episode_starts: `[E + 1]` the table's episode offsets.
+      start: `[A]` for "previous_action": the episode's start in the action's own units, the
+        training split's mean action (`stats.start_reference`); never the state, which may be a
+        position where the command is a velocity, or sit at an offset from the command.
     """
     frames = np.asarray(frames, np.int64)
-    current = np.asarray(state[frames])
     if kind == "state":
-        return current
+        return np.asarray(state[frames])
     if kind != "previous_action":
         raise ValueError(f"data.delta_reference = {kind!r}; choose one of {list(DELTA_REFERENCES)}")
+    if start is None:
+        raise ValueError("actions relative to the previous action need the episode's start "
+                         "reference (stats.start_reference of the run's norm stats)")
     previous = previous_frames(frames, episode_starts)
     held = np.asarray(actions[previous])
-    start = pad_last(current[..., :held.shape[-1]], held.shape[-1]).astype(held.dtype)
+    start = np.asarray(start, held.dtype)[:held.shape[-1]]
     return np.where((previous == frames)[..., None], start, held)
 
 

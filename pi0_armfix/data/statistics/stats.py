@@ -40,6 +40,12 @@ from pi0_armfix.data import background, json_files
 from pi0_armfix.data.episodes import EpisodeTable
 
 FIELDS = ("mean", "std", "q01", "q99")
+# The per-frame statistics of the absolute actions, kept beside openpi's two entries: the
+# evaluation's units (`pi0_armfix.evaluation.heldout.evaluation_scale`) whatever the normalization
+# (balanced stats rescale "actions") or representation (delta dims hold chunk deltas in "actions"),
+# and, for actions relative to the previous command, what an episode's first frame is relative to
+# (`start_reference`).
+ABSOLUTE_ACTIONS = "actions_absolute"
 NORM_MODES = ("zscore", "quantile")
 
 # A dim whose spread in the training data (std under z-scoring, q99 - q01 under quantiles) lies
@@ -461,3 +467,22 @@ def fit_width(stats: NormStats, width: int, where: str) -> NormStats:
                          f"{width}..{stats.width - 1} are not zero padding: the stats belong to "
                          "other data")
     return NormStats(*(getattr(stats, field)[:width] for field in FIELDS))
+
+
+def start_reference(norm_stats: Mapping[str, NormStats], width: int) -> np.ndarray:
+    """`[width]` what a dim relative to the previous command is relative to at an episode's first
+    frame, where no command precedes: the training split's mean absolute action, in the action's
+    own units (a velocity command is never made relative to a position, a command at an offset
+    from its joint's state never to that state), the same in training, held-out evaluation, the
+    closed loop and serving (`transforms.delta_reference`).
+
+    Raises:
+      ValueError where the stats lack `ABSOLUTE_ACTIONS` (stats computed elsewhere).
+    """
+    entry = norm_stats.get(ABSOLUTE_ACTIONS)
+    if entry is None:
+        raise ValueError(f"the norm stats have no {ABSOLUTE_ACTIONS!r} entry, which actions "
+                         "relative to the previous command start from (data.delta_reference="
+                         "'previous_action'): let the run compute its own stats "
+                         "(data.norm_stats='')")
+    return np.asarray(fit_width(entry, width, f"norm stats {ABSOLUTE_ACTIONS!r}").mean)
