@@ -302,3 +302,24 @@ def test_batched_cameras_beside_an_unbatched_proprio_are_blamed_on_the_proprio(r
     with pytest.raises(RuntimeError, match=r"hold a leading env dim but 'robot_r1::proprio' is "
                                            r"\[61\]: .*\[N, D\]"):
         client.act(observation)
+
+
+def test_a_chunk_longer_than_n_exec_is_one_plan_of_the_fresh_observation(capsys):
+    policy = Recorder()
+    session = harness.HarnessSession(policy, sampling=Sampling(n_exec=1))
+    for step in range(3):  # the harness replays 3 actions of each reply before asking again
+        message = {**_observation(np.zeros(256), task_id=0, side=8),
+                   harness.CHUNK_SIZE: np.array([3])}
+        reply = session.answer(message)
+        assert reply["action_chunk"].shape == (3, 23)
+        assert len(policy.calls) == step + 1  # one draw per request, none on a stale observation
+        assert (reply["action_chunk"] == reply["action_chunk"][0]).all()  # all from that draw
+    assert session._replanning._now[0] == 9  # what the harness executed, for ensembling
+
+
+def test_a_chunk_longer_than_the_horizon_is_one_line_naming_it():
+    session = harness.HarnessSession(Recorder(), sampling=Sampling(n_exec=1))
+    message = {**_observation(np.zeros(256), task_id=0, side=8), harness.CHUNK_SIZE: np.array([5])}
+    with pytest.raises(ValueError, match=r"__action_chunk_size__ = 5 exceeds the policy's "
+                                         r"horizon H = 4"):
+        session.answer(message)

@@ -152,10 +152,14 @@ class Replanner:
         if self.latch is not None:
             self.latch.reset()
 
-    def __call__(self, active, observations, rng: jax.Array | None = None):
+    def __call__(self, active, observations, rng: jax.Array | None = None,
+                 n_exec: int | None = None):
         """Chunks `[len(active), H, A]` for the envs `active` (their tails followed under `rtc`
         when every one has a tail: a chunk at an episode's start has none); `rng`: the draw's
-        key (a caller with its own noise stream), else the policy's next."""
+        key (a caller with its own noise stream), else the policy's next; `n_exec`: the actions
+        the caller will execute of these chunks, in place of `self.n_exec` (a harness replaying
+        a longer chunk)."""
+        n_exec = n_exec or self.n_exec
         outside = [i for i in active if self._envs is not None and not 0 <= i < self._envs]
         if outside:
             raise ValueError(f"envs {outside} were not started: start() was given "
@@ -175,15 +179,15 @@ class Replanner:
                 now = self._now.get(i, 0)
                 plans = [p for p in self._plans.get(i, []) if p[0] + len(p[1]) > now]
                 self._plans[i] = plans + [(now, chunk)]
-                chunk = temporal_ensemble(self._plans[i], now, self.n_exec,
+                chunk = temporal_ensemble(self._plans[i], now, n_exec,
                                           sampling.temporal_ensemble)
             if self.bands:
                 chunk = hold_still(chunk, self.bands,
                                    self._executed.get(i, np.full(chunk.shape[-1], np.nan)))
             if self.latch is not None:
-                chunk = self.latch(i, chunk, self.n_exec)
-            self._tails[i] = chunk[self.n_exec:]
-            self._executed[i] = chunk[min(self.n_exec, len(chunk)) - 1]
-            self._now[i] = self._now.get(i, 0) + self.n_exec
+                chunk = self.latch(i, chunk, n_exec)
+            self._tails[i] = chunk[n_exec:]
+            self._executed[i] = chunk[min(n_exec, len(chunk)) - 1]
+            self._now[i] = self._now.get(i, 0) + n_exec
             out.append(chunk)
         return np.stack(out)

@@ -95,12 +95,14 @@ class HarnessSession:
         self._replanning.start()
         self._key, self._draws = jax.random.key(self.seed + self.episode), 0
 
-    def _sample(self, envs: list[int], observations: list[dict[str, Any]]) -> np.ndarray:
-        """Chunks `[len(envs), H, 23]` from this connection's noise stream, following each env's
-        tail under RTC (when every env asking has one: a chunk at an episode's start has none)."""
+    def _sample(self, envs: list[int], observations: list[dict[str, Any]], executed: int
+                ) -> np.ndarray:
+        """Chunks `[len(envs), H, 23]` from this connection's noise stream, of which `executed`
+        actions will run, following each env's tail under RTC (when every env asking has one: a
+        chunk at an episode's start has none)."""
         rng = jax.random.fold_in(self._key, self._draws)
         self._draws += 1
-        return self._replanning(envs, observations, rng=rng)
+        return self._replanning(envs, observations, rng=rng, n_exec=executed)
 
     def answer(self, message: Mapping[str, Any]) -> dict[str, np.ndarray] | None:
         """A harness message -> the reply (None for a reset, which gets none).
@@ -120,12 +122,19 @@ class HarnessSession:
         if chunk < 0:
             raise ValueError(f"{CHUNK_SIZE} = {chunk} must be >= 0")
         wanted = max(chunk, 1)
-        planning = [e for e in range(envs) if len(self._queues.get(e, ())) < wanted]
-        while planning:
+        horizon = self.policy.horizon
+        if wanted > horizon:
+            raise ValueError(f"{CHUNK_SIZE} = {wanted} exceeds the policy's horizon H = "
+                             f"{horizon}: ask for at most {horizon} actions per request")
+        # Each plan executes a whole number of requests' chunks, at least n_exec actions (at
+        # most the horizon): a request is always served from a plan of a fresh observation,
+        # never from a second draw on one already acted on.
+        executed = min(-(-self.n_exec // wanted) * wanted, horizon // wanted * wanted)
+        planning = [e for e in range(envs) if not self._queues.get(e)]
+        if planning:
             observations = [self._observation(message, e, batched) for e in planning]
-            for e, actions in zip(planning, self._sample(planning, observations)):
-                self._queues.setdefault(e, []).extend(actions[:self.n_exec])
-            planning = [e for e in planning if len(self._queues[e]) < wanted]
+            for e, actions in zip(planning, self._sample(planning, observations, executed)):
+                self._queues[e] = list(actions[:executed])
         steps = np.stack([np.stack([self._queues[e].pop(0) for _ in range(wanted)])
                           for e in range(envs)]).astype(np.float32)  # [N, K, 23]
         reply = {"action": steps[:, 0] if batched else steps[0, 0]}
