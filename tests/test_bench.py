@@ -148,3 +148,11 @@ def test_the_bench_dispatcher_prints_its_usage_on_help_and_exits_0(capsys):
     assert "NAME --help" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="'nope' is no benchmark"):
         bench_main.main(["pi0-armfix-bench", "nope"])
+
+
+def test_step_flops_count_the_whole_batch_with_or_without_microbatches():
+    from pi0_armfix.bench import step as bench_step
+    flops = [bench_step.Step(bench_step.load_config(
+        "uniform", preset="tiny", batch=4, changes=(f"train.microbatches={n}",))).flops(remat=False)
+        for n in (1, 2)]
+    assert flops[1] == pytest.approx(flops[0], rel=1e-3)

@@ -12,7 +12,8 @@ line per measurement:
   compile       seconds to lower and compile the step;
   step          median seconds of `--steps` steps after one warm-up step, and samples/s;
   FLOPs         per step from the cost analysis of the whole program with the layer scans unrolled
-                (a loop body is counted once otherwise): the model's (no rematerialization:
+                and the batch in one part (a loop body is counted once otherwise, a layer's or
+                a microbatch's): the model's (no rematerialization:
                 what the computation needs) and the hardware's (with the step's remat: what the
                 device runs);
   TFLOP/s, MFU  model FLOPs per second, against the device's peak dense bf16 TFLOP/s
@@ -215,9 +216,10 @@ class Step:
 
     def flops(self, remat: bool) -> float:
         """FLOPs of one step from the cost analysis of the whole program, layer scans unrolled,
-        with or without rematerialization."""
+        with or without rematerialization. The batch is counted in one part: the cost analysis
+        counts a loop's body once, so a step over n microbatches would count one n-th."""
         model = self.model.replace(unroll_layers=True, remat=remat)
-        step_fn = functools.partial(self.step_fn, model_config=model)
+        step_fn = functools.partial(self.step_fn, model_config=model, microbatches=1)
         with jax.set_mesh(self.mesh):
             lowered = self._jit(step_fn).lower(self._abstract, self.batch)
         return float(lowered.cost_analysis()["flops"])
