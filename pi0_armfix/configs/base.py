@@ -101,7 +101,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.model.lora = ()
     # Speed and memory of the step, the same function (docs/gpu.md): what a rematerialized layer
     # keeps for the backward pass (model.config.REMAT_POLICIES), and the attention's kernel
-    # ("einsum": XLA's; "fused": jax.nn.dot_product_attention, cuDNN's where it takes the shapes).
+    # ("einsum": XLA's einsums; "fused": jax.nn.dot_product_attention, which the pinned JAX runs
+    # as its XLA implementation: docs/gpu.md).
     config.model.remat_policy = "nothing_saveable"
     config.model.attention = "einsum"
     config.model.use_state = True  # False: the no-state ablation (a zero state, train and sample)

@@ -25,8 +25,10 @@ DTYPES = ("float32", "bfloat16")
 # What a rematerialized layer keeps for the backward pass (`jax.checkpoint_policies` by name):
 # nothing (the least memory), or the outputs of its matrix products (less recompute).
 REMAT_POLICIES = ("nothing_saveable", "dots_with_no_batch_dims_saveable", "dots_saveable")
-# The attention's inner product: XLA's einsums and softmax, or `jax.nn.dot_product_attention` (a
-# fused kernel, cuDNN's where JAX finds one for the shapes; XLA's otherwise).
+# The attention's inner product: XLA's einsums and softmax, or `jax.nn.dot_product_attention`
+# without `implementation=`, which JAX 0.10.2 always runs as its XLA implementation (its cuDNN
+# kernel must be asked for, and takes padding and causal masks natively, pi0's prefix-LM mask
+# only as a bias; not wired, unmeasured: docs/gpu.md).
 ATTENTION = ("einsum", "fused")
 # openpi's LoRA variants by expert: gemma_2b_lora (rank 16) for the prefix, gemma_300m_lora (rank 32)
 # for the action expert; both with alpha = rank, on every attention and MLP weight.
