@@ -602,3 +602,33 @@ def test_the_statistics_of_previous_action_runs_have_their_own_cache_key():
 def test_an_unknown_delta_reference_is_an_error_naming_the_choices():
     with pytest.raises(ValueError, match=r"data.delta_reference = 'goal' is not one of"):
         spec_of({**ARM_DELTA, "delta_reference": "goal"})
+
+
+def test_a_previous_action_reference_without_relative_dims_is_refused():
+    with pytest.raises(ValueError, match=r"data.delta_reference = 'previous_action' makes no "
+                                         r"dim relative: data.delta_action_mask is empty"):
+        spec_of({"delta_reference": "previous_action"})
+
+
+@pytest.mark.parametrize("groups, message", [
+    ("left_arm", r"data.state_groups = 'left_arm' must map each group"),
+    ({"base": (0, 3), "left_arm": (2, 9)}, r"places 'base' \(0, 3\) and 'left_arm' \(2, 9\) "
+                                           r"over the same state dims"),
+    ({"base": (3, 3)}, r"data.state_groups\['base'\] = \(3, 3\) must have 0 <= start < stop"),
+])
+def test_malformed_or_overlapping_state_groups_are_refused_naming_them(groups, message):
+    with pytest.raises(ValueError, match=message):
+        spec_of({"root": "/data/x", "state_groups": groups})
+
+
+def test_state_groups_past_the_states_width_are_refused_before_any_pass(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(3), "v2.1")
+    config = base_config.get_config()
+    config.data.root = str(root)
+    config.data.state_groups = {"base": (21, 24)}
+    config.eval.episodes = 1
+    spec = DataSpec.from_config(config, LAYOUT)
+    source = sources.open_source(config.data, LAYOUT)
+    with pytest.raises(ValueError, match=r"data.state_groups\['base'\] = \(21, 24\) reaches past "
+                                         r"the state's 23 dims"):
+        dataset_lib.check_data(spec, source, images=False)

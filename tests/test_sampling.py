@@ -56,3 +56,10 @@ def test_a_hysteresis_on_a_layout_without_grippers_is_refused():
     with pytest.raises(ValueError, match="no group of role gripper"):
         Sampling(gripper_hysteresis=(0.9, -0.9)).latch(layout)
     assert Sampling().latch(layout) is None
+
+
+def test_a_group_named_twice_in_a_per_group_lever_is_refused_naming_it():
+    with pytest.raises(ValueError, match=r"deadband names 'torso' twice"):
+        Sampling(deadband="torso=2+torso=0.001")
+    with pytest.raises(ValueError, match=r"group_draws names 'base' twice"):
+        Sampling(group_draws="base=4+base=8")

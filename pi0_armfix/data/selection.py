@@ -130,6 +130,39 @@ def presets_for(stored_width: int) -> list[str]:
     return [name for name, p in STATE_PRESETS.items() if p.stored_width == stored_width]
 
 
+def check_state_groups(groups: Any, width: int | None = None) -> None:
+    """Refuses `data.state_groups` that are not `{group: (start, stop)}` with 0 <= start < stop
+    (<= `width`, the selected state's, where known), or whose groups overlap.
+
+    Raises:
+      ValueError naming the value and the fix.
+    """
+    example = "e.g. --config.data.state_groups=\"{'left_arm': (0, 7), 'right_arm': (7, 14)}\""
+    if not isinstance(groups, Mapping):
+        raise ValueError(f"data.state_groups = {groups!r} must map each group to its (start, "
+                         f"stop) in the state, {example}")
+    spans = {}
+    for group, span in groups.items():
+        try:
+            start, stop = (int(v) for v in span)
+        except (TypeError, ValueError):
+            raise ValueError(f"data.state_groups[{group!r}] = {span!r} must be (start, stop), "
+                             f"{example}") from None
+        if not 0 <= start < stop:
+            raise ValueError(f"data.state_groups[{group!r}] = {span!r} must have 0 <= start < "
+                             "stop")
+        if width is not None and stop > width:
+            raise ValueError(f"data.state_groups[{group!r}] = ({start}, {stop}) reaches past the "
+                             f"state's {width} dims: place it inside (0, {width})")
+        spans[group] = (start, stop)
+    ordered = sorted(spans.items(), key=lambda item: item[1])
+    for (first, (_, end)), (second, (start, _)) in zip(ordered, ordered[1:]):
+        if start < end:
+            raise ValueError(f"data.state_groups places {first!r} {spans[first]} and {second!r} "
+                             f"{spans[second]} over the same state dims: each dim is one "
+                             "group's")
+
+
 def state_preset(data_cfg: Mapping[str, Any]) -> str:
     """`data.state_preset`; when unset, the embedded demo's (`DEMO_STATE_PRESET`, for
     `data.root=''`), else none (every stored dim, or `data.state_indices`)."""
@@ -141,9 +174,15 @@ def state_preset(data_cfg: Mapping[str, Any]) -> str:
 
 
 def state_groups(data_cfg: Mapping[str, Any]) -> Mapping[str, Sequence[int]] | None:
-    """`data.state_groups`, or the groups of the state preset (`state_preset`) instead."""
+    """`data.state_groups`, or the groups of the state preset (`state_preset`) instead.
+
+    Raises:
+      ValueError naming the value, for groups that are not `{group: (start, stop)}` with
+      0 <= start < stop, or that overlap (each state dim maps to one group).
+    """
     explicit = data_cfg.get("state_groups")
     if explicit:
+        check_state_groups(explicit)
         return explicit
     preset = state_preset(data_cfg)
     return STATE_PRESETS[preset].groups if preset in STATE_PRESETS else None

@@ -358,6 +358,9 @@ def _per_group(text: str, field: str, cast: Callable[[str], float], allowed: str
         if not group or number is None or not number > 0:
             raise ValueError(f"{field} item {item!r} ({_where(field)}) must be group=k with "
                              f"{allowed}, items joined by '+' (e.g. {example})")
+        if group in values:
+            raise ValueError(f"{field} names {group!r} twice ({_where(field)}: {text!r}); give "
+                             "each group once")
         values[group] = number
     unknown = sorted(set(values) - set(layout.groups)) if layout is not None else []
     if unknown:

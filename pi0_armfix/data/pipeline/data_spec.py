@@ -98,6 +98,11 @@ def _delta_reference(options: Mapping[str, Any]) -> str:
     if kind not in transforms.DELTA_REFERENCES:
         raise ValueError(f"data.delta_reference = {kind!r} is not one of "
                          f"{list(transforms.DELTA_REFERENCES)}")
+    if kind != "state" and not options.get("delta_action_mask"):
+        raise ValueError(f"data.delta_reference = {kind!r} makes no dim relative: "
+                         "data.delta_action_mask is empty (every action is absolute); set the "
+                         "mask (configs/arm_focused_previous_action.py does) or leave "
+                         "data.delta_reference='state'")
     return kind
 
 

@@ -150,6 +150,8 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
         raise ValueError(f"eval.every = {spec.eval_every} evaluates on the held-out episodes, but "
                          "eval.episodes = 0 holds none out: set eval.episodes (about 10 % of "
                          "the episodes) or eval.every=0")
+    if spec.state_groups:
+        selection_lib.check_state_groups(spec.state_groups, source.state_width)
     if source.state_width > layout.action_dim:
         stored = getattr(source, "stored_state_width", source.state_width)
         presets = selection_lib.presets_for(stored)
