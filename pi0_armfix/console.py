@@ -77,6 +77,10 @@ def config_flags_parser(program: str, flag_values: flags.FlagValues = flags.FLAG
         for arg in argv[1:]:  # before parsing: an override of a missing file would raise from it
             if arg.startswith("--config="):
                 _check_config_file(program, arg.partition("=")[2].partition(":")[0])
+            elif arg.startswith("--config.") and not arg[len("--config."):].partition("=")[0]:
+                raise SystemExit(f"{program}: {arg!r} names no key: an override is "
+                                 "--config.<section>.<key>=<value> (e.g. "
+                                 "--config.train.total_steps=3000)")
         try:
             return _parse_with_help(argv, flag_values, program)
         except flags.Error as e:

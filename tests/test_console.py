@@ -61,6 +61,13 @@ def test_a_mistyped_key_is_one_line_naming_the_override_with_the_suggestion():
                        "'totl_steps'; Did you mean \"total_steps\" instead of \"totl_steps\"?")
 
 
+def test_an_override_that_names_no_key_is_one_line_with_the_form():
+    message = _exit_line(_parse_config_flags, ["prog", "--config=configs/arm_focused.py",
+                                               "--config.=4"], "pi0_armfix.train")
+    assert message.startswith("pi0_armfix.train: '--config.=4' names no key: an override is "
+                              "--config.<section>.<key>=<value>")
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["--config=configs/nope.py"], "--config=configs/nope.py: no such config file; give a path "
                                    "or the name of an installed config: arm_curriculum, arm_delta, "

@@ -856,6 +856,16 @@ def test_a_lever_out_of_range_is_refused_before_any_run_trains(tmp_path):
     assert not (tmp_path / "study").exists()
 
 
+def test_an_override_of_a_config_that_names_no_key_is_refused_before_any_run(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "pi0_armfix.study", "--configs=uniform@=4",
+                           "--seeds=1", "--steps=2", f"--workdir={tmp_path / 'study'}"],
+                          capture_output=True, text=True, timeout=300, cwd=tf.REPO_ROOT,
+                          env=dict(os.environ, PYTHONPATH=str(tf.REPO_ROOT)))
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert "--configs ['uniform@=4']: what follows a config's '@' must be key=value" in done.stderr
+    assert not (tmp_path / "study").exists()
+
+
 G1 = {"preset": "g1_inspire", "action_dim": 32}
 G1_GROUPS = ("left_arm", "right_arm", "left_hand", "right_hand")
 

@@ -204,10 +204,11 @@ def main(argv: Sequence[str]) -> None:
     if bad:
         raise SystemExit(f"pi0_armfix.study: --override {bad} must be key=value "
                          "(e.g. data.root=/data/b1k)")
-    bad = [c for c in configs if any("=" not in o for o in parse_config(c)[2])]
+    bad = [c for c in configs if any("=" not in o or not o.partition("=")[0]
+                                     for o in parse_config(c)[2])]
     if bad:
         raise SystemExit(f"pi0_armfix.study: --configs {bad}: what follows a config's '@' must "
-                         "be key=value (e.g. arm_focused@data.video_access=random)")
+                         "be key=value with a key (e.g. arm_focused@data.video_access=random)")
     try:
         check_study_levers(configs, FLAGS.execution)
     except ValueError as err:
