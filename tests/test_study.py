@@ -663,6 +663,13 @@ def test_a_lever_whose_value_is_a_list_stays_one_config_of_the_comma_separated_f
         "arm_focused")
 
 
+def test_a_list_of_names_as_an_overrides_value_stays_one_config():
+    from pi0_armfix import console
+    parts = "uniform,arm_focused@eval.gripper_groups=left_gripper,right_gripper,uniform:g1".split(",")
+    assert study_run.config_names(parts, console.config_names()) == [
+        "uniform", "arm_focused@eval.gripper_groups=left_gripper,right_gripper", "uniform:g1"]
+
+
 def test_a_lever_variant_finds_its_files_by_the_levers_it_changes_on_its_run(tmp_path):
     config = arm_focused.get_config()
     config.eval.update(dict(n_exec=8, temporal_ensemble=0.01, group_draws="base=4+torso=4"))

@@ -182,7 +182,7 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
     console.quiet_library_logging()
-    configs = config_names(FLAGS.configs)
+    configs = config_names(FLAGS.configs, console.config_names())
     if not configs:
         raise SystemExit("pi0_armfix.study: --configs names no config")
     missing = [c for c in configs

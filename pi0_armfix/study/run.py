@@ -53,13 +53,18 @@ def parse_config(config: str) -> tuple[str, str, list[str]]:
     return name, arg, overrides
 
 
-def config_names(parts: Sequence[str]) -> list[str]:
+def config_names(parts: Sequence[str], known: Sequence[str] = ()) -> list[str]:
     """`--configs` as absl splits it, at every comma -> the study's configs: a part that cannot
-    begin a config name (`-0.98`, `0.5`) continues the one before it, so a lever whose value is
-    a list (`arm_focused@eval.gripper_hysteresis=0.9,-0.98`) stays one config."""
+    begin a config name (`-0.98`, `0.5`), or that names no config of `known` (the installed
+    ones) right after an override's value, continues the one before it, so a lever whose value
+    is a list (`arm_focused@eval.gripper_hysteresis=0.9,-0.98`,
+    `arm_focused@eval.gripper_groups=left_gripper,right_gripper`) stays one config."""
     configs: list[str] = []
     for part in filter(None, parts):
-        if configs and not (part[0].isalpha() or part[0] == "_"):
+        name = part.partition("@")[0].partition(":")[0]
+        in_a_value = bool(configs) and "=" in configs[-1].rpartition("@")[2]
+        if configs and (not (part[0].isalpha() or part[0] == "_")
+                        or (in_a_value and "@" not in part and known and name not in known)):
             configs[-1] += f",{part}"
         else:
             configs.append(part)
