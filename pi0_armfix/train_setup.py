@@ -124,11 +124,18 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
             say(f"note: {note}")
         if jax.process_count() > 1:  # the others read the folder process 0 may have archived
             multihost_utils.sync_global_devices("workdir checked")
-        if is_main:
-            (workdir / fingerprint.CONFIG_FILE).write_text(json.dumps(spec.config_json,
-                                                                      indent=2))
-            # What serving the run needs of its data: a run folder serves without it.
-            run_inputs.save(workdir, source, tokenize.model_proto)
+
+        def record_run() -> None:
+            """The run's config and what serving it needs of its data (a run folder serves
+            without it): written for a new run at once, for a resumed one only once its restore
+            has succeeded, so that a refused resume leaves the folder as it was."""
+            if is_main:
+                (workdir / fingerprint.CONFIG_FILE).write_text(json.dumps(spec.config_json,
+                                                                          indent=2))
+                run_inputs.save(workdir, source, tokenize.model_proto)
+
+        if not holds_run:
+            record_run()
         resuming = checkpoint.has_checkpoints(workdir / "checkpoints")
         norm_stats = dataset_lib.load_or_compute_norm_stats(
             data, action_horizon=model_config.action_horizon,
@@ -186,6 +193,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                 say(f"resumed from {ckpts.directory / str(start)}")
             else:
                 state = _init_state(spec, state_shardings, state_shardings.params)
+        if holds_run:
+            record_run()
         train_step = jax.jit(
             functools.partial(step_lib.train_step, base_rng=jax.random.key(spec.seed),
                               model_config=model_config, loss_cfg=spec.loss, layout=layout,

@@ -131,6 +131,21 @@ def test_resume_force_goes_on_with_the_new_values_and_keeps_the_norm_stats(finis
     assert json.loads((workdir / "config.json").read_text())["data"]["root"] == str(other_root)
 
 
+def test_a_forced_resume_whose_restore_is_refused_leaves_the_run_folder_as_it_was(finished_run,
+                                                                               tmp_path):
+    workdir = shutil.copytree(finished_run[0], tmp_path / "run")
+    kept = lambda: {p.name: p.read_bytes() for p in workdir.iterdir()  # noqa: E731
+                    if p.is_file() and p.name != "run.lock"}  # the lock is this start's
+    before = kept()
+    forced = {**finished_run[1], "model.lora": ("action_expert",), "train.total_steps": 6,
+              "train.resume": "force"}
+    with pytest.raises(Exception, match="lora|LoRA|adapter"):
+        train.train_and_evaluate(_config(**forced), str(workdir))
+    assert kept() == before  # config.json above all: the run's own config still resumes it
+    assert fingerprint.check_resume(workdir, _config(**finished_run[1]).to_dict(),
+                                    holds_run=True, may_write=False) == []
+
+
 def test_resume_new_archives_the_old_run_and_starts_at_step_zero(finished_run, tmp_path, capsys):
     workdir = shutil.copytree(finished_run[0], tmp_path / "run")
     overrides = {**finished_run[1], "loss.strategy": "per_group", "train.resume": "new"}
