@@ -125,8 +125,9 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                                           unit="step", disable=not is_main,
                                           dynamic_ncols=True) as bar:
             step_metrics = None
-            say("compiling the train step (the first step waits for it: seconds for the demo, "
-                 "about a minute for pi0; JAX_COMPILATION_CACHE_DIR keeps it across runs)")
+            say("compiling the train step (the first step waits for it: from seconds for a "
+                "tiny model to minutes for pi0 on a loaded machine; JAX_COMPILATION_CACHE_DIR "
+                "keeps it across runs)")
             compile_start = time.perf_counter()
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 if stop.due(done):

@@ -109,7 +109,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         say(f"warning: {warning}")
     video_access, video_why = video_stream.run_access(data, source)
     tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
-    for line in banner(spec, workdir, mesh, source, video_why):
+    for line in banner(spec, workdir, mesh, source, video_why, sampling):
         say(line)
 
     workdir.mkdir(parents=True, exist_ok=True)
@@ -218,10 +218,45 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                    lock=lock)
 
 
+def levers(spec: RunSpec, sampling: Sampling) -> str:
+    """Every lever of the recipe in effect, in words: the relative groups and their reference,
+    the flow draws and noise, the per-timestep statistics, the state levers, the vision stem,
+    LoRA and the execution (`Sampling.summary`)."""
+    model, loss, data, layout = spec.model, spec.loss, spec.data, spec.layout
+    parts = []
+    if data.delta_mask is not None:
+        groups = [g for g in layout.group_names if data.delta_mask[list(layout.group_dims(g))].any()]
+        parts.append(f"relative to the {data.delta_reference.replace('_', ' ')}: "
+                     f"{', '.join(groups)}")
+    if loss["flow_samples"] > 1:
+        parts.append(f"{loss['flow_samples']} flow draws per prefix")
+    if loss["noise_beta"] < 1:
+        parts.append(f"correlated noise (beta {loss['noise_beta']:g})")
+    if data.get("norm_per_timestep"):
+        parts.append("per-timestep norm stats")
+    if data.get("balanced_norm"):
+        parts.append("balanced norm stats")
+    if loss["switch_weight"] != 1:
+        parts.append(f"gripper switches x{loss['switch_weight']:g}")
+    if not model.use_state:
+        parts.append("no state")
+    for name, value in (("state dropout", model.state_dropout), ("state noise", model.state_noise)):
+        if value:
+            parts.append(f"{name} {value:g}")
+    stem = spec.model_section.get("sizes", {}).get("siglip", {}).get("conv_stem", 0)
+    if stem:
+        parts.append(f"a {stem}-conv stem")
+    if model.lora_experts:
+        parts.append(f"LoRA on {', '.join(model.lora_experts)}")
+    if "arm_heavy" in data.curriculum.sources:
+        parts.append("an arm-heavy curriculum")
+    return "; ".join(parts + [f"executed: {sampling.summary()}"])
+
+
 def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
-           video: str = "") -> list[str]:
+           video: str = "", sampling: Sampling | None = None) -> list[str]:
     """What a run is, in a few lines, before it starts on its long work (`video`: how its
-    camera frames are read, and why)."""
+    camera frames are read, and why; `sampling`: how the commands will execute it)."""
     model_config, layout, data = spec.model, spec.layout, spec.data
     shapes = flow_model.param_shapes(model_config)
     num_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes))
@@ -255,6 +290,7 @@ def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
         f"state     {state}",
         *([f"video     {video}"] if video else []),
         f"loss      {loss}",
+        f"levers    {levers(spec, sampling or Sampling())}",
         f"schedule  {spec.train['total_steps']} steps of batch {spec.train['batch_size']}, lr "
         f"{spec.optim['lr']:g}; a record every {spec.train['log_every']} steps, a checkpoint "
         f"every {spec.train['checkpoint_every']}, held-out evaluation "

@@ -387,3 +387,16 @@ def test_a_run_that_sets_a_lever_keeps_it_over_the_execution_and_a_flag_over_bot
 def test_an_unknown_scale_is_refused_naming_every_scale():
     with pytest.raises(ValueError, match=r"':b1k2026' \(BEHAVIOR-1K 2026\) or ':g1'"):
         base.get_config("h1")
+
+
+def test_the_banner_names_every_lever_of_the_main_job_and_its_execution():
+    from pi0_armfix import train_setup
+    from pi0_armfix.training.run_spec import RunSpec
+    config = load("arm_focused")
+    line = train_setup.levers(RunSpec.resolve(config), Sampling.for_run(config))
+    assert line == ("relative to the state: torso, left_arm, right_arm; 4 flow draws per prefix; "
+                    "a 3-conv stem; executed: group_draws base=4+torso=8, n_exec 8, "
+                    "temporal_ensemble 0.01, deadband torso=2")
+    uniform = load("uniform")
+    assert train_setup.levers(RunSpec.resolve(uniform), Sampling.for_run(uniform, "none")) == (
+        "executed: every lever off")
