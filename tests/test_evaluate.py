@@ -2,6 +2,7 @@
 checkpoint (docs/evaluation.md)."""
 
 import json
+import math
 import subprocess
 import sys
 
@@ -476,3 +477,18 @@ def test_an_evaluation_names_the_chunks_it_scored(trained):
     assert heldout.chunks_fingerprint(sums) == heldout.chunks_fingerprint(dict(sums))
     other = {**sums, heldout.CHUNKS: chunks + np.array([0, 0, 1])}  # another horizon
     assert heldout.chunks_fingerprint(other) != heldout.chunks_fingerprint(sums)
+
+
+def test_the_printed_table_says_n_a_and_why_for_a_constant_group_and_an_unmapped_state():
+    layout = ActionLayout(groups={"arm": (0, 2), "still": (2, 3)}, real_dim=3, action_dim=4)
+    metrics = {}
+    for g, skill in (("arm", 0.5), ("still", math.nan)):
+        metrics |= {f"err/{g}": 0.1 if skill == skill else 0.0, f"skill/{g}": skill,
+                    f"interval_low/skill/{g}": skill - 0.1, f"interval_high/skill/{g}": skill + 0.1,
+                    f"motion_gain/{g}": 0.5, f"motion_ratio/{g}": 1.0,
+                    **{f"{name}/err/{g}": 0.2 for name in ("persistence", "state_copy")},
+                    **{f"{name}/motion_gain/{g}": 0.0 for name in ("persistence", "state_copy")}}
+    text = evaluator_lib.format_metrics(metrics, layout)
+    assert "nan" not in text
+    assert "n/a: still never move(s)" in text
+    assert "state copy = persistence: the state maps to no action group" in text

@@ -239,17 +239,35 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
              f"{f'mean {draws}':>9}{'energy':>9}{'gain':>8}{'ratio':>8}"
              + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'gain':>7}"
                        for name in references)]
+    def cell(value: float, width: int, spec: str) -> str:
+        return f"{'n/a':>{width}}" if not math.isfinite(value) else f"{value:>{width}{spec}}"
+
+    constant = []
     for g in layout.group_names:
+        low, high = (metrics.get(f"interval_{end}/skill/{g}", math.nan) for end in ("low", "high"))
+        if not math.isfinite(metrics[f"skill/{g}"]):
+            constant.append(g)
+        interval = (f"[{low:+.3f}, {high:+.3f}]" if math.isfinite(low) and math.isfinite(high)
+                    else "n/a")
         lines.append(
-            f"{g:<15}{metrics[f'err/{g}']:>9.4f}{metrics[f'skill/{g}']:>9.3f}"
-            + "{:>22}".format("[{:+.3f}, {:+.3f}]".format(
-                metrics.get(f'interval_low/skill/{g}', math.nan),
-                metrics.get(f'interval_high/skill/{g}', math.nan)))
-            + f"{metrics.get(f'{mean}/skill/{g}', math.nan):>9.3f}"
-            f"{metrics.get(f'energy_skill/{g}', math.nan):>9.3f}"
-            f"{metrics[f'motion_gain/{g}']:>8.3f}{metrics[f'motion_ratio/{g}']:>8.3f}"
-            + "".join(f" |{metrics[f'{name}/err/{g}']:>16.4f}"
-                      f"{metrics[f'{name}/motion_gain/{g}']:>7.3f}" for name in references))
+            f"{g:<15}{cell(metrics[f'err/{g}'], 9, '.4f')}{cell(metrics[f'skill/{g}'], 9, '.3f')}"
+            f"{interval:>22}"
+            + cell(metrics.get(f"{mean}/skill/{g}", math.nan), 9, ".3f")
+            + cell(metrics.get(f"energy_skill/{g}", math.nan), 9, ".3f")
+            + cell(metrics[f"motion_gain/{g}"], 8, ".3f")
+            + cell(metrics[f"motion_ratio/{g}"], 8, ".3f")
+            + "".join(f" |{cell(metrics[f'{name}/err/{g}'], 16, '.4f')}"
+                      f"{cell(metrics[f'{name}/motion_gain/{g}'], 7, '.3f')}"
+                      for name in references))
+    if constant:
+        lines.append(f"n/a: {', '.join(constant)} never move(s) in the held-out chunks (holding "
+                     "the previous action is exact there: no skill to score)")
+    if "state_copy" in references and all(
+            metrics[f"state_copy/err/{g}"] == metrics[f"persistence/err/{g}"]
+            for g in layout.group_names):
+        lines.append("state copy = persistence: the state maps to no action group "
+                     "(data.state_groups or a state preset places it), so copying it holds the "
+                     "previous action")
     if not layout.groups_with_role("gripper"):  # hands are joints: no switch to count
         return "\n".join(lines)
     counts = "/".join(str(int(metrics[f"gripper_switch/{k}"])) for k in ("tp", "fp", "fn"))
