@@ -97,7 +97,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                                   spec.train["microbatches"])
     batch_sharding = sharding_lib.batch_sharding(mesh)
     # The levers the commands will execute the run with by default, fit to this model.
-    sampling = Sampling.for_run(config)
+    sampling = spec.sampling
     sampling.check(layout, model_config.action_horizon)
     if spec.evaluates:
         evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)

@@ -400,3 +400,12 @@ def test_the_banner_names_every_lever_of_the_main_job_and_its_execution():
     uniform = load("uniform")
     assert train_setup.levers(RunSpec.resolve(uniform), Sampling.for_run(uniform, "none")) == (
         "executed: every lever off")
+
+
+def test_the_g1_scales_evaluations_follow_a_changed_number_of_steps():
+    from pi0_armfix.training.run_spec import RunSpec
+    config = load("arm_focused", "g1")
+    config.data.root = "/data/g1"
+    config.train.total_steps = 400
+    RunSpec.resolve(config)
+    assert config.eval.every == 100  # four evaluations over the 400 steps, the last at the end

@@ -17,7 +17,7 @@ from pi0_armfix.training.run_spec import RunSpec
 
 # Where the config may be read: the resolver and the readers of one section each.
 READERS = {"pi0_armfix.training.run_spec", "pi0_armfix.action_space", "pi0_armfix.model.config",
-           "pi0_armfix.data.pipeline.data_spec"}
+           "pi0_armfix.data.pipeline.data_spec", "pi0_armfix.policies.sampling"}
 
 
 def _reading_modules(monkeypatch) -> list[str]:

@@ -244,6 +244,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
     config.eval = ml_collections.ConfigDict()
     config.eval.every = 1500  # 0 = no evaluation during training
+    # Held-out evaluations spread evenly over the run, the last at its end, in place of
+    # eval.every (resolved at the start, so that a changed train.total_steps keeps them); 0 =
+    # eval.every decides.
+    config.eval.evaluations = 0
     # Held out: the dataset's last N episodes, never trained on. The demo's 20 are 4 of each of
     # its 5 tasks (episode i runs task i % 5).
     config.eval.episodes = 20
@@ -315,5 +319,5 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         # reads off the training step's critical path.
         config.data.frame_cache = True
         config.data.num_workers = 2
-        config.eval.every = config.train.total_steps // 4
+        config.eval.evaluations = 4
     return config

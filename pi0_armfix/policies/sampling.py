@@ -167,7 +167,8 @@ class Sampling:
 
     @classmethod
     def for_run(cls, config: Mapping[str, Any], execution: str | None = None,
-                client_executes: bool = False, **overrides: Any) -> Sampling:
+                client_executes: bool = False, horizon: int | None = None,
+                **overrides: Any) -> Sampling:
         """The levers a command runs a trained config with: `execution` (None: the run's
         `eval.execution`, 'adopted' where it predates the key; `EXECUTIONS`), then the `eval`
         levers the run sets, then `overrides` (a command's; None = unset).
@@ -176,6 +177,7 @@ class Sampling:
 
         Args:
           config: the run's config (its `eval`, `data` and `model` sections).
+          horizon: the model's H where the caller has resolved it (else from `model`).
         Raises:
           ValueError naming the execution or the lever, for one that is unknown or out of its
           range.
@@ -185,7 +187,7 @@ class Sampling:
         if execution not in EXECUTIONS:
             raise ValueError(f"execution = {execution!r} (eval.execution or --execution) must be "
                              f"one of {EXECUTIONS}")
-        horizon = model_config_lib.from_model_config(config["model"]).action_horizon
+        horizon = horizon or model_config_lib.from_model_config(config["model"]).action_horizon
         adopted = adopted_execution(config["data"], horizon) if execution == "adopted" else {}
         if client_executes:
             adopted = {k: v for k, v in adopted.items() if k not in CLIENT_LEVERS}

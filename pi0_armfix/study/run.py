@@ -142,14 +142,14 @@ def run_steps(config: str, steps: int) -> int:
 def train_command(config: str, seed: int, steps: int, folder: Path,
                   overrides: Sequence[str], evaluations: int = 1) -> list[str]:
     """The `pi0_armfix.train` command line of one run (`overrides`: the study's, then the
-    config's own), evaluated every `steps // evaluations` steps and at `steps` (the learning
-    curve)."""
+    config's own), with `evaluations` held-out evaluations spread over its steps, the last at
+    its end (the learning curve; `eval.evaluations`)."""
     name, arg, own = parse_config(config)
     return [sys.executable, "-m", "pi0_armfix.train",
             f"--config=configs/{name}.py" + (f":{arg}" if arg else ""),
             f"--workdir={folder}", f"--config.seed={seed}",
             f"--config.train.total_steps={steps}",
-            f"--config.eval.every={max(1, steps // evaluations)}",
+            f"--config.eval.evaluations={evaluations}",
             *[f"--config.{o}" for o in [*overrides, *own]]]
 
 

@@ -31,6 +31,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import pretrained
+from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import fingerprint
 from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import step as step_lib
@@ -55,10 +56,12 @@ class RunSpec:
     fsdp: int
     seed: int
     uses_chunk_stats: bool
+    sampling: Sampling  # how the commands execute it by default (`Sampling.for_run`)
 
     @classmethod
     def resolve(cls, config: ml_collections.ConfigDict) -> "RunSpec":
-        """Reads and checks every section of `config`; resolves `data.norm` in it.
+        """Reads and checks every section of `config`; resolves `data.norm` and, where
+        `eval.evaluations` is set, `eval.every` in it.
 
         Raises:
           ValueError naming the key and the fix.
@@ -66,6 +69,12 @@ class RunSpec:
         layout = ActionLayout.from_config(config.layout)
         model = model_config_lib.from_model_config(config.model)
         config.data.norm = config.data.get("norm") or model.default_norm
+        evaluations = int(config.eval.get("evaluations") or 0)
+        if evaluations < 0:
+            raise ValueError(f"eval.evaluations = {evaluations} must be >= 0 (0: eval.every "
+                             "decides)")
+        if evaluations:  # spread over this run's steps, whatever train.total_steps became
+            config.eval.every = max(1, int(config.train.total_steps) // evaluations)
         if model.action_dim != layout.action_dim:
             raise ValueError(f"layout.action_dim = {layout.action_dim} but the model (preset "
                              f"{config.model.preset!r}, model.action_dim="
@@ -90,12 +99,14 @@ class RunSpec:
                       "fine-tune frozen random weights; point model.pretrained at the base "
                       "model's params (openpi's pi0_base / pi05_base)",)
         data = DataSpec.from_config(config, layout, norm=config.data.norm)
+        sampling = Sampling.for_run(config, horizon=model.action_horizon)
         return cls(
             config_json=json.loads(config.to_json_best_effort()), layout=layout, model=model,
             model_section=config.model.to_dict(), data=data, loss=loss, optim=optim, tx=tx,
             schedule=schedule, notes=notes, train=train,
             eval=config.eval.to_dict(), fsdp=int(config.sharding.fsdp), seed=int(config.seed),
-            uses_chunk_stats=bool(config.data.norm_per_timestep) or loss["noise_beta"] < 1.0)
+            uses_chunk_stats=bool(config.data.norm_per_timestep) or loss["noise_beta"] < 1.0,
+            sampling=sampling)
 
     @property
     def evaluates(self) -> bool:
