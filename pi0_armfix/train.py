@@ -328,6 +328,7 @@ def main(argv: Sequence[str]) -> None:
         print(f"pi0_armfix.train: stopped at once by a second {e}: the checkpoint being "
               "written (if any) is abandoned; the last complete one is kept", file=sys.stderr)
         sys.stderr.flush()
+        preemption.stop_workers()
         os._exit(128 + e.signum)  # noqa: SLF001 - no waiting on the save threads
     if jax.process_index() == 0:
         layout = ActionLayout.from_config(config.layout)

@@ -2,6 +2,7 @@
 uninterrupted run ends, bitwise, with the same logged losses and curriculum phases."""
 
 import json
+import os
 import signal
 import subprocess
 import time
@@ -74,3 +75,28 @@ def test_run_killed_after_a_checkpoint_and_restarted_matches_an_uninterrupted_ru
     assert train_records(actual_records) == train_records(expected_records)
     assert [r["phase"] for r in train_records(actual_records)] == [0, 0, 0, 0, 1, 1]
     assert actual_records[-1] == expected_records[-1]  # the final evaluation
+
+
+def test_a_forked_worker_ignores_the_signals_its_run_handles():
+    from pi0_armfix.training import preemption
+    with preemption.stop_on_signals(lambda line: None) as stop:
+        child = os.fork()
+        if child == 0:  # a data worker: the terminal's two Ctrl-C reach it too
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), signal.SIGINT)
+                os._exit(0 if stop.signum is None else 3)
+            except BaseException:  # noqa: BLE001 - an Abandoned raised in the worker
+                os._exit(4)
+        _, status = os.waitpid(child, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+
+
+def test_a_run_stopped_at_once_kills_its_worker_processes():
+    import multiprocessing
+    import time as time_lib
+    from pi0_armfix.training import preemption
+    worker = multiprocessing.get_context("fork").Process(target=time_lib.sleep, args=(60,))
+    worker.start()
+    preemption.stop_workers()
+    assert not worker.is_alive()

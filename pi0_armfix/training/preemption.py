@@ -14,6 +14,8 @@ names the common step; Ctrl-C keeps Python's default there.
 from __future__ import annotations
 
 import contextlib
+import multiprocessing
+import os
 import signal
 import threading
 from collections.abc import Callable, Iterator
@@ -58,9 +60,14 @@ def stop_on_signals(say: Callable[[str], None]) -> Iterator[StopRequest]:
     if jax.process_count() > 1 or threading.current_thread() is not threading.main_thread():
         yield request
         return
+    owner = os.getpid()
 
     def handle(signum, frame):
         del frame
+        if os.getpid() != owner:
+            # A forked data worker inherits this handler and gets the terminal's signal too:
+            # the run (its parent) stops it; raising here would only leave it spinning.
+            return
         if request.signum is not None:
             raise Abandoned(signum)
         request.signum = signum
@@ -73,3 +80,13 @@ def stop_on_signals(say: Callable[[str], None]) -> Iterator[StopRequest]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+def stop_workers() -> None:
+    """Kills this process's worker processes (the data loader's): what a run stopped at once
+    does before it exits, since exiting at once skips their orderly shutdown and would leave
+    them running."""
+    for child in multiprocessing.active_children():
+        child.kill()
+    for child in multiprocessing.active_children():
+        child.join(timeout=5)
