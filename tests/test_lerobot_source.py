@@ -426,6 +426,20 @@ def test_a_declared_fps_that_contradicts_the_rows_is_refused_before_any_pass(tmp
         LeRobotSource(root, LAYOUT).probe()
 
 
+def test_wall_clock_timestamps_are_named_as_a_drift_with_the_frame_index_fix(tmp_path):
+    root = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
+    for path in root.glob("data/chunk-*/*.parquet"):  # rows 0.0985 s apart at a declared 10 fps
+        table = pq.read_table(path)
+        clock = pa.array(table.column("timestamp").to_numpy() * np.float32(0.985))
+        pq.write_table(table.set_column(table.schema.get_field_index("timestamp"), "timestamp",
+                                        clock), path)
+    with pytest.raises(ValueError) as err:
+        LeRobotSource(root, LAYOUT).probe()
+    message = str(err.value)
+    assert "0.0985 s apart" in message and "the timestamps drift" in message
+    assert "timestamp = frame_index / fps" in message and "video_tolerance" not in message
+
+
 def test_a_declared_fps_that_contradicts_the_videos_is_refused(tmp_path):
     root = write_dataset(tmp_path / "ds", make_episodes(2), "v2.1", image_format="video")
     _declare_fps(root, 5)

@@ -134,12 +134,12 @@ def test_cached_norm_stats_of_other_data_are_recomputed_or_refused(tmp_path):
 
 def test_the_norm_stats_key_follows_the_state_group_slices(tmp_path):
     root = write_dataset(tmp_path / "ds", make_episodes(3), "v2.1")
-    groups = {name: tuple(bounds) for name, bounds in LAYOUT.groups.items()}
+    groups = {"left_arm": (7, 14)}  # the state holds the relative group only
     config = config_for(root, eval__episodes=1, data__delta_action_mask=(7, 8),
                         data__state_groups=groups)
     source = sources.open_source(config.data, LAYOUT)
     before = dataset_lib.norm_stats_key(DataSpec.from_config(config, LAYOUT), source, action_horizon=4)
-    config.data.state_groups = {**groups, "left_arm": (6, 13)}
+    config.data.state_groups = {"left_arm": (6, 13)}
     after = dataset_lib.norm_stats_key(DataSpec.from_config(config, LAYOUT), source, action_horizon=4)
     assert before["data.state_groups"]["left_arm"] == [7, 14]
     assert after["data.state_groups"]["left_arm"] == [6, 13]

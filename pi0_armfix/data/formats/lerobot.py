@@ -75,13 +75,12 @@ from pi0_armfix.data.formats.frame_store import FrameStore
 from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, probe_frame, segment_time
 from pi0_armfix.data.formats.missing_videos import MissingVideos
 from pi0_armfix.data.formats.lerobot_meta import (
-    ACTION, STATE, EpisodeRecord, episodes_v2, episodes_v3, major_version, matrix, open_parquet,
+    ACTION, FPS_TOLERANCE, check_row_rate, STATE, EpisodeRecord, episodes_v2, episodes_v3, major_version, matrix, open_parquet,
     task_prompts_of, task_rows, vector, with_prompts)
 from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
 
 # Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
 PROBE_DECODE_FRAMES = 1800
-FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
 
 
 BLOCK_KEYS = ("actions", "state", "timestamp")
@@ -257,7 +256,7 @@ class LeRobotSource:
             if not videos:
                 continue
             times = np.concatenate([b["timestamp"] for b in blocks]).astype(np.float64)
-            self._check_row_rate(times, episode)
+            check_row_rate(times, self.fps, self.root, episode)
             for key in videos:
                 path, start, stop = episode.videos[key]
                 decoder = VideoDecoder(path, self.fps, self.video_tolerance_frames)
@@ -311,19 +310,6 @@ class LeRobotSource:
             return f"dim {dim}"
         return (f"dim {dim} (stored {self._columns[key]!r} dim"
                 + (f"s {' + '.join(map(str, stored))})" if len(stored) > 1 else f" {stored[0]})"))
-
-    def _check_row_rate(self, times: np.ndarray, episode: EpisodeRecord) -> None:
-        """The declared fps against the rows' timestamps of one episode (their median step)."""
-        steps = np.diff(times)
-        if not len(steps):
-            return
-        step = float(np.median(steps))
-        if step <= 0 or abs(1.0 / step - self.fps) > FPS_TOLERANCE * self.fps:
-            raise ValueError(
-                f"{self.root / 'meta/info.json'} declares fps {self.fps:g}, but the rows of "
-                f"episode {episode.index} ({episode.data_file}) are {step:.4f} s apart"
-                + (f" ({1.0 / step:.4g} fps)" if step > 0 else "")
-                + ": a video frame would be read at the wrong time; fix the declared fps")
 
     # ------------------------------------------------------------------ streaming
 

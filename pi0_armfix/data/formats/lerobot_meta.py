@@ -34,6 +34,8 @@ V3_EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.
 # ====================================================================== shared helpers
 
 
+FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
+
 def major_version(info: Mapping[str, Any], path: Path) -> int:
     version = str(info["codebase_version"])
     major = version.lstrip("v").split(".")[0]
@@ -222,3 +224,24 @@ def with_prompts(episodes: list[EpisodeRecord], rows: Sequence[Mapping[str, Any]
         if isinstance(name, str) and isinstance(prompt, str) and prompt.strip():
             prompts[name] = prompt
     return [dataclasses.replace(e, task=prompts.get(e.task, e.task)) for e in episodes]
+
+
+def check_row_rate(times: np.ndarray, fps: float, root: Path, episode: EpisodeRecord) -> None:
+    """The declared fps against the rows' timestamps of one episode (their median step)."""
+    steps = np.diff(times)
+    if not len(steps):
+        return
+    step = float(np.median(steps))
+    if step <= 0 or abs(1.0 / step - fps) > FPS_TOLERANCE * fps:
+        where = (f"{root / 'meta/info.json'} declares fps {fps:g}, but the rows of "
+                 f"episode {episode.index} ({episode.data_file}) are {step:.4f} s apart"
+                 + (f" ({1.0 / step:.4g} fps)" if step > 0 else ""))
+        if step > 0 and abs(1.0 / step - fps) <= 10 * FPS_TOLERANCE * fps:
+            raise ValueError(  # a few % off: a recording clock's stamps, not another rate
+                f"{where}: the timestamps drift from the declared rate, as wall-clock stamps "
+                "do, and a video frame would be read ever later (no tolerance fixes a "
+                "drift). If the data runs at the declared fps, rewrite its timestamp "
+                "column from the frame index (timestamp = frame_index / fps); else fix "
+                "the declared fps")
+        raise ValueError(f"{where}: a video frame would be read at the wrong time; fix the "
+                         "declared fps")
