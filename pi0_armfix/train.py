@@ -64,7 +64,7 @@ from pi0_armfix.data.pipeline import pipeline
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import figures
-from pi0_armfix.training import checkpoint, finite_checkpoints, preemption
+from pi0_armfix.training import checkpoint, fingerprint, finite_checkpoints, preemption
 from pi0_armfix.training import metrics_log
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.train_setup import ConfigurationError, Run, prepare, say
@@ -90,6 +90,20 @@ class DataError(RuntimeError):
     reads only a sample of episodes)."""
 
 
+class RunFolderVanished(RuntimeError):
+    """The run folder was removed (or moved) while the run trained."""
+
+
+def check_run_folder(workdir: epath.Path, step: int) -> None:
+    """Raises `RunFolderVanished` where the run's own record (`config.json`) is gone: writing on
+    would recreate a folder holding checkpoints and nothing beside them."""
+    if jax.process_index() == 0 and not (workdir / fingerprint.CONFIG_FILE).exists():
+        raise RunFolderVanished(
+            f"the run folder {workdir} (its {fingerprint.CONFIG_FILE}) vanished before step "
+            f"{step} was saved: stopping without writing anything more. Restore the folder and "
+            "rerun to resume from its last checkpoint, or start again")
+
+
 def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str, float]:
     """Steps `run` to `train.total_steps`, logging, checkpointing and evaluating on the way;
     returns the last training record (on process 0; {} on the others).
@@ -98,6 +112,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
       finite_checkpoints.NonFiniteLossError: a step's loss or gradient is not finite (the last
         checkpoint stays the last finite one: `training/finite_checkpoints.py`).
       DataError: a dataset file could not be read.
+      RunFolderVanished: the run folder was removed while it trained.
       Stopped: `stop` was requested (SIGTERM, SIGINT): the run stopped after a step.
     """
     spec, workdir, state, train_iter = run.spec, run.workdir, run.state, run.train_iter
@@ -107,6 +122,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
     total_steps = train["total_steps"]
     ckpts = run.checkpoints
     finite = finite_checkpoints.FiniteCheckpoints(ckpts, run.start)
+    check_run_folder(workdir, run.start + 1)
     writer = metrics_log.MetricsWriter(workdir, resume_step=run.start)
     phase = train_iter.phase
     # The next global batches are built (host -> device included) in a background thread.
@@ -118,6 +134,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
 
     def save(step: int, force: bool = False) -> None:
         if force or step % train["checkpoint_every"] == 0:
+            check_run_folder(workdir, step)
             finite.save(step, state, data_state, run.norm_stats_json, spec.config_json)
 
     try:
@@ -172,6 +189,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                 if last:  # no step follows the final state: its own finiteness is the check
                     finite.confirm_final(step)
                 if run.evaluator is not None and (step % spec.eval["every"] == 0 or last):
+                    check_run_folder(workdir, step)
                     _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
         if done < total_steps:  # stopped by a signal
@@ -314,7 +332,7 @@ def main(argv: Sequence[str]) -> None:
     try:
         record = train_and_evaluate(config, workdir)
     except (ConfigurationError, finite_checkpoints.NonFiniteLossError, DataError,
-            checkpoint.SaveError) as e:
+            checkpoint.SaveError, RunFolderVanished) as e:
         raise SystemExit(f"pi0_armfix.train: {e}") from None
     except OSError as e:  # a file the run writes (metrics, plots): a full disk, most often
         fix = ("free space on that disk" if e.errno == errno.ENOSPC

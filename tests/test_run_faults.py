@@ -59,6 +59,18 @@ def test_a_run_that_goes_non_finite_at_step_n_plus_1_keeps_checkpoint_n_minus_1_
     assert len(losses) == 12 and all(loss is not None for loss in losses)
 
 
+def test_a_run_whose_folder_vanishes_stops_with_one_line_and_recreates_nothing(tmp_path,
+                                                                               demo_root):
+    workdir = tmp_path / "run"
+    run = train.prepare(_config(**tf.tiny_overrides(demo_root, train__total_steps=4)),
+                        str(workdir))
+    shutil.rmtree(workdir)
+    with pytest.raises(train.RunFolderVanished, match=rf"the run folder {workdir} \(its "
+                                                       r"config.json\) vanished before step 1"):
+        train.train_loop(run)
+    assert not workdir.exists()
+
+
 def test_a_state_with_non_finite_params_is_never_saved(tmp_path, demo_root):
     import jax
     import jax.numpy as jnp
