@@ -412,6 +412,20 @@ def test_a_float32_one_frame_overrun_passes_a_tolerance_of_one_frame(tmp_path):
         strict.frame_at(late)
 
 
+def test_a_video_shorter_than_its_rows_is_named_by_its_last_frame_not_blamed_on_the_fps(
+        tmp_path):
+    episodes = make_episodes(1, min_length=43, max_length=43)
+    root = write_dataset(tmp_path / "ds", episodes, "v2.1", image_format="video")
+    video = next(root.glob("videos/chunk-000/observation.images.rgb.head/episode_000000.mp4"))
+    decoder = VideoDecoder(video, 10)
+    decoder.frame_at(0.0)  # an earlier read: the first frames are kept
+    with pytest.raises(ValueError) as err:
+        decoder.frame_at(8.2)  # 40 frames past its 43
+    message = str(err.value)
+    assert "decoding ended at its frame 42 at 4.2000 s" in message
+    assert "The video ends 40 frames before this row" in message and "fps" not in message[-120:]
+
+
 def _declare_fps(root, fps):
     info = json.loads((root / "meta" / "info.json").read_text())
     info["fps"] = fps

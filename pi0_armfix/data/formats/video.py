@@ -196,14 +196,19 @@ class VideoDecoder:
                 and abs(nearest - seconds * self.fps) <= self.tolerance + TIME_EPSILON_FRAMES):
             return self._frames[nearest]
         self._decoder = None
-        last = "no frame" if nearest is None else f"frame {nearest} at {nearest / self.fps:.4f} s"
-        needed = (math.ceil(abs(nearest - seconds * self.fps) - TIME_EPSILON_FRAMES)
-                  if nearest is not None else None)
-        advice = (f"If the data's timestamps run past the video by up to {needed} frame(s), set "
-                  f"data.video_tolerance_frames={needed} to read the nearest frame"
-                  if needed is not None and needed > self.tolerance and needed <= 2 else
-                  "The data's timestamps and the video disagree by more than a frame or two: "
-                  "check the dataset's fps and its videos")
+        ended = self._position  # the last frame decoded: the video's end when it ran out
+        last = ("no frame" if ended < 0 else f"its frame {ended} at {ended / self.fps:.4f} s")
+        short = wanted - ended if ended >= 0 else None
+        if short is not None and self.tolerance < short <= 2:
+            advice = (f"If the data's timestamps run past the video by up to {short} frame(s), "
+                      f"set data.video_tolerance_frames={short} to read the nearest frame")
+        elif short is not None and short > 0:
+            advice = (f"The video ends {short} frames before this row: it is shorter than its "
+                      "rows (a cut or partial file): fetch or re-encode it, or leave the episode "
+                      "out")
+        else:
+            advice = ("The data's timestamps and the video disagree by more than a frame or "
+                      "two: check the dataset's fps and its videos")
         raise ValueError(
             f"{self.path} has no frame at {seconds:.4f} s (frame {seconds * self.fps:.2f} at "
             f"{self.fps:g} fps; decoding ended at {last}). {advice}")
