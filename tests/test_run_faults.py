@@ -19,6 +19,7 @@ from pi0_armfix.policies import inference
 from pi0_armfix.training import finite_checkpoints
 from pi0_armfix import sharding
 from pi0_armfix.training import checkpoint, fingerprint, preemption
+from pi0_armfix.training.run_spec import RunSpec
 from pi0_armfix import train_setup as setup_lib
 
 pytestmark = pytest.mark.slow  # the slow lane: fault injection into training runs
@@ -154,8 +155,8 @@ def test_a_forced_resume_whose_restore_is_refused_leaves_the_run_folder_as_it_wa
     with pytest.raises(Exception, match="lora|LoRA|adapter"):
         train.train_and_evaluate(_config(**forced), str(workdir))
     assert kept() == before  # config.json above all: the run's own config still resumes it
-    assert fingerprint.check_resume(workdir, _config(**finished_run[1]).to_dict(),
-                                    holds_run=True, may_write=False) == []
+    own = RunSpec.resolve(_config(**finished_run[1])).config_json  # as a rerun checks it
+    assert fingerprint.check_resume(workdir, own, holds_run=True, may_write=False) == []
 
 
 def test_resume_new_archives_the_old_run_and_starts_at_step_zero(finished_run, tmp_path, capsys):
