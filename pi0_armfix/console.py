@@ -175,7 +175,8 @@ def define_lever_flags() -> None:
     """How this command executes the policy (`policies.sampling.Sampling.for_run`, whose
     docstrings say what each lever does): `--execution`, then each lever in place of the
     execution's (unset: the run's `eval.<lever>`, else the execution's)."""
-    flags.DEFINE_enum("execution", None, ["adopted", "none"], "adopted: the world's adopted "
+    from pi0_armfix.policies.sampling import EXECUTIONS  # here: the console stays free of jax
+    flags.DEFINE_enum("execution", None, list(EXECUTIONS), "adopted: the world's adopted "
                       "execution (the demo world's, else every lever off); none: every lever off "
                       "(unset: the run's eval.execution, adopted by default)")
     flags.DEFINE_integer("average_draws", None, "each executed chunk the mean of this many draws "

@@ -19,11 +19,11 @@ from absl import app, flags
 from etils import epath
 
 from pi0_armfix import console
+from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import figures
 from pi0_armfix.evaluation import heldout as heldout_lib
-from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation.evaluator import METRICS_FILE, format_metrics, heldout_paths
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.policies import inference
@@ -37,7 +37,7 @@ STAGNATION_FILE = "stagnation.png"  # gain and skill over the offline evaluation
 
 
 def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
-                        params_name: str = "ema", levers: Mapping[str, float] | None = None
+                        params_name: str = "ema", levers: Mapping[str, Any] | None = None
                         ) -> tuple[int, dict[str, float], ActionLayout, epath.Path]:
     """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
     writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when

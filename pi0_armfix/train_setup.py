@@ -225,7 +225,8 @@ def levers(spec: RunSpec, sampling: Sampling) -> str:
     model, loss, data, layout = spec.model, spec.loss, spec.data, spec.layout
     parts = []
     if data.delta_mask is not None:
-        groups = [g for g in layout.group_names if data.delta_mask[list(layout.group_dims(g))].any()]
+        groups = [g for g in layout.group_names
+                  if data.delta_mask[list(layout.group_dims(g))].any()]
         parts.append(f"relative to the {data.delta_reference.replace('_', ' ')}: "
                      f"{', '.join(groups)}")
     if loss["flow_samples"] > 1:

@@ -462,7 +462,8 @@ def test_the_expert_redraw_is_deterministic_and_differs_only_by_its_own_draws():
 
 def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(trained):
     _, ema_metrics, _, ema_path = evaluate_command.evaluate_checkpoint(trained)
-    _, raw_metrics, _, raw_path = evaluate_command.evaluate_checkpoint(trained, params_name="params")
+    _, raw_metrics, _, raw_path = evaluate_command.evaluate_checkpoint(trained,
+                                                                       params_name="params")
     assert ema_path.name == "metrics.json" and raw_path.name == "metrics_params.json"
     assert json.loads(ema_path.read_text())["params"] == "ema_params"
     assert json.loads(raw_path.read_text())["params"] == "params"

@@ -48,10 +48,9 @@ def run(arm_delta_run):  # noqa: F811
     return arm_delta_run
 
 
-@pytest.fixture(scope="module")
-def server(run):
-    """A server on a free port, in a thread of this process; (server, its policy's twin)."""
-    policy_server = server_lib.PolicyServer(inference.RunPolicy.from_workdir(run), "127.0.0.1", 0)
+def _serve_in_thread(policy, **kwargs):
+    """A server of `policy` on a free port, in a thread of this process, once it listens."""
+    policy_server = server_lib.PolicyServer(policy, "127.0.0.1", 0, **kwargs)
     loop, ready = asyncio.new_event_loop(), asyncio.Event()
     threading.Thread(target=lambda: loop.run_until_complete(policy_server.serve(ready)),
                      daemon=True).start()
@@ -59,6 +58,12 @@ def server(run):
     while not ready.is_set() and time.monotonic() < deadline:
         time.sleep(0.02)
     return policy_server
+
+
+@pytest.fixture(scope="module")
+def server(run):
+    """A server of the run's policy on a free port, in a thread of this process."""
+    return _serve_in_thread(inference.RunPolicy.from_workdir(run))
 
 
 def test_a_request_sent_while_the_sampler_compiles_waits_for_it(run):
@@ -480,16 +485,6 @@ def _as_main_job_world(run, folder):
         config["data"]["root"] = ""
         path.write_text(json.dumps(config))
     return copy
-
-
-def _serve_in_thread(policy, **kwargs):
-    policy_server = server_lib.PolicyServer(policy, "127.0.0.1", 0, **kwargs)
-    loop, ready = asyncio.new_event_loop(), asyncio.Event()
-    threading.Thread(target=lambda: loop.run_until_complete(policy_server.serve(ready)),
-                     daemon=True).start()
-    while not ready.is_set():
-        time.sleep(0.02)
-    return policy_server
 
 
 def test_the_readme_serve_command_on_a_main_job_run_answers_the_openpi_client(

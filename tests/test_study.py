@@ -665,7 +665,8 @@ def test_a_lever_whose_value_is_a_list_stays_one_config_of_the_comma_separated_f
 
 def test_a_list_of_names_as_an_overrides_value_stays_one_config():
     from pi0_armfix import console
-    parts = "uniform,arm_focused@eval.gripper_groups=left_gripper,right_gripper,uniform:g1".split(",")
+    parts = ("uniform,arm_focused@eval.gripper_groups=left_gripper,right_gripper,uniform:g1"
+             .split(","))
     assert study_run.config_names(parts, console.config_names()) == [
         "uniform", "arm_focused@eval.gripper_groups=left_gripper,right_gripper", "uniform:g1"]
 

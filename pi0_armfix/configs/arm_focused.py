@@ -5,8 +5,8 @@ jitter. On a G1 (`:g1`) the relative groups are both arms and both hands. Delta
 actions remove the state-copy shortcut (the current joint positions explain most of an absolute arm
 target, so a uniform loss learns to repeat them); the extra draws give the small deltas more
 gradient per prefix compute; the conv stem lets the 32 px cameras' arm targets be learned within
-the budget, and without the jitter the base is learned within it too. How its policy executes is the commands'
-choice, alike for every config (`eval.execution`, `policies/sampling.py`).
+the budget, and without the jitter the base is learned within it too. How its policy executes is
+the commands' choice, alike for every config (`eval.execution`, `policies/sampling.py`).
 The seed's 3x weighting is `arm_weights_3x`. What it does, measured over seeds against doing
 nothing: README, "Results at a glance".
 

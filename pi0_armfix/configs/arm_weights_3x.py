@@ -1,6 +1,7 @@
 """The seed's fix, kept under its own name: per-group weights with arms and grippers 3x base and
 torso, absolute actions. On the demo it leaves the arm joints as still as `uniform` (the state
-explains their targets, so 3x multiplies a residual that is already small; docs/mechanisms.md); it stays so that the seed's claim can be tested side by side.
+explains their targets, so 3x multiplies a residual that is already small; docs/mechanisms.md);
+it stays so that the seed's claim can be tested side by side.
 
   python -m pi0_armfix.train --config=configs/arm_weights_3x.py
 """

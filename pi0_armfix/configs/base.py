@@ -13,8 +13,8 @@ only the `loss` (and, for a few, the `data`) section. `arg` picks the scale:
                          it, at `--config.data.root` (layout `g1_inspire`: each arm's 7 joints,
                          each hand's 6 finger joints, joint positions at 30 fps, the state in the
                          same order; its head camera scaled to the preset's 32 px), held out: the
-                         last 20 episodes; learning curves every quarter of the run. docs/data.md, "A
-                         real robot".
+                         last 20 episodes; learning curves every quarter of the run.
+                         docs/data.md, "A real robot".
 
 The config is locked by the entrypoint: every key a run can set exists here, and an unknown key on
 the command line is an error.
@@ -214,7 +214,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.train = ml_collections.ConfigDict()
     # The demo's main-job budget: 4500 steps of batch 32 is ~2 epochs of the 100 training
     # episodes, where `arm_focused` beats holding the previous action on the base, both arms and
-    # both grippers (README, "Results at a glance"); 1500 (0.7 epoch) is too short for any config to.
+    # both grippers (README, "Results at a glance"); 1500 (0.7 epoch) is too short for any config
+    # to.
     config.train.total_steps = 4500
     config.train.batch_size = 32  # global, over all processes
     # Gradients of the batch as the mean over this many strided parts computed one after another:
@@ -258,10 +259,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     config.eval.num_draws = 8
     # How the policy is executed (held-out evaluation, closed loop, server, study): a choice of
     # those commands, never of what a config trains (pi0_armfix.policies.sampling,
-    # docs/closed_loop.md "Execution"). 'adopted': the world's adopted execution (the demo world's: replanning every
-    # quarter of the horizon with temporal ensembling, the base the mean of 4 draws, the torso of
-    # 8 held within 2 action stds; elsewhere every lever off); 'none': every lever off. A study
-    # sets it alike for every config it compares (`--execution`).
+    # docs/closed_loop.md "Execution"). 'adopted': the world's adopted execution (the demo
+    # world's: replanning every quarter of the horizon with temporal ensembling, the base the
+    # mean of 4 draws, the torso of 8 held within 2 action stds; elsewhere every lever off);
+    # 'none': every lever off. A study sets it alike for every config it compares
+    # (`--execution`).
     config.eval.execution = "adopted"
     # The levers one at a time, in place of the execution's (None: the execution's; no shipped
     # config sets one, so that configs compared in a table execute alike): each executed chunk

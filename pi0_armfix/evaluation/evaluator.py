@@ -232,7 +232,8 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
     mean = heldout_lib.MEAN_OF_DRAWS
     lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action) of "
              "the single draw (what a robot executes; its interval a t interval over the held-out "
-             f"episodes, their sampling variance from resamples of them), of the mean of {draws} draws, and of the energy score of the {draws} "
+             "episodes, their sampling variance from resamples of them), of the mean of "
+             f"{draws} draws, and of the energy score of the {draws} "
              "draws (spread counted fairly); gain: 1 = moves like the data, 0 = still or "
              "unrelated",
              f"{'group':<15}{'err':>9}{'skill':>9}{'[95 % over episodes]':>22}"

@@ -47,7 +47,7 @@ from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import inputs as model_inputs_lib
 from pi0_armfix.model import noise as noise_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.policies.sampling import EXECUTIONS, Sampling
+from pi0_armfix.policies.sampling import Sampling, check_levers
 from pi0_armfix.training import checkpoint
 from pi0_armfix import sharding as sharding_lib
 
@@ -162,15 +162,13 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
     "ema" (the EMA params when the run kept them, else the params) or "params"; `levers`: the
     `Sampling` fields that replace the run's (None values: the run's) and `execution` in place of
     the run's `eval.execution`, checked before any checkpoint is read; `client_executes`: for a
-    client that executes the chunks itself (`Sampling.for_run`). Only the params are read. A damaged latest checkpoint falls back
-    to the newest older one that reads (said on stderr); a damaged `step` asked for is a ValueError
-    naming the steps that read."""
+    client that executes the chunks itself (`Sampling.for_run`). Only the params are read. A
+    damaged latest checkpoint falls back to the newest older one that reads (said on stderr); a
+    damaged `step` asked for is a ValueError naming the steps that read."""
     workdir = epath.Path(workdir)
     levers = dict(levers or {})
+    check_levers(levers)  # a bad lever fails before the checkpoint is read
     execution = levers.pop("execution", None)
-    Sampling.from_eval({}, **levers)  # a bad lever fails before the checkpoint is read
-    if execution is not None and execution not in EXECUTIONS:
-        raise ValueError(f"--execution={execution!r} must be one of {EXECUTIONS}")
     ckpts = checkpoint.Checkpoints(workdir / "checkpoints", read_only=True)
     steps = ckpts.all_steps()
     if step is not None and step not in steps or not steps:

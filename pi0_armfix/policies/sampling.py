@@ -52,6 +52,21 @@ EXECUTIONS = ("adopted", "none")
 CLIENT_LEVERS = ("rtc", "temporal_ensemble")
 
 
+def check_levers(levers: Mapping[str, Any]) -> None:
+    """Refuses a command's levers (`Sampling` fields, and `execution`) out of their range, before
+    any work reads them.
+
+    Raises:
+      ValueError naming the lever or the execution and its range.
+    """
+    levers = dict(levers)
+    execution = levers.pop("execution", None)
+    if execution is not None and execution not in EXECUTIONS:
+        raise ValueError(f"execution = {execution!r} (eval.execution or --execution) must be "
+                         f"one of {EXECUTIONS}")
+    Sampling.from_eval({}, **levers)
+
+
 def adopted_execution(data_cfg: Mapping[str, Any], horizon: int) -> dict[str, Any]:
     """The adopted execution of the run's world: `{lever: value}`, {} where there is none.
 
@@ -184,9 +199,7 @@ class Sampling:
         """
         eval_cfg = config["eval"]
         execution = execution or eval_cfg.get("execution") or "adopted"
-        if execution not in EXECUTIONS:
-            raise ValueError(f"execution = {execution!r} (eval.execution or --execution) must be "
-                             f"one of {EXECUTIONS}")
+        check_levers({"execution": execution})
         horizon = horizon or model_config_lib.from_model_config(config["model"]).action_horizon
         adopted = adopted_execution(config["data"], horizon) if execution == "adopted" else {}
         if client_executes:
@@ -282,9 +295,9 @@ class Sampling:
     def summary(self) -> str:
         """The levers off their defaults in words ("every lever off" where none is): what a
         table names as the execution its numbers were measured with."""
-        default, parts = Sampling(), []
+        default, parts = Sampling().describe(), []
         for name, value in self.describe().items():
-            if value != default.describe()[name]:
+            if value != default[name]:
                 parts.append(f"{name} {value if not isinstance(value, list) else tuple(value)}")
         return ", ".join(parts) or "every lever off"
 
@@ -294,8 +307,9 @@ class Sampling:
         draws it from `rng` (`noise.flow_noise`)."""
         return self.temperature * noise_lib.flow_noise(rng, tuple(shape), noise_factor)
 
-    def sampler(self, model_config: model_config_lib.Pi0Config, noise_factor: np.ndarray | None = None,
-                num_draws: int | None = None, layout: ActionLayout | None = None
+    def sampler(self, model_config: model_config_lib.Pi0Config,
+                noise_factor: np.ndarray | None = None, num_draws: int | None = None,
+                layout: ActionLayout | None = None
                 ) -> Callable[..., jax.Array]:
         """`flow_model.sample_actions` with these levers: `(params, rng, observation, **kw) ->
         [B, H, A]` (each dim the mean of its draws: `average_draws`, or `group_draws` on

@@ -233,7 +233,8 @@ def lever_table(configs: Mapping[str, Any]) -> list[str]:
              "difference of the two, mean over seeds with the t interval of the per-seed "
              "differences at the variant's level in the table above (the primary's 95 %; the "
              "others Bonferroni-corrected over the lever variants, per column), widened by the "
-             "held-out (world) episodes' sampling error of the difference. The executed chunk is the variant's (the single draw of its sampler); "
+             "held-out (world) episodes' sampling error of the difference. The executed chunk "
+             "is the variant's (the single draw of its sampler); "
              "the closed-loop columns are phase and task success in the demo world.", "",
              "| lever variant | against | " + " | ".join(headings) + " |",
              "|---" * (len(headings) + 2) + "|"]

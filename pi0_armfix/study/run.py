@@ -28,7 +28,7 @@ from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         LOOSER_TOLERANCES, closed_loop_outcomes, curve_prefix,
                                         episode_replicates, group_keys, has_outcomes)
-from pi0_armfix.policies.sampling import EXECUTIONS, LEVERS, SAMPLED_LEVERS, Sampling
+from pi0_armfix.policies.sampling import LEVERS, SAMPLED_LEVERS, Sampling, check_levers
 from pi0_armfix.training import metrics_log
 
 RESULT_FILE = "result.json"
@@ -87,24 +87,23 @@ def check_study_levers(configs: Sequence[str], execution: str = "adopted") -> No
     Raises:
       ValueError naming the config and the lever's range.
     """
-    if execution not in EXECUTIONS:
-        raise ValueError(f"--execution={execution!r} must be one of {EXECUTIONS}")
+    check_levers({"execution": execution})
     for config in configs:
-        levers = inference_levers(config)
         try:
-            if levers.get("execution", execution) not in EXECUTIONS:
-                raise ValueError(f"eval.execution = {levers['execution']!r} must be one of "
-                                 f"{EXECUTIONS}")
-            Sampling.from_eval({}, **{k: v for k, v in levers.items() if k != "execution"})
+            check_levers({"execution": execution, **inference_levers(config)})
         except ValueError as err:
             raise ValueError(f"--configs {config}: {err}") from None
 
 
-def run_execution(checkpoints: Path, config: str) -> Sampling:
-    """How a study config is executed on its trained run (`checkpoints`: that run's folder):
-    the run's own execution (`Sampling.for_run` of its `config.json`, which the study's
-    `--execution` set alike for every config) with the config's levers in place."""
-    saved = json.loads((checkpoints / "config.json").read_text())
+def saved_config(folder: Path) -> dict[str, Any]:
+    """A trained run's config as it saved it (`config.json` of its folder)."""
+    return json.loads((folder / "config.json").read_text())
+
+
+def run_execution(saved: Mapping[str, Any], config: str) -> Sampling:
+    """How a study config is executed on its trained run (`saved`: that run's `saved_config`):
+    the run's own execution (`Sampling.for_run`; the study's `--execution` set it alike for every
+    config) with the config's levers in place."""
     return Sampling.for_run(saved, **inference_levers(config))
 
 
@@ -127,8 +126,8 @@ def lever_tag(config: str, checkpoints: Path, closed_loop: bool = False) -> str:
     """`Sampling.tag` of a config's levers on its trained run (that run's `eval` with the
     config's levers in place, against the run's own): the tag of the evaluation files its levers
     write (held-out, or `closed_loop`)."""
-    saved = json.loads((checkpoints / "config.json").read_text())
-    return run_execution(checkpoints, config).tag(closed_loop, against=Sampling.for_run(saved))
+    saved = saved_config(checkpoints)
+    return run_execution(saved, config).tag(closed_loop, against=Sampling.for_run(saved))
 
 
 def run_steps(config: str, steps: int) -> int:
@@ -301,9 +300,9 @@ def run_one(config: str, seed: int, steps: int, workdir: Path, overrides: Sequen
     if evaluation["step"] != trained:
         raise RuntimeError(f"{folder}: the last evaluation is of step {evaluation['step']}, "
                            f"not {trained}")
-    layout = json.loads((folder / "config.json").read_text())["layout"]
-    result = {"config": config, "seed": seed, "steps": trained, "layout": layout,
-              "execution": run_execution(folder, config).summary(),
+    saved = saved_config(folder)
+    result = {"config": config, "seed": seed, "steps": trained, "layout": saved["layout"],
+              "execution": run_execution(saved, config).summary(),
               "metrics": {k: v for k, v in evaluation.items() if k != "step"}}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     result = add_episode_replicates(result, folder, evaluate_missing=True)
@@ -335,7 +334,8 @@ def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
     else:  # execution levers alone sample the trained config's chunks: its held-out metrics
         metrics = {k: v for k, v in base["metrics"].items() if not k.startswith(CLOSED_LOOP)}
     result = {"config": config, "seed": seed, "steps": base["steps"], "layout": base["layout"],
-              "trained": trained, "execution": run_execution(checkpoints, config).summary(),
+              "trained": trained,
+              "execution": run_execution(saved_config(checkpoints), config).summary(),
               "metrics": metrics,
               EPISODE_REPLICATES: episode_replicates(heldout_lib.load_chunk_sums(sums_path),
                                                      layout)}

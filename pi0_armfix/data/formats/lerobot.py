@@ -73,10 +73,10 @@ from pi0_armfix.data.formats import image_store
 from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 from pi0_armfix.data.formats.frame_store import FrameStore
 from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, probe_frame, segment_time
-from pi0_armfix.data.formats.missing_videos import MissingVideos
 from pi0_armfix.data.formats.lerobot_meta import (
-    ACTION, FPS_TOLERANCE, check_row_rate, STATE, EpisodeRecord, episodes_v2, episodes_v3, major_version, matrix, open_parquet,
-    task_prompts_of, task_rows, vector, with_prompts)
+    ACTION, FPS_TOLERANCE, STATE, EpisodeRecord, check_row_rate, episodes_v2, episodes_v3,
+    major_version, matrix, open_parquet, task_prompts_of, task_rows, vector, with_prompts)
+from pi0_armfix.data.formats.missing_videos import MissingVideos
 from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder, keyframe_interval
 
 # Episodes up to this long have their last video frame decoded by the probe (about 1 min at 30 fps).
@@ -189,8 +189,8 @@ class LeRobotSource:
         if self._missing_videos.message and skip_missing_videos:
             self._episodes, self.skipped_episodes = self._missing_videos.kept(self._episodes)
             logging.warning("%s; left out of training and evaluation (data.skip_missing_videos)",
-                            self._missing_videos.message.partition("; fetch the files")[0])
-            self._missing_videos = MissingVideos((), None)
+                            self._missing_videos.found)
+            self._missing_videos = MissingVideos()
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)

@@ -33,8 +33,8 @@ V3_EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.
 
 # ====================================================================== shared helpers
 
-
 FPS_TOLERANCE = 0.01  # relative: the declared fps against the rows' and the videos' rates
+
 
 def major_version(info: Mapping[str, Any], path: Path) -> int:
     version = str(info["codebase_version"])

@@ -20,7 +20,6 @@ from __future__ import annotations
 import collections
 import fractions
 import itertools
-import math
 import threading
 from pathlib import Path
 

@@ -281,9 +281,9 @@ def dataset_norm_stats(spec: DataSpec, *, action_horizon: int, progress: bool = 
     chunks of H = `action_horizon`)."""
     absolute = None
     if spec.delta_mask is not None and spec.delta_reference == "previous_action":
-        blocks, total = training_blocks(spec, ("actions", "state"), source=source,
-                                        episodes=episodes)
-        absolute = stats_lib.compute_norm_stats(blocks, total_frames=total, progress=progress)
+        blocks, total = training_blocks(spec, ("actions",), source=source, episodes=episodes)
+        absolute = stats_lib.compute_norm_stats(blocks, ("actions",), total_frames=total,
+                                                progress=progress)
     blocks, total = training_blocks(spec, ("actions", "state"), source=source,
                                     episodes=episodes)
     return block_norm_stats(blocks, spec, action_horizon=action_horizon, total_frames=total,
