@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import logging as std_logging
 import os
 import re
@@ -147,9 +148,35 @@ def configs_dir() -> Path:
     return Path(configs.__file__).parent
 
 
+LOCAL_CONFIGS = Path("configs")  # a user's own configs (tools.write_config's), from where it runs
+
+
 def config_names() -> list[str]:
-    """The experiment configs a user can name (`base` is every config's base, not one of them)."""
-    return sorted(p.stem for p in configs_dir().glob("*.py") if p.stem not in ("__init__", "base"))
+    """The experiment configs a user can name: the installed ones and those in `configs/` of the
+    current folder (`base` is every config's base, not one of them)."""
+    files = [*configs_dir().glob("*.py"), *LOCAL_CONFIGS.glob("*.py")]
+    return sorted({p.stem for p in files} - {"__init__", "base"})
+
+
+def config_path(name: str) -> Path | None:
+    """The file of the experiment config `name`: `configs/<name>.py` of the current folder where
+    there is one (as `--config=configs/<name>.py` reads it), else the installed one; None where
+    neither exists."""
+    for path in (LOCAL_CONFIGS / f"{name}.py", configs_dir() / f"{name}.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def load_config(name: str, arg: str = ""):
+    """The `ConfigDict` of the experiment config `name` (`config_path`) with its argument."""
+    path = config_path(name)
+    if path is None:
+        raise ValueError(f"no config {name!r}: configs are {', '.join(config_names())}")
+    spec = importlib.util.spec_from_file_location(f"_pi0_armfix_config_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.get_config(arg or None)
 
 
 def installed_config(arg: str) -> str:

@@ -120,6 +120,19 @@ def test_evaluation_units_scale_by_the_std_and_measure_a_near_constant_dim_in_da
     assert threshold.tolist() == [0.5, 5.0, 0.0]
 
 
+def test_the_error_in_the_datas_units_undoes_each_dims_scale():
+    true = _moving_chunks()
+    scale = np.array([0.5, 2.0, 0.01, 0.02, 0.03, 1.0, 1.0, 1.0])  # [A]: a base, rad, a gripper
+    offset = np.array([0.0, 0.0, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0])  # the arm off, in data units
+    sums = eval_metrics.chunk_sums(true + offset / scale, true, np.ones(true.shape[:2], bool),
+                                   layout=LAYOUT, gripper_groups=("gripper",),
+                                   gripper_threshold=np.zeros(8), scale=scale)
+    metrics = eval_metrics.metrics_from_sums({k: v.sum() for k, v in sums.items()}, LAYOUT)
+    assert metrics["rms_units/arm"] == pytest.approx(np.sqrt(np.mean([0.01, 0.04, 0.09])))
+    assert metrics["rms_units/base"] == 0.0
+    assert metrics["err/arm"] == pytest.approx(100.0)  # each dim off by 10 of its scale
+
+
 def test_evaluation_scale_without_absolute_stats_falls_back_to_the_held_out_chunks():
     rng = np.random.default_rng(0)
     true = rng.normal(3.0, 2.0, size=(200, H, 2))

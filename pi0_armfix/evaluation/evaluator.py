@@ -235,10 +235,11 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
              "episodes, their sampling variance from resamples of them), of the mean of "
              f"{draws} draws, and of the energy score of the {draws} "
              "draws (spread counted fairly); gain: 1 = moves like the data, 0 = still or "
-             "unrelated",
-             f"{'group':<15}{'err':>9}{'skill':>9}{'[95 % over episodes]':>22}"
+             "unrelated; rms: the error's root in the data's own units (a joint position's rad, "
+             "a base's m/s, a gripper's command units)",
+             f"{'group':<15}{'err':>9}{'rms':>9}{'skill':>9}{'[95 % over episodes]':>22}"
              f"{f'mean {draws}':>9}{'energy':>9}{'gain':>8}{'ratio':>8}"
-             + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'gain':>7}"
+             + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'rms':>9}{'gain':>7}"
                        for name in references)]
     def cell(value: float, width: int, spec: str) -> str:
         return f"{'n/a':>{width}}" if not math.isfinite(value) else f"{value:>{width}{spec}}"
@@ -251,13 +252,15 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
         interval = (f"[{low:+.3f}, {high:+.3f}]" if math.isfinite(low) and math.isfinite(high)
                     else "n/a")
         lines.append(
-            f"{g:<15}{cell(metrics[f'err/{g}'], 9, '.4f')}{cell(metrics[f'skill/{g}'], 9, '.3f')}"
-            f"{interval:>22}"
+            f"{g:<15}{cell(metrics[f'err/{g}'], 9, '.4f')}"
+            f"{cell(metrics.get(f'rms_units/{g}', math.nan), 9, '.4g')}"
+            f"{cell(metrics[f'skill/{g}'], 9, '.3f')}{interval:>22}"
             + cell(metrics.get(f"{mean}/skill/{g}", math.nan), 9, ".3f")
             + cell(metrics.get(f"energy_skill/{g}", math.nan), 9, ".3f")
             + cell(metrics[f"motion_gain/{g}"], 8, ".3f")
             + cell(metrics[f"motion_ratio/{g}"], 8, ".3f")
             + "".join(f" |{cell(metrics[f'{name}/err/{g}'], 16, '.4f')}"
+                      f"{cell(metrics.get(f'{name}/rms_units/{g}', math.nan), 9, '.4g')}"
                       f"{cell(metrics[f'{name}/motion_gain/{g}'], 7, '.3f')}"
                       for name in references))
     if constant:

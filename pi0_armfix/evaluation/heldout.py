@@ -141,7 +141,8 @@ class HeldOutChunks:
         self.true = true / self.scale
         self.layout = layout
         self._sums = lambda chunks: sums(chunks, self.true, self.valid,
-                                         gripper_threshold=self.gripper_threshold)
+                                         gripper_threshold=self.gripper_threshold,
+                                         scale=self.scale)
         chunks = baselines_lib.baseline_chunks(table, self.frames, horizon, layout,
                                                spec.state_groups)
         if not spec.get("root") and spec.get("format", "lerobot") == "lerobot":

@@ -4,6 +4,9 @@ All functions take absolute action chunks in evaluation units (`evaluation_units
 over a per-dim scale, not centred, so a zero velocity command stays 0). Per group g:
 
   err/<g>            MSE of the chunk against the true chunk.
+  rms_units/<g>      its root in the data's own units (a joint position's radians, a base's
+                     m/s, a gripper's command units): whether a negative skill is an arm that
+                     jitters by a fraction of a degree or one that moves.
   skill/<g>          1 - err / err of holding the previous action (`baselines`); > 0: better than
                      doing nothing, 0: as good as doing nothing, 1: perfect.
   motion_gain/<g>    least-squares slope of predicted on true displacement; 1 = moves as far as
@@ -150,8 +153,8 @@ def switch_scores(sums: dict[str, float]) -> dict[str, float]:
 
 def chunk_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
                layout: ActionLayout, gripper_groups: Sequence[str],
-               gripper_threshold: np.ndarray, switch_tolerance: int = 2
-               ) -> dict[str, np.ndarray]:
+               gripper_threshold: np.ndarray, switch_tolerance: int = 2,
+               scale: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per chunk, the sums every metric is a ratio of (`metrics_from_sums`), float64 `[N]` each.
 
     Args:
@@ -160,6 +163,8 @@ def chunk_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
       gripper_groups: groups whose dims are open/close commands.
       gripper_threshold: `[D]` the open/close boundary of each dim, same units.
       switch_tolerance: steps by which a predicted gripper switch may miss the true one.
+      scale: `[D]` the evaluation units' per-dim scale (`evaluation_units`); given, the squared
+        error in the data's units is summed too (`sq_err_units/<g>`).
     Returns:
       per group g `sq_err/<g>` and `steps/<g>` (valid steps x dims), `motion_dot/<g>` (predicted
       . true displacement), `motion_true/<g>` (|true displacement|^2), `norm_predicted/<g>` and
@@ -175,6 +180,9 @@ def chunk_sums(predicted: np.ndarray, true: np.ndarray, valid: np.ndarray, *,
     for g in layout.group_names:
         dims = layout.group_dims(g)
         sums[f"sq_err/{g}"] = (sq_err[..., dims] * w).sum(axis=(1, 2))
+        if scale is not None:
+            units = np.square(np.asarray(scale, np.float64)[dims])
+            sums[f"sq_err_units/{g}"] = (sq_err[..., dims] * units * w).sum(axis=(1, 2))
         sums[f"steps/{g}"] = w.sum(axis=(1, 2)) * len(dims)
         sums[f"motion_dot/{g}"] = np.sum(dp[:, dims] * dt[:, dims], axis=1)
         sums[f"motion_true/{g}"] = np.sum(dt[:, dims] ** 2, axis=1)
@@ -230,6 +238,9 @@ def metrics_from_sums(sums: dict[str, float], layout: ActionLayout) -> dict[str,
     metrics = {}
     for g in layout.group_names:
         metrics[f"err/{g}"] = float(sums[f"sq_err/{g}"] / max(sums[f"steps/{g}"], 1.0))
+        if f"sq_err_units/{g}" in sums:
+            metrics[f"rms_units/{g}"] = float(np.sqrt(sums[f"sq_err_units/{g}"]
+                                                      / max(sums[f"steps/{g}"], 1.0)))
         true_motion = sums[f"motion_true/{g}"]
         metrics[f"motion_gain/{g}"] = (float(sums[f"motion_dot/{g}"] / true_motion)
                                        if true_motion > 0 else float("nan"))

@@ -101,10 +101,11 @@ from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, Study
 from pi0_armfix.training import metrics_log
 
 def on_other_data(configs: Sequence[str], overrides: Sequence[str]) -> str:
-    """What puts a study on data other than the embedded demo (a `data.root` override or a
-    config's scale), or ''."""
+    """What puts a study on data other than the embedded demo (a `data.root` override, a config's
+    scale, or a config file's own `data.root`: a written recipe's), or ''."""
     roots = [o for o in overrides if o.partition("=")[0] == "data.root" and o.partition("=")[2]]
-    scaled = [c for c in configs if parse_config(c)[1]]
+    scaled = [c for c in configs if parse_config(c)[1]
+              or console.load_config(parse_config(c)[0]).data.get("root")]
     return ", ".join([*(f"--override={o}" for o in roots), *(f"the config {c}" for c in scaled)])
 
 
@@ -185,11 +186,11 @@ def main(argv: Sequence[str]) -> None:
     configs = config_names(FLAGS.configs, console.config_names())
     if not configs:
         raise SystemExit("pi0_armfix.study: --configs names no config")
-    missing = [c for c in configs
-               if not (console.configs_dir() / f"{parse_config(c)[0]}.py").is_file()]
+    missing = [c for c in configs if console.config_path(parse_config(c)[0]) is None]
     if missing:
-        raise SystemExit(f"pi0_armfix.study: --configs names {missing}, which are not files of "
-                         f"{console.configs_dir()}: use {', '.join(console.config_names())}")
+        raise SystemExit(f"pi0_armfix.study: --configs names {missing}, which are files neither "
+                         f"of {console.LOCAL_CONFIGS.resolve()} nor of {console.configs_dir()}: "
+                         f"use {', '.join(console.config_names())}")
     if FLAGS.seeds < 1 or FLAGS.steps < 1 or FLAGS.parallel < 1 or FLAGS.evaluations < 1:
         raise SystemExit("pi0_armfix.study: --seeds, --steps, --parallel and --evaluations must "
                          "be >= 1")

@@ -51,23 +51,10 @@ from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.data.statistics import motion as motion_lib
 from pi0_armfix.data.statistics import stats as stats_lib
+from pi0_armfix.data.statistics.bimodal import gripper_like_dims
 from pi0_armfix.evaluation import baselines
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.tools import mechanism as mechanism_lib
-
-GRIPPER_END_FRACTION = 0.1  # "near an end": within this fraction of [q01, q99] from it
-GRIPPER_END_MASS = 0.8  # share of the frames near the two ends
-GRIPPER_MIN_MODE = 0.02  # share of the frames near each end (two modes, not one)
-
-
-def gripper_like_dims(actions: stats_lib.StreamingStats) -> np.ndarray:
-    """`[A]` bool: dims whose frames sit mostly at the two ends of their range (bimodal)."""
-    q01, q99 = actions.quantile(0.01), actions.quantile(0.99)
-    span = q99 - q01
-    near_low = actions.fraction_below(q01 + GRIPPER_END_FRACTION * span)
-    near_high = 1.0 - actions.fraction_below(q99 - GRIPPER_END_FRACTION * span)
-    return ((span >= stats_lib.CONSTANT_SPREAD) & (near_low + near_high >= GRIPPER_END_MASS)
-            & (np.minimum(near_low, near_high) >= GRIPPER_MIN_MODE))
 
 
 def layout_warnings(layout: ActionLayout, gripper_like: np.ndarray,

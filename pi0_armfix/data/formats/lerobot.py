@@ -115,7 +115,8 @@ class LeRobotSource:
       tasks ([E] prompts), fps, version, cameras ({batch camera: stored name}),
       camera_names (every stored image/video feature), stored_state_width, state_width,
       stored_action_width, action_width, action_selection and state_selection (the
-      `selection.Selection` of each stored vector).
+      `selection.Selection` of each stored vector), missing_videos (`MissingVideos` of the read
+      cameras: empty once `skip_missing_videos` has left their episodes out).
     """
 
     def __init__(self, root: str | Path, layout: ActionLayout, *,
@@ -183,14 +184,14 @@ class LeRobotSource:
         self._episodes = with_prompts(load(self.root, info, video_keys), rows)
         if not self._episodes:
             raise ValueError(f"{self.root} lists no episodes")
-        self._missing_videos = MissingVideos.find(self.root, self._episodes, video_keys,
+        self.missing_videos = MissingVideos.find(self.root, self._episodes, video_keys,
                                                   info.get("video_path"))
         self.skipped_episodes: tuple[int, ...] = ()
-        if self._missing_videos.message and skip_missing_videos:
-            self._episodes, self.skipped_episodes = self._missing_videos.kept(self._episodes)
+        if self.missing_videos.message and skip_missing_videos:
+            self._episodes, self.skipped_episodes = self.missing_videos.kept(self._episodes)
             logging.warning("%s; left out of training and evaluation (data.skip_missing_videos)",
-                            self._missing_videos.found)
-            self._missing_videos = MissingVideos()
+                            self.missing_videos.found)
+            self.missing_videos = MissingVideos()
         self.episode_index = np.array([e.index for e in self._episodes], np.int64)
         self.episode_lengths = np.array([e.length for e in self._episodes], np.int64)
         self.tasks = tuple(e.task for e in self._episodes)
@@ -245,7 +246,7 @@ class LeRobotSource:
         """
         videos = [k for k, kind in self._camera_kind.items() if kind == "video"] if videos else []
         if videos:
-            self._missing_videos.check()
+            self.missing_videos.check()
         if num_episodes <= 0:
             return
         positions = np.unique(np.linspace(0, self.num_episodes - 1, num_episodes).round())
@@ -296,7 +297,7 @@ class LeRobotSource:
         videos = [k for k, kind in self._camera_kind.items() if kind == "video"]
         if not videos:
             return None
-        self._missing_videos.check()
+        self.missing_videos.check()
         path = self._episodes[0].videos[videos[0]][0]
         codec, height, width, interval = keyframe_interval(path)
         return f"{codec} {height}x{width} ({videos[0]})", interval
@@ -466,7 +467,7 @@ class LeRobotSource:
         chosen = [self._episodes[p] for p in positions]
         videos = images and any(kind == "video" for kind in self._camera_kind.values())
         if videos:
-            self._missing_videos.check()
+            self.missing_videos.check()
         store = self.frame_store
         starts = np.concatenate([[0], np.cumsum([e.length for e in chosen])]).astype(np.int64)
         reader = None

@@ -99,6 +99,8 @@ class LeRobotWriter:
       video_crf: the encoder's constant rate factor.
       video_options: further encoder options (e.g. {"preset": "ultrafast"}).
       action_key, state_key: names of the action and state features.
+      action_names, state_names: the features' per-dim names, as `info.json`'s `names` (a flat
+        list, LeRobot v3.0's form: `["shoulder_pan.pos", ...]`); None writes `null`.
     """
 
     def __init__(self, root: str | Path, *, version: str = "v2.1", fps: int = 30,
@@ -108,7 +110,9 @@ class LeRobotWriter:
                  chunks_size: int = 1000, robot_type: str = "R1Pro", video_codec: str = "libx264",
                  video_gop: int = 2, video_crf: int = 10,
                  video_options: Mapping[str, str] | None = None,
-                 action_key: str = ACTION, state_key: str = STATE):
+                 action_key: str = ACTION, state_key: str = STATE,
+                 action_names: Sequence[str] | None = None,
+                 state_names: Sequence[str] | None = None):
         if version not in VERSIONS:
             raise ValueError(f"version must be one of {list(VERSIONS)}, got {version!r}")
         if image_format not in ("png", "jpeg", "video"):
@@ -124,6 +128,8 @@ class LeRobotWriter:
         self.video_gop, self.video_crf = int(video_gop), int(video_crf)
         self.video_options = dict(video_options or {})
         self.action_key, self.state_key = action_key, state_key
+        self.action_names = list(action_names) if action_names is not None else None
+        self.state_names = list(state_names) if state_names is not None else None
         self._tasks: dict[str, int] = {}
         self._records: list[dict[str, Any]] = []  # per-episode metadata
         self._pending: list[_PendingEpisode] = []  # v3.0: episodes of the file being filled
@@ -273,8 +279,9 @@ class LeRobotWriter:
         dtype = self.float_dtype.name
         scalar = lambda d: {"dtype": d, "shape": [1], "names": None}  # noqa: E731
         features: dict[str, Any] = {
-            self.action_key: {"dtype": dtype, "shape": [action_width], "names": None},
-            self.state_key: {"dtype": dtype, "shape": [state_width], "names": None},
+            self.action_key: {"dtype": dtype, "shape": [action_width],
+                              "names": self.action_names},
+            self.state_key: {"dtype": dtype, "shape": [state_width], "names": self.state_names},
         }
         for name, (height, width) in self.cameras.items():
             feature = {"dtype": "video" if self.image_format == "video" else "image",

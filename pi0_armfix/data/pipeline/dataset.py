@@ -37,6 +37,7 @@ from pi0_armfix.data.formats import sources
 from pi0_armfix.data.pipeline import curriculum as curriculum_lib
 from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.statistics import commands as commands_lib
 from pi0_armfix.data.statistics import motion as motion_lib
 from pi0_armfix.data.statistics import stats as stats_lib
 ABSOLUTE_ACTIONS = stats_lib.ABSOLUTE_ACTIONS
@@ -131,6 +132,35 @@ def training_blocks(spec: DataSpec, keys: Sequence[str] = ("actions", "state"), 
 
 # ---------------------------------------------------------------------- checks before any pass
 
+DELTA_UNITS_EPISODES = 4  # training episodes the delta-units test reads
+
+
+def check_delta_units(spec: DataSpec, source) -> None:
+    """Refuses actions relative to the state where a relative group's commands are the velocity of
+    the state's joints (the finite-difference test, `commands.velocity_pairs`, on the first
+    `DELTA_UNITS_EPISODES` training episodes): `a - s` would subtract positions from
+    velocities. A velocity command beside a measured velocity (B1K's base) passes."""
+    dims = np.flatnonzero(spec.delta_mask)
+    episodes = training_episodes(spec, source)[:DELTA_UNITS_EPISODES]
+    blocks = list(source.iter_blocks(("actions", "state"), episodes=episodes))
+    if not blocks:
+        return
+    actions, state, episode = (np.concatenate([b[k] for b in blocks])
+                               for k in ("actions", "state", "episode_index"))
+    velocity, position_r2, velocity_r2 = commands_lib.velocity_pairs(actions, state, episode,
+                                                                    dims, dims)
+    if velocity.any():
+        groups = sorted({spec.layout.group_of_dim(int(d)) for d in dims[velocity]})
+        first = int(np.flatnonzero(velocity)[0])
+        raise ValueError(
+            f"data.delta_action_mask makes {groups} relative to the state, but their commands are "
+            f"the velocity of the state's joints (dim {dims[first]}: R2 "
+            f"{velocity_r2[first]:.2f} on the state's change, {position_r2[first]:.2f} on the "
+            "state; the finite-difference test): a - s would subtract positions from velocities. "
+            "Leave them absolute (and list them in layout.velocity_groups), or make them "
+            "relative to the previous command: data.delta_reference='previous_action'")
+
+
 def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
     """Every check of the data that can fail, before any pass over it (cheap: metadata, plus the
     probe of `data.probe_episodes` episodes' files and first/last video frames).
@@ -166,6 +196,7 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
     if spec.delta_mask is not None and spec.delta_reference == "state":
         transforms.check_delta_state_layout(spec.delta_mask, layout, spec.state_groups,
                                             source.state_width)
+        check_delta_units(spec, source)
     curriculum = spec.curriculum
     if "arm_heavy" in curriculum.sources:
         listed = spec.get("arm_heavy_episodes", "")

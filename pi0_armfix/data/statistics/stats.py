@@ -162,6 +162,9 @@ class StreamingStats:
         n = len(x)
         if n == 0:
             return
+        if self.width == 0:  # a set without a state: frames counted, nothing else to keep
+            self.count += n
+            return
         block_min, block_max = _column_reduce(np.minimum, x), _column_reduce(np.maximum, x)
         if not (np.isfinite(block_min).all() and np.isfinite(block_max).all()):
             bad = np.flatnonzero(~(np.isfinite(block_min) & np.isfinite(block_max)))
