@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from pi0_armfix.data.formats.lerobot_writer import LeRobotWriter
 
@@ -56,3 +59,13 @@ def identify_frame(image: np.ndarray, episode: int, length: int, camera: int) ->
     """The frame of `episode` whose colour is nearest to the (decoded) image's mean colour."""
     colours = np.stack([frame_colour(episode, i, camera) for i in range(length)]).astype(float)
     return int(np.argmin(np.abs(colours - image.reshape(-1, 3).mean(0)).sum(-1)))
+
+
+def late_by_one_frame(root):
+    """Rewrites every data file's timestamps one frame late (as some converters write them)."""
+    fps = json.loads((root / "meta" / "info.json").read_text())["fps"]
+    for path in root.glob("data/chunk-*/*.parquet"):
+        table = pq.read_table(path)
+        late = pa.array(table.column("timestamp").to_numpy() + np.float32(1 / fps))
+        pq.write_table(table.set_column(table.schema.get_field_index("timestamp"), "timestamp",
+                                        late), path)

@@ -79,10 +79,11 @@ def idle_dual_arm_episode(episode: int, length: int) -> tuple[np.ndarray, np.nda
     return state.astype(np.float32), action.astype(np.float32)
 
 
-def write_velocity_arm(root: Path, lengths=LENGTHS) -> Path:
+def write_velocity_arm(root: Path, lengths=LENGTHS, image_format: str = "png") -> Path:
     with LeRobotWriter(root, version="v3.0", fps=FPS, robot_type="so101_follower",
                        cameras={"observation.images.front": (HEIGHT, WIDTH)},
-                       image_format="png", episodes_per_file=4, action_names=VELOCITY_NAMES,
+                       image_format=image_format, episodes_per_file=4,
+                       action_names=VELOCITY_NAMES,
                        state_names=VELOCITY_NAMES) as writer:
         for episode, length in enumerate(lengths):
             state, action = velocity_arm_episode(episode, length)

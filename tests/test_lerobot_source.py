@@ -11,7 +11,8 @@ import pyarrow.parquet as pq
 import pytest
 from ml_collections import ConfigDict
 
-from data_fixtures import (B1K_CAMERAS, identify_frame, make_episodes, write_dataset)
+from data_fixtures import (B1K_CAMERAS, identify_frame, late_by_one_frame, make_episodes,
+                           write_dataset)
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.cameras import match_cameras
 from pi0_armfix.data.formats.lerobot import LeRobotSource
@@ -354,21 +355,11 @@ def test_open_source_rejects_an_unknown_format(tmp_path):
 # ---------------------------------------------------------------------------- v3.0 segments
 
 
-def _late_by_one_frame(root):
-    """Rewrites every data file's timestamps one frame late (as some converters write them)."""
-    fps = json.loads((root / "meta" / "info.json").read_text())["fps"]
-    for path in root.glob("data/chunk-*/*.parquet"):
-        table = pq.read_table(path)
-        late = pa.array(table.column("timestamp").to_numpy() + np.float32(1 / fps))
-        pq.write_table(table.set_column(table.schema.get_field_index("timestamp"), "timestamp",
-                                        late), path)
-
-
 def test_a_row_past_its_v3_segment_is_refused_not_read_from_the_next_episode(tmp_path):
     episodes = make_episodes(4)
     root = write_dataset(tmp_path / "ds", episodes, "v3.0", image_format="video",
                          episodes_per_file=2)
-    _late_by_one_frame(root)
+    late_by_one_frame(root)
     table = LeRobotSource(root, LAYOUT).load_table([0])
     last = len(episodes[0]["actions"]) - 1
     with pytest.raises(ValueError, match=rf"episode 0, camera .*row {last}: .*1.00 frames past "
@@ -383,7 +374,7 @@ def test_a_one_frame_overrun_within_the_tolerance_reads_each_rows_own_episode(tm
     episodes = make_episodes(4)
     root = write_dataset(tmp_path / "ds", episodes, "v3.0", image_format="video",
                          episodes_per_file=2)
-    _late_by_one_frame(root)
+    late_by_one_frame(root)
     source = LeRobotSource(root, LAYOUT, video_tolerance_frames=1)
     source.probe()
     table = source.load_table([0, 1, 2, 3])

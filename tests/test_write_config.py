@@ -14,6 +14,7 @@ import pytest
 
 import robot_fixtures
 import train_fixtures
+from data_fixtures import late_by_one_frame
 from g1_fixture import write_g1_dataset
 from pi0_armfix import evaluate as evaluate_command
 from pi0_armfix import train
@@ -174,6 +175,19 @@ def test_a_set_whose_videos_are_all_elsewhere_is_written_without_cameras_and_the
     config = load(result["output"])
     assert config.data.images is False
     assert "set video_path in" in result["output"].read_text()
+
+
+def test_timestamps_a_frame_past_their_videos_are_read_with_the_tolerance_the_probe_names(
+        tmp_path):
+    root = robot_fixtures.write_velocity_arm(tmp_path / "so101", image_format="video")
+    late_by_one_frame(root)
+    result = write_config.write(root, tmp_path / "configs" / "so101.py")
+    config = load(result["output"])
+    assert config.data.video_tolerance_frames == 1
+    assert "1.00 frames past" in result["output"].read_text()
+    layout = ActionLayout.from_config(config.layout)
+    spec = DataSpec.from_config(config, layout)
+    sources.open_source(spec.options, layout).probe(num_episodes=10)
 
 
 def test_a_set_without_state_says_which_tests_could_not_run(tmp_path):

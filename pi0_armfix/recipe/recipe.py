@@ -143,8 +143,10 @@ class Recipe:
 
 def robot_settings(root: str, keys: Mapping[str, str], groups: Sequence[Group], real_dim: int,
                    state_width: int, cameras: Mapping[str, str], images: bool, images_why: str,
-                   skip_missing_videos: bool, num_episodes: int) -> tuple[Setting, ...]:
-    """The settings of what the robot and its set are."""
+                   skip_missing_videos: bool, num_episodes: int,
+                   late: Exception | None = None) -> tuple[Setting, ...]:
+    """The settings of what the robot and its set are (`late`: the probe's finding that the
+    set's timestamps run `late.frames` frames past its videos, or None)."""
     width = max(MODEL_WIDTH, real_dim, state_width)
     placed = {g.name: g.state_slice for g in groups if g.state_slice is not None}
     unplaced = [g.name for g in groups if g.state_slice is None]
@@ -181,6 +183,9 @@ def robot_settings(root: str, keys: Mapping[str, str], groups: Sequence[Group], 
                     "episodes without their video files are left out" if skip_missing_videos
                     else "every episode has its video files"),
         ]
+        if late is not None:
+            settings.append(Setting("data.video_tolerance_frames", late.frames,
+                                    f"the probe found: {late}"))
     settings += [
         Setting("data.num_workers", 2, "reads off the training step's critical path"),
         Setting("eval.episodes", heldout_episodes(num_episodes),

@@ -33,6 +33,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import base
 from pi0_armfix.data import cameras as cameras_lib
 from pi0_armfix.data.formats.lerobot import LeRobotSource
+from pi0_armfix.data.formats.lerobot_frames import LATE_FRAMES, LateTimestamps
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.data.statistics.bimodal import gripper_like_dims
 from pi0_armfix.data.statistics import commands as evidence_lib
@@ -44,6 +45,7 @@ from pi0_armfix.tools import analyze_action_magnitudes
 ACTION_KEYS = ("action", "actions")
 STATE_KEYS = ("observation.state", "state", "observation.states")
 MAX_FRAMES = 2_000_000  # frames read for the data tests (the first episodes of a larger set)
+PROBE_EPISODES = 64  # episodes whose first and last video frames are decoded, spread over the set
 
 
 def _key(features: dict, given: str, candidates: tuple[str, ...], what: str, flag: str,
@@ -69,6 +71,25 @@ def read_episodes(source: LeRobotSource, keys: tuple[str, ...]) -> dict[str, np.
         for k in parts:
             parts[k].append(np.asarray(block[k]))
     return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def late_timestamps(root: Path, layout: ActionLayout, action_key: str, state_key: str,
+                    cameras: dict[str, str], skip: bool) -> LateTimestamps | None:
+    """The probe of up to `PROBE_EPISODES` episodes' videos (first and last rows decoded),
+    repeated at the tolerance it asks for where the set's timestamps run a frame or two past
+    their videos: the last such finding (its `frames` the tolerance that reads the set), or None.
+    Any other finding is the set's error, raised."""
+    found, tolerance = None, 0.5
+    for _ in range(LATE_FRAMES + 1):
+        source = LeRobotSource(root, layout, action_key=action_key, cameras=cameras,
+                               state_key=state_key or "observation.state", images=True,
+                               skip_missing_videos=skip, video_tolerance_frames=tolerance)
+        try:
+            source.probe(num_episodes=min(source.num_episodes, PROBE_EPISODES))
+            return found
+        except LateTimestamps as late:
+            found, tolerance = late, late.frames
+    return found
 
 
 def _code_version() -> str:
@@ -110,6 +131,7 @@ def write(root: str | Path, output: str | Path, action_key: str = "", state_key:
 
     camera_names = list(source.camera_names)
     images, cameras, skip, images_why = bool(camera_names), {}, False, "the set has no camera"
+    late = None
     num_episodes = source.num_episodes
     if camera_names:
         try:
@@ -128,10 +150,11 @@ def write(root: str | Path, output: str | Path, action_key: str = "", state_key:
             skip = bool(missing.missing)
             num_episodes -= len(missing.missing)
             images_why = "the set's cameras are read"
+            late = late_timestamps(root, probe_layout, action_key, state_key, cameras, skip)
     robot = recipe_lib.robot_settings(
         root, {"action": action_key, "state": state_key or "observation.state"}, groups, width,
         0 if state is None else int(state.shape[1]), cameras, images, images_why, skip,
-        num_episodes)
+        num_episodes, late)
     draft = recipe_lib.Recipe(tuple(groups), robot)
     config = base.get_config()
     config.update_from_flattened_dict(draft.config_overrides())

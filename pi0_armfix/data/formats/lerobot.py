@@ -57,6 +57,7 @@ import functools
 import itertools
 import json
 import logging
+import math
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -72,7 +73,8 @@ from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.data.formats import image_store
 from pi0_armfix.data.formats.files import lfs_pointer_message, unreadable
 from pi0_armfix.data.formats.frame_store import FrameStore
-from pi0_armfix.data.formats.lerobot_frames import LeRobotFrameImages, probe_frame, segment_time
+from pi0_armfix.data.formats.lerobot_frames import (LATE_FRAMES, LateTimestamps,
+                                                 LeRobotFrameImages, probe_frame, segment_time)
 from pi0_armfix.data.formats.lerobot_meta import (
     ACTION, FPS_TOLERANCE, STATE, EpisodeRecord, check_row_rate, episodes_v2, episodes_v3,
     major_version, matrix, open_parquet, task_prompts_of, task_rows, vector, with_prompts)
@@ -280,12 +282,16 @@ class LeRobotSource:
                             where, path), where + ", last row")
                     elif start + times[-1] > (last + self.video_tolerance_frames / self.fps
                                               + TIME_EPSILON_FRAMES / self.fps):
-                        raise ValueError(
-                            f"{path} ends at {last:.4f} s (its last frame) but {where}'s last "
-                            f"row has timestamp {times[-1]:.4f} s"
-                            + (f" (+ from_timestamp {start:.4f} s)" if start else "")
-                            + ": the data's timestamps run past the video. If by up to a frame, "
-                            "set data.video_tolerance_frames=1 to read the nearest frame")
+                        found = (f"{path} ends at {last:.4f} s (its last frame) but {where}'s "
+                                 f"last row has timestamp {times[-1]:.4f} s"
+                                 + (f" (+ from_timestamp {start:.4f} s)" if start else "")
+                                 + ": the data's timestamps run past the video")
+                        frames = math.ceil((start + times[-1] - last) * self.fps - 1e-6)
+                        if frames <= LATE_FRAMES:
+                            raise LateTimestamps(
+                                f"{found}. Set data.video_tolerance_frames={frames} to read the "
+                                "nearest frame", frames)
+                        raise ValueError(found)
                 finally:
                     decoder.close()
 

@@ -21,6 +21,18 @@ from pi0_armfix.data.formats.frame_store import FrameColumn
 from pi0_armfix.data.formats.lerobot_meta import EpisodeRecord, open_parquet
 from pi0_armfix.data.formats.video import TIME_EPSILON_FRAMES, VideoDecoder
 
+LATE_FRAMES = 2  # timestamps this many frames past their video: named with the tolerance to set
+
+
+class LateTimestamps(ValueError):
+    """A row's timestamp lies past its video by up to `LATE_FRAMES` frames: `frames` is the
+    `data.video_tolerance_frames` that reads the video's last frame for it."""
+
+    def __init__(self, message: str, frames: int):
+        super().__init__(message)
+        self.frames = frames
+
+
 def segment_time(start: float, stop: float, timestamp: float, fps: float, tolerance: float,
                  where: str, path: Path) -> float:
     """The time in the mp4 of a row with `timestamp` whose episode owns the segment
@@ -37,14 +49,15 @@ def segment_time(start: float, stop: float, timestamp: float, fps: float, tolera
         if seconds - last <= slack:
             return last
         over = (seconds - last) * fps
-        raise ValueError(
-            f"{where}: timestamp {timestamp:.4f} s lies {over:.2f} frames past the episode's "
-            f"segment [{start:.4f} s, {stop:.4f} s) of {path} (its last frame at {last:.4f} s; "
-            "beyond it the file holds the next episode). "
-            + (f"If the data's timestamps run late by up to {math.ceil(over - 1e-6)} frame(s), "
-               f"set data.video_tolerance_frames={math.ceil(over - 1e-6)} to read the segment's "
-               "last frame" if over <= 2 + 1e-6 else "The episode's meta/episodes record or its "
-               "timestamps are wrong"))
+        found = (f"{where}: timestamp {timestamp:.4f} s lies {over:.2f} frames past the episode's "
+                 f"segment [{start:.4f} s, {stop:.4f} s) of {path} (its last frame at {last:.4f} "
+                 "s; beyond it the file holds the next episode). ")
+        frames = math.ceil(over - 1e-6)
+        if over <= LATE_FRAMES + 1e-6:
+            raise LateTimestamps(
+                found + f"If the data's timestamps run late by up to {frames} frame(s), set "
+                f"data.video_tolerance_frames={frames} to read the segment's last frame", frames)
+        raise ValueError(found + "The episode's meta/episodes record or its timestamps are wrong")
     if seconds < start - TIME_EPSILON_FRAMES / fps:
         if start - seconds <= slack:
             return start
