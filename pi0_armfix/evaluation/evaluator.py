@@ -235,8 +235,8 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
              "episodes, their sampling variance from resamples of them), of the mean of "
              f"{draws} draws, and of the energy score of the {draws} "
              "draws (spread counted fairly); gain: 1 = moves like the data, 0 = still or "
-             "unrelated; rms: the error's root in the data's own units (a joint position's rad, "
-             "a base's m/s, a gripper's command units)",
+             "unrelated; rms: the error's root in the data's own units (as the set stores them: "
+             "rad or degrees for a joint, m/s for a base)",
              f"{'group':<15}{'err':>9}{'rms':>9}{'skill':>9}{'[95 % over episodes]':>22}"
              f"{f'mean {draws}':>9}{'energy':>9}{'gain':>8}{'ratio':>8}"
              + "".join(f" |{name.replace('_', ' ') + ' err':>16}{'rms':>9}{'gain':>7}"

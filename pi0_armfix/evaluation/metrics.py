@@ -4,9 +4,9 @@ All functions take absolute action chunks in evaluation units (`evaluation_units
 over a per-dim scale, not centred, so a zero velocity command stays 0). Per group g:
 
   err/<g>            MSE of the chunk against the true chunk.
-  rms_units/<g>      its root in the data's own units (a joint position's radians, a base's
-                     m/s, a gripper's command units): whether a negative skill is an arm that
-                     jitters by a fraction of a degree or one that moves.
+  rms_units/<g>      its root in the data's own units (as the set stores them: radians or
+                     degrees for a joint, m/s for a base): whether a negative skill is an arm
+                     that jitters by a fraction of a degree or one that moves.
   skill/<g>          1 - err / err of holding the previous action (`baselines`); > 0: better than
                      doing nothing, 0: as good as doing nothing, 1: perfect.
   motion_gain/<g>    least-squares slope of predicted on true displacement; 1 = moves as far as

@@ -92,6 +92,7 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.policies import inference
 from pi0_armfix.policies.sampling import EXECUTIONS
 from pi0_armfix.study.aggregate import aggregate
+from pi0_armfix.study import first_chunks
 from pi0_armfix.study.curves import CURVES_HEADING, curve_table, plot_curves
 from pi0_armfix.study.report import markdown, plot_study
 from pi0_armfix.study.run import (CHILDREN, CLOSED_LOOP_STEPS_PER_EPISODE, StudyInterrupted,
@@ -145,7 +146,8 @@ def write_reports(results: Sequence[Mapping[str, Any]], workdir: Path, *, steps:
     was written with."""
     study = aggregate(results, primary=primary, ceiling=ceiling)
     kept_curves = kept_curve_section(workdir / "study.md")
-    (workdir / "study.md").write_text(markdown(study, steps=steps, command=command))
+    (workdir / "study.md").write_text("\n".join([markdown(study, steps=steps, command=command),
+                                                *first_chunks.section(results, workdir), ""]))
     # One line: every run's episode resamples make a study's report megabytes.
     json_files.write_json_atomic(workdir / "study.json",
                                 {"command": command, "steps": steps, "runs": list(results),
