@@ -1,5 +1,5 @@
 """Where the project caches what it builds once: the demo dataset, offline tokenizers, the
-on-disk frame columns of a dataset, benchmark datasets.
+on-disk frame columns of a dataset, benchmark datasets, and JAX's compiled programs.
 
 `cache_root()` is `$PI0_ARMFIX_CACHE` if set, else `~/.cache/pi0_armfix`; every cached entry is
 named by a hash of what it was built from, so an entry is never reused for other inputs.
@@ -41,3 +41,42 @@ def build_lock(entry: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+COMPILED = "jax_compilation_cache"
+# Keep programs whose compile took at least this long: the train step, the samplers, the
+# evaluation's; the many tiny programs of a run compile faster than they load.
+MIN_COMPILE_SECONDS = 0.5
+
+
+def host_key() -> dict[str, str]:
+    """What a compiled program depends on beyond what JAX keys it by (its program, compile
+    options, XLA flags, backend and jax / jaxlib versions): the host's CPU (its instruction-set
+    flags: code compiled for one CPU may not run on another) and the platforms asked for."""
+    import jax
+    import jaxlib
+
+    try:
+        flags = next((line for line in Path("/proc/cpuinfo").read_text().splitlines()
+                      if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        flags = ""
+    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__,
+            "platforms": os.environ.get("JAX_PLATFORMS", ""),
+            "xla_flags": os.environ.get("XLA_FLAGS", ""), "cpu": digest(flags)}
+
+
+def use_compilation_cache() -> Path | None:
+    """Turns JAX's persistent compilation cache on in `cache_root()/jax_compilation_cache/<host>`
+    (`host_key`'s digest, so that a program compiled on another host or JAX is never loaded),
+    unless one is set already (`$JAX_COMPILATION_CACHE_DIR` or `jax_compilation_cache_dir`) or
+    `$PI0_ARMFIX_COMPILATION_CACHE=0`. Returns the folder it turned on, or None."""
+    import jax
+
+    if (os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+            or os.environ.get("PI0_ARMFIX_COMPILATION_CACHE") == "0"):
+        return None
+    folder = cache_root() / COMPILED / digest(host_key())
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    return folder

@@ -18,7 +18,7 @@ import jax
 from absl import app, flags
 from etils import epath
 
-from pi0_armfix import console
+from pi0_armfix import cache, console
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
@@ -86,6 +86,7 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
     console.quiet_library_logging()
+    cache.use_compilation_cache()
     if FLAGS.closed_loop:
         try:
             try:

@@ -35,7 +35,7 @@ from collections.abc import Sequence
 
 from absl import app, flags
 
-from pi0_armfix import console
+from pi0_armfix import cache, console
 from pi0_armfix.policies import inference
 from pi0_armfix.serving.server import MAX_MESSAGE_MB, PROTOCOLS, PolicyServer
 
@@ -45,6 +45,7 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     FLAGS = flags.FLAGS
     console.quiet_library_logging()
+    cache.use_compilation_cache()
     logging.getLogger("websockets").setLevel(logging.WARNING)
     try:
         if FLAGS.max_message_mb < 1:

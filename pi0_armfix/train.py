@@ -57,7 +57,7 @@ from etils import epath
 from ml_collections import config_flags
 from tqdm import tqdm
 
-from pi0_armfix import console
+from pi0_armfix import cache, console
 from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data import background
 from pi0_armfix.data.pipeline import pipeline
@@ -315,6 +315,7 @@ def main(argv: Sequence[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     console.quiet_library_logging()
+    cache.use_compilation_cache()
     # A run stopped by an error leaves batches of its data workers in shared memory; the
     # resource tracker (a child started with these options) unlinks them, and need not say so.
     sys.warnoptions.append("ignore:resource_tracker:UserWarning")

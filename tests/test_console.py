@@ -111,3 +111,24 @@ def test_an_installed_command_help_prints_its_description_and_every_flag(module,
     assert description in done.stdout
     for flag in (own_flag, "--average_draws", "--temperature"):
         assert flag in done.stdout
+
+
+def test_the_entrypoints_compilation_cache_is_keyed_by_the_host_and_left_to_a_users_own(
+        tmp_path, monkeypatch):
+    import jax
+
+    from pi0_armfix import cache
+
+    before = jax.config.jax_compilation_cache_dir
+    monkeypatch.setenv("PI0_ARMFIX_CACHE", str(tmp_path))
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    try:
+        jax.config.update("jax_compilation_cache_dir", None)
+        folder = cache.use_compilation_cache()
+        assert folder == tmp_path / cache.COMPILED / cache.digest(cache.host_key())
+        assert jax.config.jax_compilation_cache_dir == str(folder)
+        monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_some_other_flag")  # another host's programs
+        assert cache.digest(cache.host_key()) != folder.name
+        assert cache.use_compilation_cache() is None  # one set already: left as it is
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)

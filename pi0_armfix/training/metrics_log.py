@@ -2,17 +2,25 @@
 
 Only process 0 writes. A resumed run first drops the records of steps after its checkpoint (a
 killed run may have logged past it), so the file reads as if the run had never stopped.
+
+The TensorBoard events are written in the training thread, each record flushed (tensorboardX's
+events writer without its `SummaryWriter`, whose writer thread and exit hook print their own
+tracebacks when the disk fills): a failed write stops the mirror with one warning line, and
+`metrics.jsonl` goes on, or fails as the run's own error.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
+import time
 from collections.abc import Mapping
 
 import jax
 from etils import epath
-from tensorboardX import SummaryWriter
+from tensorboardX.event_file_writer import EventsWriter
+from tensorboardX.proto import event_pb2, summary_pb2
 
 METRICS_FILE = "metrics.jsonl"
 
@@ -54,7 +62,21 @@ class MetricsWriter:
         kept = [r for r in read_metrics(self.path) if r["step"] <= resume_step]
         self.path.write_text("".join(json.dumps(r) + "\n" for r in kept))
         self._file = self.path.open("a")
-        self._tb = SummaryWriter(str(workdir / "tensorboard"))
+        self._tb: EventsWriter | None = None
+        self._tensorboard(lambda: self._open_tensorboard(workdir / "tensorboard"))
+
+    def _open_tensorboard(self, folder: epath.Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        self._tb = EventsWriter(str(folder / "events"))
+
+    def _tensorboard(self, action) -> None:
+        """`action()` on the TensorBoard mirror; an OSError (a full disk) stops the mirror."""
+        try:
+            action()
+        except OSError as err:
+            logging.warning("TensorBoard mirror stopped (%s); %s keeps every record", err,
+                            self.path)
+            self._tb = None
 
     def write(self, step: int, scalars: Mapping[str, float | int | str]) -> None:
         """One record; strings are logged to the JSON file only."""
@@ -65,15 +87,19 @@ class MetricsWriter:
             record[name] = value if isinstance(value, str) else _json_number(value)
         self._file.write(json.dumps(record) + "\n")
         self._file.flush()
-        for name, value in record.items():
-            if name != "step" and not isinstance(value, str) and value is not None:
-                self._tb.add_scalar(name, value, step)
-        self._tb.flush()
+        values = [summary_pb2.Summary.Value(tag=name, simple_value=float(value))
+                  for name, value in record.items()
+                  if name != "step" and not isinstance(value, str) and value is not None]
+        if self._tb is not None and values:
+            event = event_pb2.Event(wall_time=time.time(), step=int(step),
+                                    summary=summary_pb2.Summary(value=values))
+            self._tensorboard(lambda: (self._tb.write_event(event), self._tb.flush()))
 
     def close(self) -> None:
         if self._active:
             self._file.close()
-            self._tb.close()
+            if self._tb is not None:
+                self._tensorboard(self._tb.close)
 
 
 def _json_number(value) -> float | int | None:
