@@ -26,7 +26,7 @@ from pi0_armfix.evaluation import figures
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation.evaluator import METRICS_FILE, format_metrics, heldout_paths
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import restore
 from pi0_armfix.policies.sampling import SAMPLED_LEVERS
 from pi0_armfix.training import metrics_log
 from pi0_armfix.sim import env as env_lib
@@ -42,11 +42,11 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     """Evaluates a run's checkpoint (latest if `step` is None) with its own config and norm stats;
     writes the figures into `<workdir>/eval/step_<N>/`. `params_name`: "ema" (the EMA params when
     the run kept them, else the params) or "params"; `levers`: inference levers in place of the
-    run's (`inference.restore_run`). The metrics go to `metrics.json` there (with levers other
+    run's (`restore.restore_run`). The metrics go to `metrics.json` there (with levers other
     than the plain sampler's, or the raw params of a run with an EMA,
     `metrics<RestoredRun.result_tag>.json`, which the stagnation figure and the study leave out).
     Returns `(step, metrics, layout, metrics path)`."""
-    run = inference.restore_run(workdir, step, params_name, levers)
+    run = restore.restore_run(workdir, step, params_name, levers)
     tag = run.result_tag()
     workdir, step, layout = run.workdir, run.step, run.layout
     out = workdir / "eval" / f"step_{step}"

@@ -383,12 +383,12 @@ def test_held_out_chunks_beyond_max_chunks_are_an_even_subset_without_overlap():
 
 def _evaluate_in_process(workdir, **eval_changes):
     import jax
-    from pi0_armfix.policies import inference
+    from pi0_armfix.policies import restore
     from pi0_armfix.data.formats import sources
     from pi0_armfix.data.pipeline.data_spec import DataSpec
     from pi0_armfix.model import tokenizer as tokenizer_lib
     from pi0_armfix import sharding as sharding_lib
-    run = inference.restore_run(workdir)
+    run = restore.restore_run(workdir)
     config = run.config
     config.eval.update(eval_changes)
     mesh = sharding_lib.make_mesh(1)
@@ -404,11 +404,11 @@ def _evaluate_in_process(workdir, **eval_changes):
 
 
 def test_the_held_out_truth_is_the_stored_actions_on_every_dim_never_the_normalizers(trained):
-    from pi0_armfix.policies import inference
+    from pi0_armfix.policies import restore
     from pi0_armfix.data.pipeline import dataset as dataset_lib
     from pi0_armfix.data.pipeline import transforms
     from pi0_armfix.data.pipeline.data_spec import DataSpec
-    run = inference.restore_run(trained)  # delta torso: its constant dim 6 relative to the state
+    run = restore.restore_run(trained)  # delta torso: its constant dim 6 relative to the state
     spec = DataSpec.from_config(run.config, run.layout)
     chunks = evaluator_lib.heldout_chunks(spec, run.config.eval, run.model_config,
                                           run.norm_stats, tokenize=None)

@@ -16,7 +16,7 @@ from pi0_armfix.data.statistics import normalize
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import pretrained
 from pi0_armfix.model.tree import flatten_tree
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import inference, restore
 from pi0_armfix.tools import export_openpi
 
 # Delta torso and arm actions on a state reordered into the action order, as on B1K.
@@ -76,7 +76,7 @@ def test_params_restore_the_way_openpi_restores_them(run, exported):
             restore_args={"params": {k: v for k, v in _restore_args(tree["params"]).items()}}))
     flat = flatten_tree(restored["params"])
     assert not any(path.endswith("/value") for path in flat)
-    own = flatten_tree(inference.restore_run(run).params)
+    own = flatten_tree(restore.restore_run(run).params)
     assert flat.keys() == own.keys()
     for key, value in own.items():
         np.testing.assert_array_equal(flat[key], np.asarray(value))
@@ -89,7 +89,7 @@ def _restore_args(tree):
 
 def test_the_exported_folder_gives_the_runs_actions(run, exported):
     output, _ = exported
-    original = inference.restore_run(run)
+    original = restore.restore_run(run)
     params = pretrained.load_pretrained(output / "params", original.model_config)
     stats = stats_lib.load_norm_stats(output / "assets" / "demo" / "norm_stats.json")
     loaded = dataclasses.replace(original, params=params,
@@ -107,7 +107,7 @@ def test_the_exported_folder_gives_the_runs_actions(run, exported):
 
 
 def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
-    restored = inference.restore_run(run, levers={"average_draws": 4, "temperature": 0.5,
+    restored = restore.restore_run(run, levers={"average_draws": 4, "temperature": 0.5,
                                                   "group_draws": "base=2", "rtc": True,
                                                   "deadband": "base=0.1"})
     caveats = export_openpi.openpi_caveats(restored)
@@ -117,13 +117,13 @@ def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
     assert any(c.startswith("eval.rtc = True: how this run's chunks are executed") for c in caveats)
     assert any(c.startswith("eval.deadband = 'base=0.1'") for c in caveats)
     assert not any("eval.average_draws" in c or "eval.temperature" in c
-                   for c in export_openpi.openpi_caveats(inference.restore_run(run)))
+                   for c in export_openpi.openpi_caveats(restore.restore_run(run)))
 
 
 def test_an_unwritable_output_is_refused_in_one_line_before_the_run_is_read(run, tmp_path,
                                                                           monkeypatch):
     (tmp_path / "a_file").write_text("")
-    monkeypatch.setattr(export_openpi.inference, "restore_run",
+    monkeypatch.setattr(export_openpi.restore, "restore_run",
                         lambda *a, **k: pytest.fail("the run was read"))
     with pytest.raises(ValueError, match=r"cannot write the results into .*a_file/export .*"
                                          r"pass an --output on a writable file system"):
@@ -192,7 +192,7 @@ def test_delta_masks_become_openpis_make_bool_mask_arguments():
 
 
 def test_a_run_relative_to_the_previous_action_is_one_openpi_cannot_reproduce(run):
-    restored = inference.restore_run(run)
+    restored = restore.restore_run(run)
     config = ml_collections.ConfigDict(restored.config.to_dict())
     config.data.delta_reference = "previous_action"
     problems = export_openpi.openpi_problems(dataclasses.replace(restored, config=config))

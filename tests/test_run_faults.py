@@ -15,7 +15,7 @@ import train_fixtures as tf
 from train_fixtures import cache_dir, demo_root  # noqa: F401  (pytest fixtures)
 from pi0_armfix.configs import base
 from pi0_armfix import train
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import restore
 from pi0_armfix.training import finite_checkpoints
 from pi0_armfix import sharding
 from pi0_armfix.training import checkpoint, fingerprint, preemption
@@ -420,11 +420,11 @@ def test_evaluation_of_a_damaged_latest_checkpoint_falls_back_to_the_previous_st
         finished_run, tmp_path, capsys):
     workdir = shutil.copytree(finished_run[0], tmp_path / "run")
     _damage_state(workdir / "checkpoints" / "4")
-    run = inference.restore_run(workdir)
+    run = restore.restore_run(workdir)
     assert run.step == 2
     assert "checkpoints/4 is damaged" in capsys.readouterr().err
     with pytest.raises(ValueError, match=r"checkpoints/4 is damaged .*the run's steps: \[2, 4\]"):
-        inference.restore_run(workdir, step=4)
+        restore.restore_run(workdir, step=4)
 
 
 def test_evaluation_restores_the_params_and_not_the_optimizer_state(finished_run):

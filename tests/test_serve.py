@@ -32,7 +32,7 @@ from pi0_armfix.evaluation import outputs
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import inputs as model_inputs_lib
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import inference, restore
 from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.serving import server as server_lib
 from pi0_armfix.sim import outcomes
@@ -346,7 +346,7 @@ def test_a_policy_with_levers_averages_its_draws_and_says_so(run):
 
 
 def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
-    restored = inference.restore_run(run, levers={"average_draws": 2, "temperature": 0.5,
+    restored = restore.restore_run(run, levers={"average_draws": 2, "temperature": 0.5,
                                                   "group_draws": "base=3"})
     policy = inference.RunPolicy(restored)
     evaluator, mesh = evaluator_lib.run_evaluator(restored)
@@ -371,7 +371,7 @@ def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
 def test_a_wide_deadband_holds_the_previous_action_but_leaves_an_episodes_first_chunk_alone(run):
     draws = {}
     for band in ("torso=1e9", None):
-        restored = inference.restore_run(run, levers={"deadband": band})
+        restored = restore.restore_run(run, levers={"deadband": band})
         evaluator, mesh = evaluator_lib.run_evaluator(restored)
         with jax.set_mesh(mesh):
             draws[band] = evaluator.absolute_draws(restored.params)[0]  # [N, H, A]
@@ -398,7 +398,7 @@ def test_a_wide_deadband_holds_the_previous_action_but_leaves_an_episodes_first_
     ({"draws": 2}, r"unknown inference lever\(s\) \['draws'\]")])
 def test_bad_levers_are_refused_before_the_checkpoint_is_read(levers, message, tmp_path):
     with pytest.raises(ValueError, match=message):
-        inference.restore_run(tmp_path / "no run here", levers=levers)
+        restore.restore_run(tmp_path / "no run here", levers=levers)
 
 
 @pytest.mark.parametrize("kwargs, message", [({"episodes": 0}, "--episodes = 0 must be >= 1"),

@@ -20,7 +20,7 @@ from typing import Any
 import jax
 from etils import epath
 
-from pi0_armfix.policies import execution, inference
+from pi0_armfix.policies import execution, inference, restore
 from pi0_armfix.data import json_files
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.sim import env as env_lib
@@ -38,7 +38,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     """Runs a checkpoint's policy in the demo world (`pi0_armfix.sim`) on `episodes` episodes of
     world seed `sim_seed`, sampled and executed with the run's levers (`policies.sampling.
     Sampling`, `policies.execution.Replanner`; `levers`: a command's in their place,
-    `inference.restore_run`); writes `closed_loop_<episodes>ep[...].json` and
+    `restore.restore_run`); writes `closed_loop_<episodes>ep[...].json` and
     `rollouts_<episodes>ep[...].png` (against the scripted expert; `closed_loop_paths`: named by
     their settings, so no other evaluation replaces them) into `<workdir>/eval/step_<N>/`. With
     `tolerances` (factors other than 1), the same episodes again in the world with its success
@@ -50,7 +50,7 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--sim_seed = {sim_seed} must be >= 0 (a world seed)")
     if any(f <= 0 for f in tolerances):
         raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
-    policy_ = inference.RunPolicy(inference.restore_run(workdir, step, params_name, levers))
+    policy_ = inference.RunPolicy(restore.restore_run(workdir, step, params_name, levers))
     run, sampling = policy_.run, policy_.sampling
     replanning = execution.Replanner(policy_)  # its levers checked before any rollout
     n_exec = replanning.n_exec

@@ -38,7 +38,7 @@ from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
-from pi0_armfix.policies import execution, inference
+from pi0_armfix.policies import execution, restore
 from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.evaluation import figures
 from pi0_armfix import sharding as sharding_lib
@@ -283,7 +283,7 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
 
 # ---------------------------------------------------------------------- offline entrypoint
 
-def run_evaluator(run: inference.RestoredRun) -> tuple[Evaluator, jax.sharding.Mesh]:
+def run_evaluator(run: restore.RestoredRun) -> tuple[Evaluator, jax.sharding.Mesh]:
     """The `Evaluator` of a restored run (its own config, norm stats and data) on one device,
     and the mesh to call it under."""
     config, layout, model_config = run.config, run.layout, run.model_config
@@ -294,7 +294,7 @@ def run_evaluator(run: inference.RestoredRun) -> tuple[Evaluator, jax.sharding.M
     with jax.set_mesh(mesh):
         evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
                               params_sharding=sharding_lib.tree_shardings(run.params, mesh),
-                              source=source, noise_factor=inference.run_noise_factor(
+                              source=source, noise_factor=restore.run_noise_factor(
                                   run.workdir, config, layout, model_config),
                               sampling=run.sampling)
     return evaluator, mesh

@@ -89,7 +89,7 @@ from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import restore
 from pi0_armfix.policies.sampling import EXECUTIONS
 from pi0_armfix.study.aggregate import aggregate
 from pi0_armfix.study import first_chunks
@@ -122,7 +122,7 @@ def ceiling_metrics(results: Sequence[Mapping[str, Any]], workdir: Path
             return found
     first = results[0]
     try:
-        run = inference.restore_run(run_folder(workdir, first["config"], first["seed"]))
+        run = restore.restore_run(run_folder(workdir, first["config"], first["seed"]))
     except ValueError:  # results copied without their checkpoints: no ceiling to measure
         return None
     if run.config.data.root:

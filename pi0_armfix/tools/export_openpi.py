@@ -55,7 +55,7 @@ from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation.outputs import writable_folder
 from pi0_armfix.model import config as model_config_lib
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import restore
 
 EXPORT_FILE = "pi0_armfix_export.json"
 OPENPI_PRESETS = {"pi0": "pi0", "pi05": "pi05"}  # our preset -> openpi's model of that size
@@ -75,7 +75,7 @@ def resolve_checkpoint(path: str | Path) -> tuple[Path, int | None]:
     return path, None
 
 
-def openpi_problems(run: inference.RestoredRun) -> list[str]:
+def openpi_problems(run: restore.RestoredRun) -> list[str]:
     """What openpi's policy cannot reproduce of this run, one line each naming the config key."""
     config, model = run.config, run.model_config
     problems = []
@@ -105,7 +105,7 @@ def openpi_problems(run: inference.RestoredRun) -> list[str]:
     return problems
 
 
-def openpi_caveats(run: inference.RestoredRun) -> list[str]:
+def openpi_caveats(run: restore.RestoredRun) -> list[str]:
     """What openpi does differently but the user can set on their side (not refused)."""
     sampling = run.sampling
     caveats = []
@@ -179,7 +179,7 @@ def openpi_norm_stats(norm_stats: Mapping[str, stats_lib.NormStats], mode: str, 
     return {"norm_stats": out}, adjusted
 
 
-def openpi_config(run: inference.RestoredRun, asset_id: str) -> dict[str, Any]:
+def openpi_config(run: restore.RestoredRun, asset_id: str) -> dict[str, Any]:
     """The openpi train config this run pairs with, as the fields to set."""
     config, layout, model = run.config, run.layout, run.model_config
     mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
@@ -276,7 +276,7 @@ def export(checkpoint: str | Path, output: str | Path, *, asset_id: str = "",
         raise ValueError(f"--output={output} is not empty; name a new folder (an export never "
                          "overwrites one)")
     writable_folder(output, "pass an --output on a writable file system", create=False)
-    run = inference.restore_run(epath.Path(workdir), step, "ema" if ema else "params")
+    run = restore.restore_run(epath.Path(workdir), step, "ema" if ema else "params")
     problems = openpi_problems(run)
     if problems and not force:
         raise ValueError(f"openpi cannot reproduce {workdir} step {run.step}: {problems[0]}"
@@ -303,7 +303,7 @@ def export(checkpoint: str | Path, output: str | Path, *, asset_id: str = "",
     return summary
 
 
-def default_asset_id(run: inference.RestoredRun) -> str:
+def default_asset_id(run: restore.RestoredRun) -> str:
     """openpi names a dataset's statistics by its repo id: the run's data folder name (the demo's
     'pi0_armfix_demo')."""
     root = run.config.data.get("root") or ""

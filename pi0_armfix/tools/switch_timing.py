@@ -32,7 +32,7 @@ from pi0_armfix import console
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
-from pi0_armfix.policies import inference
+from pi0_armfix.policies import restore
 
 RESULT_FILE = "switch_timing.json"
 
@@ -98,7 +98,7 @@ def run_switch_timing(workdir: str, step: int | None, tolerances: Sequence[int]
     """`switch_timing` of a run's checkpoint on its held-out chunks: `{"single_draw": ...,
     "mean_of_draws": ...}` with the settings used; written to `eval/step_<N>/` (`RESULT_FILE`).
     Returns `(step, result)`."""
-    run = inference.restore_run(workdir, step)
+    run = restore.restore_run(workdir, step)
     groups = evaluator_lib.eval_groups(run.config.eval, run.layout)["gripper_groups"]
     if not groups:
         raise ValueError(f"{workdir}: the layout has no gripper group (eval.gripper_groups or a "
