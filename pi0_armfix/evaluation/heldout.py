@@ -145,7 +145,7 @@ class HeldOutChunks:
                                          scale=self.scale)
         chunks = baselines_lib.baseline_chunks(table, self.frames, horizon, layout,
                                                spec.state_groups)
-        if not spec.get("root") and spec.get("format", "lerobot") == "lerobot":
+        if not spec.reading.root and spec.reading.format == "lerobot":
             chunks[CEILING] = ceiling_lib.redraw_chunks(table, self.frames, horizon, DemoSpec())
         self.previous = chunks["persistence"][:, 0, :layout.real_dim]  # dataset units
         self.executed = np.where(self.chunk_names[:, 1:2] == 0, np.nan, self.previous)

@@ -56,7 +56,7 @@ class ChunkStats:
 
 def needed(spec: DataSpec, noise_beta: float) -> bool:
     """Whether a run uses chunk statistics (either lever; `noise_beta`: `loss.noise_beta`)."""
-    return bool(spec.get("norm_per_timestep")) or float(noise_beta) < 1.0
+    return spec.statistics.norm_per_timestep or float(noise_beta) < 1.0
 
 
 def chunk_starts(num_frames: int, max_chunks: int) -> np.ndarray:
@@ -117,7 +117,7 @@ def chunk_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str,
     actions), the horizon and the sample size."""
     key = dataset_lib.norm_stats_key(spec, source, action_horizon=action_horizon)
     key["model.action_horizon"] = int(action_horizon)
-    key["data.chunk_stats_chunks"] = int(spec.get("chunk_stats_chunks"))
+    key["data.chunk_stats_chunks"] = spec.statistics.chunk_stats_chunks
     return key
 
 
@@ -147,7 +147,7 @@ def load_or_compute_chunk_stats(spec: DataSpec, *, action_horizon: int, folder: 
     stats = compute_chunk_stats(table, action_horizon=action_horizon, delta_mask=spec.delta_mask,
                                 delta_reference=spec.delta_reference, constant=constant,
                                 start=start,
-                                max_chunks=int(spec.get("chunk_stats_chunks")))
+                                max_chunks=spec.statistics.chunk_stats_chunks)
     save_per_timestep(paths[0], stats.per_timestep)
     # Through a temporary file and a rename, like the norm stats: every process of a run writes.
     with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{CORRELATION_FILE}.", suffix=".npy",

@@ -3,24 +3,75 @@
 Every data function (`dataset`, `sampling`, `pipeline`, `chunk_stats`) takes the spec, never the
 config: which layout the actions follow, which episodes train and which are held out, how actions
 are represented (delta dims) and normalized, which state dims the policy sees, how samples are
-drawn (curriculum, stream) and read (workers, prefetch). The config's `data` section stays beside
-the typed fields as plain values (`options`), for the two readers that take it as a whole: opening
-the source (`sources.open_source`) and the statistics cache's key (`dataset.norm_stats_key`).
+drawn (curriculum, stream) and read (workers, prefetch). Two typed views say what their readers
+take, each key at `configs/base.py`'s default where a config leaves it unset: `reading` (the
+source, the probe, the frame cache, the stream, the workers) and `statistics` (a norm-stats file,
+balanced or per-timestep statistics). The config's `data` section stays beside them as plain
+values (`options`), for the two readers that take it as a whole: opening the source
+(`sources.open_source`) and the statistics cache's key (`dataset.norm_stats_key`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.configs import base as base_config
 from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data.pipeline import curriculum as curriculum_lib
 from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.model import config as model_config_lib
+
+
+@functools.cache
+def _defaults() -> dict[str, Any]:
+    return base_config.get_config().data.to_dict()
+
+
+def _typed(cls, options: Mapping[str, Any]):
+    """`cls` (a view of `data.*`) from `options`, each unset key at its base-config default."""
+    defaults = _defaults()
+    values = {}
+    for field in dataclasses.fields(cls):
+        value = options.get(field.name)
+        default = defaults[field.name]
+        values[field.name] = default if value is None else type(default)(value)
+    return cls(**values)
+
+
+@dataclasses.dataclass(frozen=True)
+class Reading:
+    """How the source is opened and its samples read (`data.<field>`, `configs/base.py`)."""
+
+    root: str
+    format: str
+    state_key: str
+    images: bool
+    frame_cache: bool
+    probe_episodes: int
+    video_access: str
+    stream_episodes: int
+    stream_shuffle: int
+    stream_stride: int
+    num_workers: int
+    prefetch: int
+    arm_heavy_episodes: str  # the curriculum's episode list (filter_arm_heavy_episodes)
+
+
+@dataclasses.dataclass(frozen=True)
+class Statistics:
+    """Where the normalization statistics come from (`data.<field>`, `configs/base.py`)."""
+
+    norm_stats: str  # a norm_stats.json to load; '' = computed into the workdir
+    balanced_norm: bool
+    balanced_max_scale: float
+    norm_per_timestep: bool
+    chunk_stats_chunks: int
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -42,6 +93,7 @@ class DataSpec:
       state_preset: the state preset read ('' = every stored dim or `data.state_indices`).
       state_groups: the state's {group: (start, stop)} in the action order, or None.
       curriculum: the parsed `data.curriculum` (one phase of the full dataset when unset).
+      reading, statistics: the typed views of the rest of `data` (module docstring).
     """
 
     layout: ActionLayout
@@ -58,6 +110,8 @@ class DataSpec:
     state_groups: Mapping[str, Sequence[int]] | None = None
     curriculum: curriculum_lib.Curriculum = dataclasses.field(
         default_factory=lambda: curriculum_lib.Curriculum(curriculum_lib.parse_curriculum(()), 0))
+    reading: Reading = dataclasses.field(default_factory=lambda: _typed(Reading, {}))
+    statistics: Statistics = dataclasses.field(default_factory=lambda: _typed(Statistics, {}))
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any], layout: ActionLayout,
@@ -85,12 +139,8 @@ class DataSpec:
             delta_reference=_delta_reference(options),
             state_preset=selection_lib.state_preset(options),
             state_groups=selection_lib.state_groups(options),
-            curriculum=curriculum_lib.Curriculum.from_config(options, seed))
-
-    def get(self, key: str, default: Any = None) -> Any:
-        """`data.<key>` as configured (None or missing: `default`)."""
-        value = self.options.get(key)
-        return default if value is None else value
+            curriculum=curriculum_lib.Curriculum.from_config(options, seed),
+            reading=_typed(Reading, options), statistics=_typed(Statistics, options))
 
 
 def _delta_reference(options: Mapping[str, Any]) -> str:

@@ -189,7 +189,7 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
                 f"{state_space.STATE_PRESETS[presets[0]].width} dims in the action order) or "
                 if presets else "")
         raise ValueError(
-            f"{where}: the state ({spec.get('state_key', 'observation.state')!r}) has "
+            f"{where}: the state ({spec.reading.state_key!r}) has "
             f"{source.state_width} dims, more than layout.action_dim={layout.action_dim}: it "
             f"cannot be padded into the model's state. Select the dims the policy needs: "
             f"{hint}data.state_indices=(...)")
@@ -199,7 +199,7 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
         check_delta_units(spec, source)
     curriculum = spec.curriculum
     if "arm_heavy" in curriculum.sources:
-        listed = spec.get("arm_heavy_episodes", "")
+        listed = spec.reading.arm_heavy_episodes
         if listed:
             chosen = curriculum_lib.load_episode_list(listed)
             unknown = np.setdiff1d(chosen, source.episode_index)
@@ -229,7 +229,7 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
             source.cameras, getattr(source, "camera_names", ()), where)
         if missing:
             warnings.append(missing)
-    source.probe(int(spec.get("probe_episodes", 4)), videos=images)
+    source.probe(spec.reading.probe_episodes, videos=images)
     return warnings
 
 
@@ -420,8 +420,8 @@ def load_or_compute_norm_stats(spec: DataSpec, *, action_horizon: int,
     layout = spec.layout
     widths = {"actions": layout.real_dim, "state": None}
     optional = {ABSOLUTE_ACTIONS: layout.real_dim}
-    if spec.get("norm_stats"):
-        return stats_lib.load_norm_stats(spec.get("norm_stats"), widths, optional)
+    if spec.statistics.norm_stats:
+        return stats_lib.load_norm_stats(spec.statistics.norm_stats, widths, optional)
     source = _source(spec, source)
     key = norm_stats_key(spec, source, action_horizon=action_horizon)
     if episodes is not None and cache_path is not None:
@@ -448,9 +448,9 @@ def load_or_compute_norm_stats(spec: DataSpec, *, action_horizon: int,
                 "resume with the config it was started with, or start a new --workdir")
         logging.warning("%s was computed from other data or options (differing: %s): "
                         "recomputing it", cache_path, differing)
-    if spec.get("balanced_norm"):
+    if spec.statistics.balanced_norm:
         stats, reports = balanced_dataset_norm_stats(
-            spec, float(spec.get("balanced_max_scale", 10.0)),
+            spec, spec.statistics.balanced_max_scale,
             action_horizon=action_horizon, progress=progress, source=source, episodes=episodes)
         for report in reports:
             logging.info("balanced norm stats (%s): motion RMS before %s after %s",

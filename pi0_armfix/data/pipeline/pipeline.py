@@ -137,7 +137,7 @@ def stream_batches(table: EpisodeTable, spec: DataSpec, *,
     transform = _batch_transform(table, spec, norm_stats=norm_stats,
                                  action_horizon=action_horizon, tokenize=tokenize,
                                  image_size=image_size)
-    open_episodes = int(spec.get("stream_episodes", 16))
+    open_episodes = spec.reading.stream_episodes
     curriculum, seed = spec.curriculum, spec.seed
     if curriculum.sources == ("full",) and len(curriculum.phases) == 1:
         order = video_stream.episode_order(range(table.num_episodes), seed=seed,
@@ -152,8 +152,8 @@ def stream_batches(table: EpisodeTable, spec: DataSpec, *,
             process_count=process_count)
     frames = video_stream.stream_frames(
         table.images, order, seed=seed, open_episodes=open_episodes,
-        shuffle_window=int(spec.get("stream_shuffle", 256)),
-        stride=int(spec.get("stream_stride", 4)))
+        shuffle_window=spec.reading.stream_shuffle,
+        stride=spec.reading.stream_stride)
     return frames.batch(global_batch_size // process_count, drop_remainder=True).map(
         _StreamBatch(transform))
 
@@ -307,8 +307,8 @@ def make_train_iterator(spec: DataSpec, *, norm_stats: Mapping[str, stats_lib.No
     table = source.load_table(dataset_lib.training_episodes(spec, source),
                               images=not actions_only, image_size=image_size)
     options = dict(sharding=sharding, global_batch_size=global_batch_size, seed=spec.seed,
-                   num_workers=int(spec.get("num_workers", 0)),
-                   prefetch=int(spec.get("prefetch", 2)))
+                   num_workers=spec.reading.num_workers,
+                   prefetch=spec.reading.prefetch)
     chain = dict(norm_stats=norm_stats, action_horizon=action_horizon,
                  global_batch_size=global_batch_size, process_index=jax.process_index(),
                  process_count=jax.process_count(), tokenize=tokenize, image_size=image_size)

@@ -115,7 +115,7 @@ def source_episodes(table: EpisodeTable, spec: DataSpec, names: Sequence[str],
         if name == "full":
             episodes_of[name] = np.ones(table.num_episodes, bool)
             continue
-        listed = spec.get("arm_heavy_episodes", "")
+        listed = spec.reading.arm_heavy_episodes
         if listed:
             episodes = curriculum_lib.load_episode_list(listed)
             where = f"data.arm_heavy_episodes ({listed})"

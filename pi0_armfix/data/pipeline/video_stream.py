@@ -69,17 +69,17 @@ def run_access(spec: Any, source: Any) -> tuple[str, str]:
     """`choose_access` for a run's data `spec` (its `data.*` keys) on its opened `source`:
     `(mode, why)`, `why` empty when the run reads no video (the banner then says nothing)."""
     keyframes = (source.video_keyframes()
-                 if spec.get("images") and hasattr(source, "video_keyframes") else None)
-    if keyframes is not None and spec.get("frame_cache"):
-        if spec.get("video_access") == "stream":
+                 if spec.reading.images and hasattr(source, "video_keyframes") else None)
+    if keyframes is not None and spec.reading.frame_cache:
+        if spec.reading.video_access == "stream":
             raise ValueError("data.video_access = 'stream' decodes episodes front to back, but "
                              "data.frame_cache = True reads frames decoded once: set "
                              "data.video_access='auto' or data.frame_cache=False")
         return "random", (f"{keyframes[0]}: decoded once at the model's image size into the "
                           "frame cache (data.frame_cache), frames read from it on request")
     mode, why = choose_access(
-        spec.get("video_access"), keyframes, open_episodes=int(spec.get("stream_episodes")),
-        shuffle_window=int(spec.get("stream_shuffle")), stride=int(spec.get("stream_stride")))
+        spec.reading.video_access, keyframes, open_episodes=spec.reading.stream_episodes,
+        shuffle_window=spec.reading.stream_shuffle, stride=spec.reading.stream_stride)
     return mode, why if keyframes is not None else ""
 
 
