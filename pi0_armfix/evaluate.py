@@ -23,7 +23,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import figures
-from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation.evaluator import METRICS_FILE, format_metrics, heldout_paths
 from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.policies import restore
@@ -55,7 +55,7 @@ def evaluate_checkpoint(workdir: epath.PathLike, step: int | None = None,
     with jax.set_mesh(mesh):
         metrics, predicted, true, sums = evaluator(run.params)
     metrics_path, chunk_sums_path = heldout_paths(workdir, step, tag)
-    heldout_lib.save_chunk_sums(chunk_sums_path, sums)
+    chunk_sums_lib.save_chunk_sums(chunk_sums_path, sums)
     # Strict JSON: a metric with nothing to measure (NaN) is null.
     metrics_path.write_text(json.dumps(
         {"step": step, "params": run.params_name,

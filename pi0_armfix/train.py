@@ -62,7 +62,7 @@ from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data import background
 from pi0_armfix.data.pipeline import pipeline
 from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation import figures
 from pi0_armfix.training import checkpoint, fingerprint, finite_checkpoints, preemption
 from pi0_armfix.training import metrics_log
@@ -279,7 +279,7 @@ def _evaluate(evaluator: evaluator_lib.Evaluator, state: state_lib.TrainState, s
     writer.write(step, metrics)
     if jax.process_index() == 0:
         _, sums_path = evaluator_lib.heldout_paths(workdir, step)
-        heldout_lib.save_chunk_sums(sums_path, sums)
+        chunk_sums_lib.save_chunk_sums(sums_path, sums)
         figures.plot_stagnation(metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE),
                               layout, _plots_dir(workdir) / "stagnation.png")
     say(f"step {step} held-out evaluation (sampled actions):\n"

@@ -107,7 +107,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     source = sources.open_source(data.options, layout)
     for warning in dataset_lib.check_data(data, source):
         say(f"warning: {warning}")
-    video_access, video_why = video_stream.run_access(data, source)
+    video_access, video_why = video_stream.run_access(data.reading, source)
     tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
     for line in banner(spec, workdir, mesh, source, video_why, sampling):
         say(line)
@@ -150,7 +150,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                 start=(stats_lib.start_reference(norm_stats, layout.real_dim)
                        if data.delta_reference == "previous_action" else None),
                 source=source, resuming=resuming)
-            if data.get("norm_per_timestep"):
+            if data.statistics.norm_per_timestep:
                 norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}
             if spec.loss["noise_beta"] < 1.0:
                 noise_factor = noise_lib.correlated_noise_factor(
@@ -233,9 +233,9 @@ def levers(spec: RunSpec, sampling: Sampling) -> str:
         parts.append(f"{loss['flow_samples']} flow draws per prefix")
     if loss["noise_beta"] < 1:
         parts.append(f"correlated noise (beta {loss['noise_beta']:g})")
-    if data.get("norm_per_timestep"):
+    if data.statistics.norm_per_timestep:
         parts.append("per-timestep norm stats")
-    if data.get("balanced_norm"):
+    if data.statistics.balanced_norm:
         parts.append("balanced norm stats")
     if loss["switch_weight"] != 1:
         parts.append(f"gripper switches x{loss['switch_weight']:g}")
@@ -267,25 +267,25 @@ def banner(spec: RunSpec, workdir: epath.Path, mesh: jax.sharding.Mesh, source,
             f" (LoRA on {', '.join(model_config.lora_experts)}: {trained / 1e6:.1f} M trained)")
     held_out = source.num_episodes - len(dataset_lib.training_episodes(data, source))
     frames = int(np.sum(source.episode_lengths))
-    root = getattr(source, "root", data.get("root"))
+    root = getattr(source, "root", data.reading.root)
     loss = spec.loss["strategy"]
     if loss_lib.loss_strategy(loss).config_weights == "group":
         loss += " " + ", ".join(f"{g} {w:g}" for g, w in spec.loss["group_weights"].items())
     axes = ", ".join(f"{name}={size}" for name, size in mesh.shape.items())
     selection = getattr(source, "state_selection", None)
     preset = selection.preset if selection is not None else None
-    state = (f"{selection.stored_width}-D {data.get('state_key')!r} -> state preset "
+    state = (f"{selection.stored_width}-D {data.reading.state_key!r} -> state preset "
              f"{preset.name!r} ({preset.width}-D in the action order"
              + (f"; written for {preset.dataset})" if preset.dataset else ")")
              if preset is not None else f"{source.state_width}-D, as stored"
-             + (" (data.state_indices)" if data.get("state_indices") else ""))
+             + (" (data.state_indices)" if data.options.get("state_indices") else ""))
     return [
         f"run       {workdir}",
         f"devices   {jax.device_count()} x {jax.devices()[0].platform} in {jax.process_count()} "
         f"process(es); mesh {axes}",
         f"model     {spec.model_section['preset']}: {num_params / 1e6:.1f} M params{lora}, "
         f"{model_config.dtype} activations, {model_config.action_horizon}-step chunks of {layout.action_dim} dims",
-        f"data      {root}{' (the embedded demo)' if not data.get('root') else ''}: "
+        f"data      {root}{' (the embedded demo)' if not data.reading.root else ''}: "
         f"{source.num_episodes} episodes ({held_out} held out), {frames:,} frames at "
         f"{source.fps:g} fps, cameras {dict(source.cameras) or 'none'}",
         f"state     {state}",

@@ -17,6 +17,7 @@ from pi0_armfix.data.episodes import EpisodeTable
 from pi0_armfix.evaluation import baselines, ceiling
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 
 LAYOUT = ActionLayout(groups={"base": (0, 2), "arm": (2, 5), "gripper": (5, 6)}, real_dim=6,
@@ -223,12 +224,12 @@ def test_skill_intervals_over_held_out_episodes_bracket_the_skill_and_pin_a_perf
     true = np.cumsum(rng.normal(size=(40, H, LAYOUT.action_dim)), axis=1)
     episodes = np.repeat(np.arange(8), 5)
     held = _metrics(np.repeat(true[:, :1], H, axis=1), true)["err/arm"]
-    perfect = heldout.episode_intervals(_kept(true, true, episodes), LAYOUT,
+    perfect = chunk_sums_lib.episode_intervals(_kept(true, true, episodes), LAYOUT,
                                         {"skill/arm": 1.0, "mean_of_draws/skill/arm": 1.0})
     assert perfect["interval_low/skill/arm"] == perfect["interval_high/skill/arm"] == 1.0
     noisy = true + rng.normal(size=true.shape)
     skill = 1 - _metrics(noisy, true)["err/arm"] / held
-    intervals = heldout.episode_intervals(_kept(noisy, true, episodes), LAYOUT,
+    intervals = chunk_sums_lib.episode_intervals(_kept(noisy, true, episodes), LAYOUT,
                                           {"skill/arm": skill, "mean_of_draws/skill/arm": skill})
     low, high = intervals["interval_low/skill/arm"], intervals["interval_high/skill/arm"]
     assert low < skill < high
@@ -485,12 +486,12 @@ def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(train
 
 def test_an_evaluation_names_the_chunks_it_scored(trained):
     _, metrics, _, path = evaluate_command.evaluate_checkpoint(trained)
-    sums = heldout.load_chunk_sums(path.parent / heldout.CHUNK_SUMS_FILE)
-    chunks = sums[heldout.CHUNKS]  # episode id, first frame in it, horizon
+    sums = chunk_sums_lib.load_chunk_sums(path.parent / chunk_sums_lib.CHUNK_SUMS_FILE)
+    chunks = sums[chunk_sums_lib.CHUNKS]  # episode id, first frame in it, horizon
     assert chunks.shape == (metrics["chunks"], 3) and (chunks[:, 2] == chunks[0, 2]).all()
-    assert heldout.chunks_fingerprint(sums) == heldout.chunks_fingerprint(dict(sums))
-    other = {**sums, heldout.CHUNKS: chunks + np.array([0, 0, 1])}  # another horizon
-    assert heldout.chunks_fingerprint(other) != heldout.chunks_fingerprint(sums)
+    assert chunk_sums_lib.chunks_fingerprint(sums) == chunk_sums_lib.chunks_fingerprint(dict(sums))
+    other = {**sums, chunk_sums_lib.CHUNKS: chunks + np.array([0, 0, 1])}  # another horizon
+    assert chunk_sums_lib.chunks_fingerprint(other) != chunk_sums_lib.chunks_fingerprint(sums)
 
 
 def test_the_printed_table_says_n_a_and_why_for_a_constant_group_and_an_unmapped_state():

@@ -10,7 +10,7 @@ import pytest
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.study import first_chunks
 from pi0_armfix.study.run import run_folder
 
@@ -21,12 +21,12 @@ def kept_sums(named: bool = True) -> dict[str, np.ndarray]:
     """Two episodes of three chunks; the policy errs 9 on each episode's first chunk and 1
     elsewhere on the arm, holding 2 everywhere; the hand is exact for both."""
     first = np.array([True, False, False, True, False, False])
-    sums = {heldout_lib.EPISODE: np.array([0, 0, 0, 1, 1, 1])}
+    sums = {chunk_sums_lib.EPISODE: np.array([0, 0, 0, 1, 1, 1])}
     if named:
-        sums[heldout_lib.CHUNKS] = np.array([[5, 0, 8], [5, 7, 8], [5, 14, 8],
+        sums[chunk_sums_lib.CHUNKS] = np.array([[5, 0, 8], [5, 7, 8], [5, 14, 8],
                                              [9, 0, 8], [9, 7, 8], [9, 14, 8]])
     for who, arm in (("policy", np.where(first, 9.0, 1.0)),
-                     (heldout_lib.MEAN_OF_DRAWS, np.where(first, 3.0, 0.5)),
+                     (chunk_sums_lib.MEAN_OF_DRAWS, np.where(first, 3.0, 0.5)),
                      ("persistence", np.full(6, 2.0))):
         sums[f"{who}/sq_err/arm"] = arm
         sums[f"{who}/sq_err/hand"] = np.zeros(6)
@@ -45,7 +45,7 @@ def test_skill_without_the_first_chunks_leaves_their_error_out():
     without = first_chunks.skills(sums, LAYOUT, first_chunks.later_chunks(sums))
     assert with_first["policy/arm"] == pytest.approx(1 - 22 / 12)
     assert without["policy/arm"] == pytest.approx(1 - 4 / 8)
-    assert without[f"{heldout_lib.MEAN_OF_DRAWS}/arm"] == pytest.approx(1 - 2 / 8)
+    assert without[f"{chunk_sums_lib.MEAN_OF_DRAWS}/arm"] == pytest.approx(1 - 2 / 8)
     assert np.isnan(without["policy/hand"])  # holding is exact: no skill to score
     assert first_chunks.first_share(sums, LAYOUT)["arm"] == pytest.approx(18 / 22)
 
@@ -60,7 +60,7 @@ def test_the_study_report_gives_each_group_with_and_without_first_chunks(tmp_pat
         folder = run_folder(tmp_path, "uniform", seed)
         folder.mkdir(parents=True)
         (folder / "config.json").write_text(json.dumps({"eval": {"max_chunks": 512}}))
-        heldout_lib.save_chunk_sums(evaluator_lib.heldout_paths(folder, 10)[1], kept_sums())
+        chunk_sums_lib.save_chunk_sums(evaluator_lib.heldout_paths(folder, 10)[1], kept_sums())
         results.append(result)
     lines = first_chunks.section(results, tmp_path)
     assert first_chunks.FIRST_CHUNKS_HEADING in lines
@@ -76,7 +76,7 @@ def test_unnamed_chunks_that_may_have_been_thinned_are_left_out(tmp_path):
     folder = run_folder(tmp_path, "uniform", 0)
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps({"eval": {"max_chunks": 6}}))
-    heldout_lib.save_chunk_sums(evaluator_lib.heldout_paths(folder, 10)[1], kept_sums(False))
+    chunk_sums_lib.save_chunk_sums(evaluator_lib.heldout_paths(folder, 10)[1], kept_sums(False))
     result = {"config": "uniform", "seed": 0, "steps": 10, "metrics": {},
               "layout": {"groups": LAYOUT.groups, "real_dim": 3, "action_dim": 4}}
     assert first_chunks.run_rows(result, tmp_path) is None

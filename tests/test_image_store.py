@@ -15,7 +15,7 @@ from pi0_armfix.data.formats.image_store import StoredFrameImages
 from pi0_armfix.data.formats.lerobot import LeRobotSource
 from pi0_armfix.data.pipeline import dataset as dataset_lib
 from pi0_armfix.data.pipeline import pipeline, video_stream
-from pi0_armfix.data.pipeline.data_spec import DataSpec
+from pi0_armfix.data.pipeline.data_spec import DataSpec, Reading
 from pi0_armfix.training import fingerprint
 
 LAYOUT = ActionLayout.preset("g1_inspire")
@@ -114,7 +114,7 @@ def test_a_cache_the_disk_cannot_hold_is_refused_naming_the_key(g1_root, monkeyp
 def test_a_run_reads_cached_frames_at_random_and_says_so(g1_root):
     spec = {"images": True, "frame_cache": True, "video_access": "auto", "stream_episodes": 16,
             "stream_shuffle": 256, "stream_stride": 4}
-    mode, why = video_stream.run_access(spec, source(g1_root, True))
+    mode, why = video_stream.run_access(Reading.from_options(spec), source(g1_root, True))
     assert mode == "random" and "frame cache (data.frame_cache)" in why
 
 
@@ -122,7 +122,7 @@ def test_streaming_cached_frames_is_refused_naming_both_keys(g1_root):
     spec = {"images": True, "frame_cache": True, "video_access": "stream", "stream_episodes": 16,
             "stream_shuffle": 256, "stream_stride": 4}
     with pytest.raises(ValueError, match="data.video_access='auto' or data.frame_cache=False"):
-        video_stream.run_access(spec, source(g1_root, True))
+        video_stream.run_access(Reading.from_options(spec), source(g1_root, True))
 
 
 def test_a_run_resumes_with_the_frame_cache_switched():

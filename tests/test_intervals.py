@@ -146,7 +146,7 @@ def _run_miss_rate(rule: str, episodes: int, spread: float, runs: int = 2000, se
     held-out episode has a persistence error (gamma) and the policy's, 0.6 of it times a
     lognormal factor of sd `spread`: population skill 1 - 0.6 exp(spread^2 / 2); the run's skill
     is 1 - sum(policy) / sum(persistence) over its episodes, recomputed on the study's resamples
-    as `heldout.resampled_metrics` does."""
+    as `chunk_sums.resampled_metrics` does."""
     rng = np.random.default_rng(seed)
     counts = intervals.episode_counts(episodes)
     truth = 1 - 0.6 * np.exp(spread ** 2 / 2)

@@ -226,7 +226,7 @@ def test_the_readme_path_from_a_set_to_the_per_group_table(tmp_path):
          "--output=configs/dual.py"],
         [sys.executable, "-m", "pi0_armfix.train", "--config=configs/dual.py",
          "--workdir=runs/dual", *[f"--config.{k}={v}" for k, v in TINY.items()]],
-        [sys.executable, "-m", "pi0_armfix.study", "--configs=dual,dual:uniform", "--seeds=1",
+        [sys.executable, "-m", "pi0_armfix.study", "--configs=dual:uniform,dual", "--seeds=1",
          "--steps=2", "--evaluations=1", "--closed_loop_episodes=0", "--workdir=runs/study",
          *budget],
     ]

@@ -34,6 +34,7 @@ from pi0_armfix.data.formats import sources
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
 from pi0_armfix.model import flow_model
 from pi0_armfix.model import config as model_config_lib
@@ -106,7 +107,7 @@ class Evaluation(NamedTuple):
     mean of the draws' under `mean_of_draws/...`, the energy score, and each reference's under
     `<name>/...`), the single draw's `predicted` and the `true` absolute chunks `[N, H, A]` in
     evaluation units, and the per-chunk sums the study resamples (`chunk_sums`, to be written
-    as `heldout.CHUNK_SUMS_FILE`)."""
+    as `chunk_sums_lib.CHUNK_SUMS_FILE`)."""
 
     metrics: dict[str, float]
     predicted: np.ndarray
@@ -229,7 +230,7 @@ def format_metrics(metrics: Mapping[str, float], layout: ActionLayout) -> str:
     references = [name for name in ("persistence", "state_copy", heldout_lib.CEILING)
                   if f"{name}/err/{layout.group_names[0]}" in metrics]
     draws = int(metrics.get("draws", 1))
-    mean = heldout_lib.MEAN_OF_DRAWS
+    mean = chunk_sums_lib.MEAN_OF_DRAWS
     lines = ["skill: 1 - err / persistence err (> 0: better than holding the previous action) of "
              "the single draw (what a robot executes; its interval a t interval over the held-out "
              "episodes, their sampling variance from resamples of them), of the mean of "
@@ -303,9 +304,9 @@ def run_evaluator(run: restore.RestoredRun) -> tuple[Evaluator, jax.sharding.Mes
 def heldout_paths(workdir: epath.PathLike, step: int, levers: str = ""
                   ) -> tuple[epath.Path, epath.Path]:
     """An offline evaluation's `eval/step_<N>/metrics[levers].json` and its per-chunk sums
-    (`heldout.CHUNK_SUMS_FILE`, tagged the same): `levers` is `Sampling.tag` of the
+    (`chunk_sums_lib.CHUNK_SUMS_FILE`, tagged the same): `levers` is `Sampling.tag` of the
     sampler, so that another setting never replaces the plain sampler's files."""
     out = epath.Path(workdir) / "eval" / f"step_{step}"
-    sums = epath.Path(heldout_lib.CHUNK_SUMS_FILE)
+    sums = epath.Path(chunk_sums_lib.CHUNK_SUMS_FILE)
     return (out / f"{epath.Path(METRICS_FILE).stem}{levers}.json",
             out / f"{sums.stem}{levers}{sums.suffix}")

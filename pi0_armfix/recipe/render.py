@@ -2,8 +2,8 @@
 
 The file builds on `configs/base.py` (the demo model and its defaults), sets what the robot is,
 then the lever. Its argument picks the variant: none = the recipe, `uniform` = the same robot
-with openpi's plain loss and no lever (the baseline a study compares it with:
-`--configs=<name>,<name>:uniform`). Every setting is one line with its reason above it, so a
+with openpi's plain loss and no lever (the baseline a study compares it with, named first:
+`--configs=<name>:uniform,<name>`). Every setting is one line with its reason above it, so a
 guess is a line to change.
 """
 
@@ -57,7 +57,7 @@ def render(recipe: Recipe, *, name: str, source: str, command: str, verdict: Seq
            "from the set's feature names and the diagnosis of its data; every line below says "
            "why it was chosen.", "",
            "  python -m pi0_armfix.train --config=configs/" + name + ".py --workdir=runs/" + name,
-           "  python -m pi0_armfix.study --configs=" + name + "," + name + ":uniform --seeds=3 "
+           "  python -m pi0_armfix.study --configs=" + name + ":uniform," + name + " --seeds=3 "
            "--closed_loop_episodes=0 --workdir=runs/" + name + "_study", "",
            "`:uniform` is the same robot with a uniform loss and no lever: the baseline.", "",
            "The diagnosis (pi0_armfix.tools.analyze_action_magnitudes):",

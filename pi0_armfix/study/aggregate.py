@@ -18,7 +18,7 @@ import numpy as np
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import baselines as baselines_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 
 SWITCH_METRICS = ("precision", "recall", "f1")
 SWITCH_COUNTS = ("tp", "fp", "fn")
@@ -72,14 +72,14 @@ def episode_replicates(sums: Mapping[str, np.ndarray], layout: ActionLayout
     episodes (`intervals.episode_counts`), from its per-chunk sums (`HeldOutChunks.score`):
     `{"episodes": E, "chunks": the chunks' fingerprint, <name>: [B] values}` for the headline
     numbers and each group's (`group_keys`)."""
-    num_episodes = len(np.unique(sums[heldout_lib.EPISODE]))
+    num_episodes = len(np.unique(sums[chunk_sums_lib.EPISODE]))
     replicates = {k: [] for k in (*COMPARED, *group_keys(layout))}
-    for metrics in heldout_lib.resampled_metrics(sums, layout):
+    for metrics in chunk_sums_lib.resampled_metrics(sums, layout):
         for k, v in {**run_summary(metrics, layout), **metrics}.items():
             if k in replicates:
                 v = as_number(v)
                 replicates[k].append(v if math.isfinite(v) else None)
-    return {"episodes": num_episodes, "chunks": heldout_lib.chunks_fingerprint(sums),
+    return {"episodes": num_episodes, "chunks": chunk_sums_lib.chunks_fingerprint(sums),
             **replicates}
 
 
@@ -149,7 +149,7 @@ def arm_groups(layout: ActionLayout) -> tuple[str, ...]:
 def group_keys(layout: ActionLayout) -> tuple[str, ...]:
     """The per-group numbers compared with the baseline beside the headline: each group's skill
     over persistence, the single draw's and the mean of the draws'."""
-    return tuple(f"{prefix}skill/{g}" for prefix in ("", f"{heldout_lib.MEAN_OF_DRAWS}/")
+    return tuple(f"{prefix}skill/{g}" for prefix in ("", f"{chunk_sums_lib.MEAN_OF_DRAWS}/")
                  for g in layout.group_names)
 
 
@@ -168,7 +168,7 @@ def run_summary(metrics: Mapping[str, Any], layout: ActionLayout, prefix: str = 
     def arms_mean(name):
         return float(np.mean([get(f"{name}/{g}") for g in arms])) if arms else math.nan
 
-    mean_of_draws = arms_mean(f"{heldout_lib.MEAN_OF_DRAWS}/skill")
+    mean_of_draws = arms_mean(f"{chunk_sums_lib.MEAN_OF_DRAWS}/skill")
     return {"arm_skill": arms_mean("skill"),
             "arm_skill_mean_of_draws": arms_mean("skill") if prefix else mean_of_draws,
             "arm_energy_skill": arms_mean("energy_skill"), "arm_gain": arms_mean("motion_gain"),

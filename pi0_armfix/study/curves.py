@@ -14,7 +14,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pi0_armfix.evaluation.heldout import MEAN_OF_DRAWS  # noqa: E402
+from pi0_armfix.evaluation.chunk_sums import MEAN_OF_DRAWS  # noqa: E402
 from pi0_armfix.study.aggregate import as_number, nanmean, nanstd  # noqa: E402
 from pi0_armfix.study.report import fit_skill_axis  # noqa: E402
 

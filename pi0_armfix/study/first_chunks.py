@@ -6,7 +6,7 @@ there), and where holding the previous action is the true first action. A per-gr
 mixes it with the rest can be ruled by it: on the G1's idle arm, under the rule that made the first
 chunk relative to the state, those 20 chunks held most of the offset lever's error. So each
 trained config's per-group skill over holding is given with every chunk and without the
-episodes' first chunks (from each run's kept per-chunk sums, `heldout.CHUNK_SUMS_FILE`), with the
+episodes' first chunks (from each run's kept per-chunk sums, `chunk_sums_lib.CHUNK_SUMS_FILE`), with the
 first chunks' share of the single draw's squared error; and beside it the single draw's error
 in the data's own units (`rms_units`, radians or degrees for a joint) and holding's and copying
 the state's, so a reader sees whether a negative skill is an arm that jitters by a fraction of a
@@ -28,22 +28,22 @@ import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation import intervals
 from pi0_armfix.study.run import run_folder, saved_config, trained_config
 
 FIRST_CHUNKS_HEADING = "## Episodes' first chunks, in and out; errors in the robot's units"
-SAMPLERS = ("policy", heldout_lib.MEAN_OF_DRAWS)  # the single draw, the mean of the draws
+SAMPLERS = ("policy", chunk_sums_lib.MEAN_OF_DRAWS)  # the single draw, the mean of the draws
 
 
 def later_chunks(sums: Mapping[str, np.ndarray]) -> np.ndarray:
     """`[N]` bool: the chunks that start past their episode's first frame. Sums kept before
-    chunks were named (`heldout.CHUNKS`) hold each chunk's episode in tiling order: an episode's
+    chunks were named (`chunk_sums_lib.CHUNKS`) hold each chunk's episode in tiling order: an episode's
     first row is its first chunk (`tiled_chunk_starts` starts every episode at its first frame;
     `run_rows` takes them only where no tile was thinned out)."""
-    if heldout_lib.CHUNKS in sums:
-        return np.asarray(sums[heldout_lib.CHUNKS])[:, 1] > 0
-    episode = np.asarray(sums[heldout_lib.EPISODE])
+    if chunk_sums_lib.CHUNKS in sums:
+        return np.asarray(sums[chunk_sums_lib.CHUNKS])[:, 1] > 0
+    episode = np.asarray(sums[chunk_sums_lib.EPISODE])
     return np.concatenate([[False], episode[1:] == episode[:-1]])
 
 
@@ -76,10 +76,10 @@ def run_rows(result: Mapping[str, Any], workdir: Path) -> dict[str, Any] | None:
     path = evaluator_lib.heldout_paths(folder, result["steps"])[1]
     if not path.exists():
         return None
-    sums = heldout_lib.load_chunk_sums(path)
+    sums = chunk_sums_lib.load_chunk_sums(path)
     layout = ActionLayout.from_config(result["layout"])
-    every = np.ones(len(sums[heldout_lib.EPISODE]), bool)
-    if (heldout_lib.CHUNKS not in sums
+    every = np.ones(len(sums[chunk_sums_lib.EPISODE]), bool)
+    if (chunk_sums_lib.CHUNKS not in sums
             and len(every) >= saved_config(folder)["eval"]["max_chunks"]):
         return None  # unnamed chunks, perhaps thinned: an episode's first row may start later
     metrics = result["metrics"]

@@ -19,7 +19,7 @@ from pi0_armfix.sim.outcomes import FAILURE_REASONS  # noqa: E402
 from pi0_armfix.study.aggregate import (  # noqa: E402
     CLOSED_LOOP, CLOSED_LOOP_KINDS, CLOSED_LOOP_TOLERANCES, COMPARED, COMPARED_HEADINGS,
     CURVE_COMPARED, PHASE_KINDS, SWITCH_COUNTS, SWITCH_METRICS, as_number, curve_prefix)
-from pi0_armfix.evaluation.heldout import MEAN_OF_DRAWS  # noqa: E402
+from pi0_armfix.evaluation.chunk_sums import MEAN_OF_DRAWS  # noqa: E402
 
 GROUP_TABLES = (  # study.md's per-group tables: (metric, heading, digits)
     ("skill", "Skill over persistence of the single draw, what a robot executes (1 - err / "

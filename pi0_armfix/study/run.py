@@ -23,7 +23,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data import json_files
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
-from pi0_armfix.evaluation import heldout as heldout_lib
+from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.study.aggregate import (CLOSED_LOOP, CLOSED_LOOP_EPISODES,
                                         CLOSED_LOOP_TOLERANCES, EPISODE_REPLICATES,
                                         LOOSER_TOLERANCES, closed_loop_outcomes, curve_prefix,
@@ -280,7 +280,7 @@ def add_episode_replicates(result: dict[str, Any], folder: Path, evaluate_missin
     if kept is not None and all(k in kept for k in group_keys(layout)):
         return result
     result = {**result, EPISODE_REPLICATES: episode_replicates(
-        heldout_lib.load_chunk_sums(path), layout)}
+        chunk_sums_lib.load_chunk_sums(path), layout)}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     return result
 
@@ -337,7 +337,7 @@ def measure_levers(config: str, seed: int, workdir: Path) -> dict[str, Any]:
               "trained": trained,
               "execution": run_execution(saved_config(checkpoints), config).summary(),
               "metrics": metrics,
-              EPISODE_REPLICATES: episode_replicates(heldout_lib.load_chunk_sums(sums_path),
+              EPISODE_REPLICATES: episode_replicates(chunk_sums_lib.load_chunk_sums(sums_path),
                                                      layout)}
     json_files.write_json_atomic(folder / RESULT_FILE, result)
     return result

@@ -126,7 +126,7 @@ class ConfigData:
         self.dim_mask = dim_mask
         self.chunks = evaluator_lib.heldout_chunks(self.spec, config.eval, self.model,
                                                    self.norm_stats, self.tokenize, self.source)
-        self.video_access, _ = video_stream.run_access(self.spec, self.source)
+        self.video_access, _ = video_stream.run_access(self.spec.reading, self.source)
 
     def train_iterator(self, seed: int, batch_size: int, sharding) -> pipeline.TrainIterator:
         config = ml_collections.ConfigDict(self.config.to_dict())

@@ -33,19 +33,24 @@ def _defaults() -> dict[str, Any]:
     return base_config.get_config().data.to_dict()
 
 
-def _typed(cls, options: Mapping[str, Any]):
-    """`cls` (a view of `data.*`) from `options`, each unset key at its base-config default."""
-    defaults = _defaults()
-    values = {}
-    for field in dataclasses.fields(cls):
-        value = options.get(field.name)
-        default = defaults[field.name]
-        values[field.name] = default if value is None else type(default)(value)
-    return cls(**values)
+@dataclasses.dataclass(frozen=True)
+class _View:
+    """A typed view of some `data.*` keys: each dataclass field is a key."""
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any]):
+        """The view of `options` (`config.data` as plain values), each unset key at its
+        `configs/base.py` default."""
+        defaults = _defaults()
+        values = {}
+        for field in dataclasses.fields(cls):
+            value, default = options.get(field.name), defaults[field.name]
+            values[field.name] = default if value is None else type(default)(value)
+        return cls(**values)
 
 
 @dataclasses.dataclass(frozen=True)
-class Reading:
+class Reading(_View):
     """How the source is opened and its samples read (`data.<field>`, `configs/base.py`)."""
 
     root: str
@@ -64,7 +69,7 @@ class Reading:
 
 
 @dataclasses.dataclass(frozen=True)
-class Statistics:
+class Statistics(_View):
     """Where the normalization statistics come from (`data.<field>`, `configs/base.py`)."""
 
     norm_stats: str  # a norm_stats.json to load; '' = computed into the workdir
@@ -110,8 +115,9 @@ class DataSpec:
     state_groups: Mapping[str, Sequence[int]] | None = None
     curriculum: curriculum_lib.Curriculum = dataclasses.field(
         default_factory=lambda: curriculum_lib.Curriculum(curriculum_lib.parse_curriculum(()), 0))
-    reading: Reading = dataclasses.field(default_factory=lambda: _typed(Reading, {}))
-    statistics: Statistics = dataclasses.field(default_factory=lambda: _typed(Statistics, {}))
+    reading: Reading = dataclasses.field(default_factory=lambda: Reading.from_options({}))
+    statistics: Statistics = dataclasses.field(
+        default_factory=lambda: Statistics.from_options({}))
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any], layout: ActionLayout,
@@ -140,7 +146,8 @@ class DataSpec:
             state_preset=selection_lib.state_preset(options),
             state_groups=selection_lib.state_groups(options),
             curriculum=curriculum_lib.Curriculum.from_config(options, seed),
-            reading=_typed(Reading, options), statistics=_typed(Statistics, options))
+            reading=Reading.from_options(options),
+            statistics=Statistics.from_options(options))
 
 
 def _delta_reference(options: Mapping[str, Any]) -> str:

@@ -65,21 +65,21 @@ STREAM_ABOVE_GOP = 32
 _FIRST_FRAME_SEED_SLOT = 255
 
 
-def run_access(spec: Any, source: Any) -> tuple[str, str]:
-    """`choose_access` for a run's data `spec` (its `data.*` keys) on its opened `source`:
+def run_access(reading: Any, source: Any) -> tuple[str, str]:
+    """`choose_access` for how a run reads its data (`DataSpec.reading`) on its opened `source`:
     `(mode, why)`, `why` empty when the run reads no video (the banner then says nothing)."""
     keyframes = (source.video_keyframes()
-                 if spec.reading.images and hasattr(source, "video_keyframes") else None)
-    if keyframes is not None and spec.reading.frame_cache:
-        if spec.reading.video_access == "stream":
+                 if reading.images and hasattr(source, "video_keyframes") else None)
+    if keyframes is not None and reading.frame_cache:
+        if reading.video_access == "stream":
             raise ValueError("data.video_access = 'stream' decodes episodes front to back, but "
                              "data.frame_cache = True reads frames decoded once: set "
                              "data.video_access='auto' or data.frame_cache=False")
         return "random", (f"{keyframes[0]}: decoded once at the model's image size into the "
                           "frame cache (data.frame_cache), frames read from it on request")
     mode, why = choose_access(
-        spec.reading.video_access, keyframes, open_episodes=spec.reading.stream_episodes,
-        shuffle_window=spec.reading.stream_shuffle, stride=spec.reading.stream_stride)
+        reading.video_access, keyframes, open_episodes=reading.stream_episodes,
+        shuffle_window=reading.stream_shuffle, stride=reading.stream_stride)
     return mode, why if keyframes is not None else ""
 
 
