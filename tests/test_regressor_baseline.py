@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import arm_focused
 from pi0_armfix.tools import regressor_baseline as regressor
 from train_fixtures import demo_root, tiny_overrides  # noqa: F401  (fixture)
@@ -99,3 +100,20 @@ def test_an_output_of_other_settings_is_refused_before_any_training(demo_root, t
     regressor.run(config, tmp_path, network="cnn", seeds=1, steps=2, evaluations=1, lr=1e-3)
     with pytest.raises(ValueError, match=r"other settings \(lr, steps differ\): choose another"):
         regressor.run(config, tmp_path, network="cnn", seeds=1, steps=3, evaluations=1, lr=1e-2)
+
+
+def test_a_group_that_never_moves_reads_n_a_with_the_reason_not_nan():
+    layout = ActionLayout({"arm": (0, 2), "hand": (2, 3)}, real_dim=3, action_dim=4,
+                          roles={"arm": "arm", "hand": "hand"})
+
+    def record(seed):
+        metrics = {"skill/arm": 0.1 * seed, "skill/hand": float("nan"),
+                   "motion_gain/arm": 0.5, "gripper_switch/f1": 0.0}
+        metrics |= {f"{who}/{k}": 0.0 for who in ("persistence", "state_copy")
+                    for k in ("skill/arm", "skill/hand", "motion_gain/arm")}
+        return [{"step": 10, "train_seconds": 1.0, "metrics": metrics}]
+
+    result = {"network": "cnn", "command": "c", "code": "x",
+              "seeds": {str(s): record(s) for s in range(3)}}
+    text = regressor.report(result, layout, ())
+    assert "hand n/a (it never moves in the held-out chunks" in text and "nan [" not in text

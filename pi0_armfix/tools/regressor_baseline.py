@@ -281,7 +281,10 @@ def report(result: Mapping[str, Any], layout: ActionLayout, gripper_groups: Sequ
         spans = []
         for g in groups:
             mean, low, high = intervals.mean_interval([m[f"skill/{g}"] for m in last])
-            spans.append(f"{g.replace('_', ' ')} {mean:+.2f} [{low:+.2f}, {high:+.2f}]")
+            spans.append(f"{g.replace('_', ' ')} " + (
+                f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]" if math.isfinite(low)
+                else "n/a (it never moves in the held-out chunks: holding is exact)"
+                if not math.isfinite(mean) else f"{mean:+.2f} (one seed: no interval)"))
         lines += ["", f"At step {runs[0][-1]['step']}, skill with its 95 % t interval over the "
                   f"{len(runs)} seeds (their spread alone: the regressor keeps no per-episode "
                   "sums): " + "; ".join(spans) + "."]
