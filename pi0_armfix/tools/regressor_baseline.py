@@ -337,6 +337,11 @@ def run(config: ml_collections.ConfigDict, output: str | Path, *, network: str, 
     data = ConfigData(config, output / "norm_stats.json")
     gripper_groups = evaluator_lib.eval_groups(config.eval, data.layout)["gripper_groups"]
     result = {"command": command, "code": code, **settings, "seeds": {}}
+    def save() -> None:
+        (output / RESULT_FILE).write_text(json.dumps(
+            strict_json(result), indent=2, allow_nan=False) + "\n")
+        (output / TABLE_FILE).write_text(report(result, data.layout, gripper_groups))
+
     for seed in range(int(config.seed), int(config.seed) + seeds):
         if str(seed) in finished:
             result["seeds"][str(seed)] = finished[str(seed)]
@@ -344,10 +349,8 @@ def run(config: ml_collections.ConfigDict, output: str | Path, *, network: str, 
         result["seeds"][str(seed)] = train_seed(
             data, seed, network=network, steps=steps, evaluations=evaluations,
             batch_size=int(config.train.batch_size), lr=lr)
-        # After every seed, so that a stopped run keeps the seeds it finished.
-        (output / RESULT_FILE).write_text(json.dumps(
-            strict_json(result), indent=2, allow_nan=False) + "\n")
-        (output / TABLE_FILE).write_text(report(result, data.layout, gripper_groups))
+        save()  # after every seed, so that a stopped run keeps the seeds it finished
+    save()  # the report of finished seeds too, written again by today's code
     return result
 
 
