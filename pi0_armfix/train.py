@@ -142,9 +142,11 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                                           unit="step", disable=not is_main,
                                           dynamic_ncols=True) as bar:
             step_metrics = None
+            cached = jax.config.jax_compilation_cache_dir
             say("compiling the train step (the first step waits for it: from seconds for a "
-                "tiny model to minutes for pi0 on a loaded machine; JAX_COMPILATION_CACHE_DIR "
-                "keeps it across runs)")
+                "tiny model to minutes for pi0 on a loaded machine; "
+                + (f"kept in {cached} for the next run)" if cached else
+                   "no compilation cache: PI0_ARMFIX_COMPILATION_CACHE=0)"))
             compile_start = time.perf_counter()
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 if stop.due(done):
