@@ -22,7 +22,7 @@ from tqdm import tqdm
 from pi0_armfix import loss as loss_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.formats import sources
-from pi0_armfix.data.pipeline import batching, pipeline, run_inputs, video_stream
+from pi0_armfix.data.pipeline import batching, pipeline, run_inputs, transforms, video_stream
 from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.data.pipeline import dataset as dataset_lib
@@ -147,8 +147,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                 data, action_horizon=model_config.action_horizon, folder=workdir,
                 constant=stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
                                              "norm stats 'actions'").constant(data.norm),
-                start=(stats_lib.start_reference(norm_stats, layout.real_dim)
-                       if data.delta_reference == "previous_action" else None),
+                start=(transforms.EpisodeStart.of(
+                    stats_lib.start_reference(norm_stats, layout.real_dim), layout,
+                    data.state_groups) if data.delta_reference == "previous_action" else None),
                 source=source, resuming=resuming)
             if data.statistics.norm_per_timestep:
                 norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}

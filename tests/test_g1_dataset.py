@@ -142,12 +142,10 @@ def test_a_previous_action_policy_is_relative_to_the_command_it_is_given(g1, pre
     assert not inputs["image_mask"]["left_wrist_0_rgb"].any()
     given = {**observation, "previous_action": action[4]}
     np.testing.assert_array_equal(policy.reference([given], selected), action[4][None])
-    # no command yet (an episode's first step): the episode's start, as in training (the
-    # training split's mean action), never the state
-    start = policy.run.norm_stats["actions_absolute"].mean
-    np.testing.assert_allclose(policy.reference([observation], selected), start[None],
+    # no command yet (an episode's first step): the episode's start, as in training: the state,
+    # which holds every group's joints as positions in the action order
+    np.testing.assert_allclose(policy.reference([observation], selected), state[5][None],
                                rtol=1e-6)
-    assert not np.allclose(start, state[5])
     rng = jax.random.key(3)
     np.testing.assert_allclose(policy.infer([observation], rng=rng, previous=action[4][None]),
                                policy.infer([given], rng=rng), atol=1e-6)

@@ -503,11 +503,27 @@ PREVIOUS = {**ARM_DELTA, "delta_reference": "previous_action"}
 def test_previous_action_reference_is_the_command_one_frame_before_and_the_start_at_a_first_frame():
     table = arm_table()
     frames = np.array([0, 1, 6, 7, 8])  # episodes start at 0 and 7
-    start = table.actions.mean(0)
+    mean = table.actions.mean(0)
+    start = transforms.EpisodeStart.of(mean, LAYOUT, None)  # no state map: the mean action
     reference = transforms.delta_reference("previous_action", table.actions, table.state,
                                            frames, table.episode_starts, start)
     np.testing.assert_array_equal(reference[[1, 2, 4]], table.actions[[0, 5, 7]])
-    np.testing.assert_array_equal(reference[[0, 3]], np.stack([start, start]))
+    np.testing.assert_array_equal(reference[[0, 3]], np.stack([mean, mean]))
+
+
+def test_an_episode_starts_from_the_state_where_it_holds_the_joint_never_for_a_velocity_or_gripper():
+    table = arm_table()
+    mean = table.actions.mean(0)
+    # the state in the action order: the base (a velocity command) and the grippers (open/close
+    # commands) are placed too, but only the joints start from it
+    start = transforms.EpisodeStart.of(mean, LAYOUT, dict(LAYOUT.groups))
+    reference = transforms.delta_reference("previous_action", table.actions, table.state,
+                                           np.array([0, 7]), table.episode_starts, start)
+    joints = np.r_[LAYOUT.group_dims("torso"), LAYOUT.group_dims("left_arm"),
+                   LAYOUT.group_dims("right_arm")]
+    others = np.setdiff1d(np.arange(LAYOUT.real_dim), joints)
+    np.testing.assert_array_equal(reference[:, joints], table.state[[0, 7]][:, joints])
+    np.testing.assert_array_equal(reference[:, others], np.stack([mean, mean])[:, others])
 
 
 def _previous_action_stats(table, block_frames=5):

@@ -200,8 +200,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # What they are relative to: 'state' (the current state, which must hold the same joints in
     # the action order: data.state_groups or a preset), or 'previous_action' (the action commanded
     # one frame before, which holding the previous action exploits where a command sits at an
-    # offset from the measured state or is a velocity; at an episode's first frame the training
-    # split's mean action, in the action's units; no state map needed; a policy needs it at
+    # offset from the measured state or is a velocity; at an episode's first frame, in the
+    # command's units, the state where data.state_groups places the joint, else the training
+    # split's mean action: transforms.EpisodeStart; no state map needed; a policy needs it at
     # inference: the closed loop and the harness pass the last executed action, a server client
     # sends it: docs/serving.md).
     config.data.delta_reference = "state"

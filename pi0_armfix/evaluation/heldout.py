@@ -99,7 +99,8 @@ class HeldOutChunks:
                                           image_size=image_size)
         self.transform = batching.BatchTransform(
             table, layout, norm_stats=norm_stats, norm_mode=spec.norm, action_horizon=horizon,
-            delta_mask=spec.delta_mask, delta_reference=spec.delta_reference, tokenize=tokenize, actions_only=tokenize is None,
+            delta_mask=spec.delta_mask, delta_reference=spec.delta_reference, tokenize=tokenize,
+            actions_only=tokenize is None, state_groups=spec.state_groups,
             image_size=image_size)
         batch_size = eval_cfg["batch_size"]
         self.frames = tiled_chunk_starts(table.episode_starts, horizon, eval_cfg["max_chunks"])

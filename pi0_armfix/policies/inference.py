@@ -37,6 +37,7 @@ import numpy as np
 from etils import epath
 
 from pi0_armfix.data import cameras as cameras_lib
+from pi0_armfix.data import selection as selection_lib
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.formats.video import fit_frames
 from pi0_armfix.data.pipeline import batching, run_inputs, transforms
@@ -134,9 +135,11 @@ class RunPolicy:
                                                       self.horizon)
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
         self.delta_reference = config.data.get("delta_reference") or "state"
-        # where an episode relative to the previous command starts (`stats.start_reference`)
-        self.start = (stats_lib.start_reference(run.norm_stats, layout.real_dim)
-                      if self.needs_previous_action else None)
+        # where an episode relative to the previous command starts (`transforms.EpisodeStart`)
+        self.start = (transforms.EpisodeStart.of(
+            stats_lib.start_reference(run.norm_stats, layout.real_dim), layout,
+            selection_lib.state_groups(config.data.to_dict())) if self.needs_previous_action
+            else None)
         model_cfg, own = config.model, run_inputs.tokenizer_path(run.workdir)
         if own is not None:  # the tokenizer it trained with, wherever model.tokenizer pointed
             model_cfg = {**model_cfg.to_dict(), "tokenizer": str(own)}
@@ -266,7 +269,7 @@ class RunPolicy:
                 raise ValueError(f"{expected}; dim(s) {bad[:8].tolist()} are NaN or inf")
             previous[i] = given
         return np.where(np.isnan(previous).any(-1, keepdims=True),
-                        self.start.astype(np.float32), previous)
+                        self.start.reference(state)[..., :width].astype(np.float32), previous)
 
     def _inpaint(self, follow: np.ndarray, reference: np.ndarray) -> dict[str, np.ndarray]:
         batch, overlap = follow.shape[:2]

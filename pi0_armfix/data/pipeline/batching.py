@@ -115,13 +115,16 @@ class BatchTransform:
       actions_only: only `state`, `actions`, `action_is_pad` (no images, no prompt).
       image_size: (height, width) of the zero images of the cameras no stored camera feeds when
         the dataset has none at all (they are masked out; the model resizes them anyway).
+      state_groups: `data.state_groups`: where an episode relative to the previous command
+        starts from the state (`transforms.EpisodeStart`).
     """
 
     def __init__(self, table: EpisodeTable, layout: ActionLayout, *,
                  norm_stats: Mapping[str, stats_lib.NormStats], norm_mode: str,
                  action_horizon: int, delta_mask: np.ndarray | None = None,
                  delta_reference: str = "state", tokenize: Tokenize | None = None,
-                 actions_only: bool = False, image_size: tuple[int, int] = (224, 224)):
+                 actions_only: bool = False, image_size: tuple[int, int] = (224, 224),
+                 state_groups: Mapping[str, Sequence[int]] | None = None):
         layout.check_real_dim(table.actions.shape[1], source="the dataset's actions")
         state_width = table.state.shape[1]
         if state_width > layout.action_dim:
@@ -137,8 +140,9 @@ class BatchTransform:
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
         self.delta_reference = delta_reference
-        self.start = (stats_lib.start_reference(norm_stats, layout.real_dim)
-                      if delta_mask is not None and delta_reference == "previous_action" else None)
+        self.start = (transforms.EpisodeStart.of(
+            stats_lib.start_reference(norm_stats, layout.real_dim), layout, state_groups)
+            if delta_mask is not None and delta_reference == "previous_action" else None)
         self.tokens = None if actions_only else PromptTokens(tokenize)
         self.actions_only = actions_only
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")

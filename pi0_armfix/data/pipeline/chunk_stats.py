@@ -70,7 +70,7 @@ def chunk_starts(num_frames: int, max_chunks: int) -> np.ndarray:
 
 def compute_chunk_stats(table: EpisodeTable, *, action_horizon: int,
                         delta_mask: np.ndarray | None, max_chunks: int, constant: np.ndarray,
-                        delta_reference: str = "state", start: np.ndarray | None = None
+                        delta_reference: str = "state", start: transforms.EpisodeStart | None = None
                         ) -> ChunkStats:
     """Per-timestep statistics and Σ of the chunks of `table` (see the module docstring);
     `constant` `[A]`: the dims the run's normalizer holds constant (`NormStats.constant` of its

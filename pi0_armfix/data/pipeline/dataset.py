@@ -289,8 +289,8 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
         if absolute is None:
             raise ValueError("statistics of actions relative to the previous action need the "
                              "plain stats of the same frames first (absolute=)")
-        start = stats_lib.start_reference(
-            {ABSOLUTE_ACTIONS: absolute["actions"]}, layout.real_dim)
+        start = transforms.EpisodeStart.of(stats_lib.start_reference(
+            {ABSOLUTE_ACTIONS: absolute["actions"]}, layout.real_dim), layout, spec.state_groups)
     stats = stats_lib.compute_norm_stats(
         stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
         total_frames=total_frames, transform=chunk_steps, progress=progress)

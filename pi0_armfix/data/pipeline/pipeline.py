@@ -89,7 +89,9 @@ def _batch_transform(table: EpisodeTable, spec: DataSpec, *,
                                             table.state.shape[1])
     return BatchTransform(table, spec.layout, norm_stats=norm_stats, norm_mode=spec.norm,
                           action_horizon=action_horizon, delta_mask=spec.delta_mask,
-                          delta_reference=spec.delta_reference, tokenize=tokenize, actions_only=actions_only, image_size=image_size)
+                          delta_reference=spec.delta_reference, tokenize=tokenize,
+                          actions_only=actions_only, image_size=image_size,
+                          state_groups=spec.state_groups)
 
 
 def train_batches(table: EpisodeTable, spec: DataSpec, *,

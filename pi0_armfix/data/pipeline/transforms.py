@@ -7,6 +7,7 @@ whole batch of frames at once (the chunk gather is one fancy-index, not a loop).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -66,8 +67,52 @@ def previous_frames(frames: np.ndarray, episode_starts: np.ndarray) -> np.ndarra
 DELTA_REFERENCES = ("state", "previous_action")
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class EpisodeStart:
+    """What a dim relative to the previous command is relative to at an episode's first frame,
+    where no command precedes, in the command's own units: the state, where the state map
+    (`data.state_groups`) places the dim's group at the same width and the group is a joint
+    position (neither a velocity command nor a gripper's open/close command, whose state is not
+    in the command's units); else the training split's mean action (`stats.start_reference`).
+    The same in training, held-out evaluation, the closed loop and serving.
+
+    Attributes:
+      mean: `[A]` the training split's mean absolute action.
+      state_dims: `[A]` int, the state dim holding each action dim's joint, -1 where none does.
+    """
+
+    mean: np.ndarray
+    state_dims: np.ndarray
+
+    @classmethod
+    def of(cls, mean: np.ndarray, layout: ActionLayout,
+           state_groups: Mapping[str, Sequence[int]] | None) -> "EpisodeStart":
+        mean = np.asarray(mean)
+        dims = np.full(len(mean), -1, np.int64)
+        others = {*layout.velocity_groups, *layout.groups_with_role("gripper")}
+        for group, bounds in (state_groups or {}).items():
+            if group not in layout.groups or group in others:
+                continue
+            start, stop = (int(v) for v in bounds)
+            action_dims = layout.group_dims(group)
+            if stop - start == len(action_dims):
+                dims[action_dims] = np.arange(start, stop)
+        return cls(mean, dims)
+
+    def reference(self, state: np.ndarray) -> np.ndarray:
+        """`[..., A]` the start of episodes whose first frame's state is `state` `[..., S]`."""
+        state = np.asarray(state)
+        placed = self.state_dims >= 0
+        mean = np.broadcast_to(self.mean, (*state.shape[:-1], len(self.mean)))
+        if not placed.any():
+            return mean
+        return np.where(placed, np.take(state, np.where(placed, self.state_dims, 0), axis=-1),
+                        mean)
+
+
 def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
-                    episode_starts: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+                    episode_starts: np.ndarray, start: EpisodeStart | None = None
+                    ) -> np.ndarray:
     """`[..., W]` what the relative dims of chunks starting at `frames` are relative to.
 
     Args:
@@ -77,9 +122,7 @@ def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
         command precedes, `start`).
       actions, state: row-indexable `[N, A]` / `[N, S]` columns of a table (or arrays).
       frames: `[...]` frame indices; episode_starts: `[E + 1]` the table's episode offsets.
-      start: `[A]` for "previous_action": the episode's start in the action's own units, the
-        training split's mean action (`stats.start_reference`); never the state, which may be a
-        position where the command is a velocity, or sit at an offset from the command.
+      start: for "previous_action": the episode's start in the action's units (`EpisodeStart`).
     """
     frames = np.asarray(frames, np.int64)
     if kind == "state":
@@ -88,11 +131,11 @@ def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
         raise ValueError(f"data.delta_reference = {kind!r}; choose one of {list(DELTA_REFERENCES)}")
     if start is None:
         raise ValueError("actions relative to the previous action need the episode's start "
-                         "reference (stats.start_reference of the run's norm stats)")
+                         "(EpisodeStart of the run's norm stats)")
     previous = previous_frames(frames, episode_starts)
     held = np.asarray(actions[previous])
-    start = np.asarray(start, held.dtype)[:held.shape[-1]]
-    return np.where((previous == frames)[..., None], start, held)
+    first = start.reference(np.asarray(state[frames])).astype(held.dtype)[..., :held.shape[-1]]
+    return np.where((previous == frames)[..., None], first, held)
 
 
 def delta_action_mask(value: Any, layout: ActionLayout) -> np.ndarray | None:

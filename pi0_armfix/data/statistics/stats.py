@@ -473,11 +473,9 @@ def fit_width(stats: NormStats, width: int, where: str) -> NormStats:
 
 
 def start_reference(norm_stats: Mapping[str, NormStats], width: int) -> np.ndarray:
-    """`[width]` what a dim relative to the previous command is relative to at an episode's first
-    frame, where no command precedes: the training split's mean absolute action, in the action's
-    own units (a velocity command is never made relative to a position, a command at an offset
-    from its joint's state never to that state), the same in training, held-out evaluation, the
-    closed loop and serving (`transforms.delta_reference`).
+    """`[width]` the training split's mean absolute action: where a dim relative to the previous
+    command starts an episode when the state does not hold its joint (`transforms.EpisodeStart`),
+    in the action's own units.
 
     Raises:
       ValueError where the stats lack `ABSOLUTE_ACTIONS` (stats computed elsewhere).
