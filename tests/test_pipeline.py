@@ -514,13 +514,13 @@ def test_previous_action_reference_is_the_command_one_frame_before_and_the_start
 def test_an_episode_starts_from_the_state_where_it_holds_the_joint_never_for_a_velocity_or_gripper():
     table = arm_table()
     mean = table.actions.mean(0)
-    # the state in the action order: the base (a velocity command) and the grippers (open/close
-    # commands) are placed too, but only the joints start from it
-    start = transforms.EpisodeStart.of(mean, LAYOUT, dict(LAYOUT.groups))
+    # the state (20-D) in the action order: the base (a velocity command) and the left gripper (an
+    # open/close command) are placed too, but only the joints start from it
+    placed = {g: LAYOUT.groups[g] for g in ("base", "torso", "left_arm", "left_gripper")}
+    start = transforms.EpisodeStart.of(mean, LAYOUT, placed)
     reference = transforms.delta_reference("previous_action", table.actions, table.state,
                                            np.array([0, 7]), table.episode_starts, start)
-    joints = np.r_[LAYOUT.group_dims("torso"), LAYOUT.group_dims("left_arm"),
-                   LAYOUT.group_dims("right_arm")]
+    joints = np.r_[LAYOUT.group_dims("torso"), LAYOUT.group_dims("left_arm")]
     others = np.setdiff1d(np.arange(LAYOUT.real_dim), joints)
     np.testing.assert_array_equal(reference[:, joints], table.state[[0, 7]][:, joints])
     np.testing.assert_array_equal(reference[:, others], np.stack([mean, mean])[:, others])
@@ -556,9 +556,8 @@ def test_previous_action_delta_stats_are_over_the_chunk_steps_the_batches_hold()
     index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
     previous = transforms.previous_frames(frames, table.episode_starts)
     first = previous == frames
-    start = stats[dataset_lib.ABSOLUTE_ACTIONS].mean[7:14]
-    np.testing.assert_allclose(start, table.actions[:, 7:14].mean(0, dtype=np.float64), atol=1e-6)
-    reference = np.where(first[:, None], start, table.actions[previous, 7:14])
+    # the state places the left arm: an episode starts from its state there
+    reference = np.where(first[:, None], table.state[:, 7:14], table.actions[previous, 7:14])
     targets = (table.actions[index][..., 7:14] - reference[:, None]).reshape(-1, 7)
     np.testing.assert_allclose(stats["actions"].mean[7:14], targets.mean(0, dtype=np.float64),
                                atol=1e-5)
