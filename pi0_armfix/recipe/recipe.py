@@ -213,7 +213,6 @@ def choose_lever(groups: Sequence[Group], mechanism: Mapping[str, Any],
     offset = [g for g in (*mechanism["offset"], *mechanism["lag"]) if g not in velocity]
     copy = [g for g in mechanism["state_copy"] if g not in velocity]
     magnitude = [g for g in mechanism["magnitude"] if g not in velocity]
-    verdicts = " ".join(mechanism["verdict"])
     notes = []
     if offset:
         relative = [g for g in by_name if g in offset or g in copy]
@@ -254,8 +253,6 @@ def choose_lever(groups: Sequence[Group], mechanism: Mapping[str, Any],
     if skipped:
         notes.append(f"velocity groups {skipped} are never made relative (their state is a "
                      "position)")
-    if not verdicts:
-        notes.append("the analysis gave no verdict")
     return settings, why, tuple(notes)
 
 

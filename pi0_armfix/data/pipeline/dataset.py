@@ -372,8 +372,8 @@ def norm_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str, 
                   "balanced_norm"):
         key[f"data.{field}"] = _jsonable(data.get(field))
     key["data.state_preset"] = spec.state_preset
-    if data.get("balanced_norm"):
-        key["data.balanced_max_scale"] = float(data.get("balanced_max_scale", 10.0))
+    if spec.statistics.balanced_norm:
+        key["data.balanced_max_scale"] = spec.statistics.balanced_max_scale
         key["layout.groups"] = {g: list(b) for g, b in layout.groups.items()}
     if mask is not None:
         key["data.delta_action_mask"] = np.flatnonzero(mask).tolist()
