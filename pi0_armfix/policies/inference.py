@@ -19,8 +19,8 @@ A run whose actions are relative to the previous commanded action (`data.delta_r
 the last action they executed), else the observation's `previous_action` key (`ObservationKeys`;
 a server's client sends the last action it commanded), in the dataset's units `[real_dim]`. An
 observation without one where the caller has executed nothing yet (an episode's first step) is
-relative to the episode's start, the training split's mean action (`stats.start_reference`), as
-in training.
+relative to the episode's start as in training (`transforms.EpisodeStart`: the state where the
+state map holds the joints as positions, else the training split's mean action).
 
 The checkpoint and what it needs to run come from `policies.restore`.
 """

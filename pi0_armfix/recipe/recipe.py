@@ -190,7 +190,8 @@ def robot_settings(root: str, keys: Mapping[str, str], groups: Sequence[Group], 
         Setting("data.num_workers", 2, "reads off the training step's critical path"),
         Setting("eval.episodes", heldout_episodes(num_episodes),
                 f"held out: the last {HELDOUT_SHARE:.0%} of the {num_episodes} episodes, "
-                f"within [{MIN_HELDOUT}, {MAX_HELDOUT}]"),
+                + (f"within [{MIN_HELDOUT}, {MAX_HELDOUT}]" if num_episodes >= 5 else
+                   "one episode: a set of fewer than 5 keeps the rest for training")),
         Setting("eval.evaluations", 4, "a held-out evaluation every quarter of the run"),
         Setting("loss.strategy", "uniform", "the baseline: openpi's plain mean over the dims"),
     ]
@@ -219,7 +220,8 @@ def choose_lever(groups: Sequence[Group], mechanism: Mapping[str, Any],
         why = (f"the diagnosis: offset or lag on {sorted(set(offset))}"
                + (f", state copy on {copy}" if copy else "")
                + ": those groups relative to the command one frame before (at an episode's "
-               "first frame, the training split's mean action)")
+               "first frame, the state where data.state_groups holds the joints as positions, "
+               "else the training split's mean action)")
         settings = (Setting("data.delta_action_mask", tuple(relative)),
                     Setting("data.delta_reference", "previous_action"))
     elif copy:
