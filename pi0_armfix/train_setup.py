@@ -169,10 +169,10 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
         evaluator = None
         if spec.evaluates:
-            evaluator = evaluator_lib.Evaluator(data, spec.eval, model_config, norm_stats, tokenize,
-                                           mesh=mesh, params_sharding=state_shardings.params,
-                                           source=source, noise_factor=noise_factor,
-                                           sampling=sampling)
+            evaluator = evaluator_lib.Evaluator.for_policy(
+                data, spec.eval, model_config, norm_stats, tokenize, mesh=mesh,
+                params_sharding=state_shardings.params, source=source, noise_factor=noise_factor,
+                sampling=sampling)
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
                                        every=spec.train["checkpoint_every"],
                                        keep=spec.train["keep_checkpoints"])

@@ -397,7 +397,7 @@ def _evaluate_in_process(workdir, **eval_changes):
     source = sources.open_source(spec.options, run.layout)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     with jax.set_mesh(mesh):
-        evaluator = evaluator_lib.Evaluator(
+        evaluator = evaluator_lib.Evaluator.for_policy(
             spec, config.eval, run.model_config, run.norm_stats, tokenize, mesh=mesh,
             params_sharding=sharding_lib.tree_shardings(run.params, mesh), source=source,
             sampling=run.sampling)
@@ -507,3 +507,28 @@ def test_the_printed_table_says_n_a_and_why_for_a_constant_group_and_an_unmapped
     assert "nan" not in text
     assert "n/a: still never move(s)" in text
     assert "state copy = persistence: the state maps to no action group" in text
+
+
+def test_the_evaluator_scores_any_prediction_function_chunk_for_chunk(trained):
+    from pi0_armfix.policies import restore
+    from pi0_armfix.data.pipeline.data_spec import DataSpec
+    run = restore.restore_run(trained)
+    spec = DataSpec.from_config(run.config, run.layout)
+    eval_cfg = {**run.config.eval.to_dict(), "batch_size": 2}  # several batches, the last padded
+    chunks = evaluator_lib.heldout_chunks(spec, eval_cfg, run.model_config, run.norm_stats,
+                                          tokenize=None)
+    horizon, dim = run.model_config.action_horizon, run.model_config.action_dim
+    assert len(chunks.batches) > 1
+
+    def predict(params, observation, rows):  # each chunk predicted as its own index
+        out = np.full((2, len(observation["state"]), horizon, dim), -1.0)
+        out[:, :rows.stop - rows.start] = np.arange(rows.start, rows.stop)[None, :, None, None]
+        return out
+
+    evaluator = evaluator_lib.Evaluator(chunks, predict, plot_groups=())
+    sampled = evaluator.sample(params=None)
+    np.testing.assert_array_equal(
+        sampled, np.broadcast_to(np.arange(len(chunks.frames))[None, :, None, None],
+                                 (2, len(chunks.frames), horizon, dim)))
+    absolute = np.stack([chunks.transform.absolute_actions(d, chunks.frames) for d in sampled])
+    np.testing.assert_equal(evaluator(None).metrics, chunks.score(absolute / chunks.scale)[0])

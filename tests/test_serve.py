@@ -350,13 +350,13 @@ def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
                                                   "group_draws": "base=3"})
     policy = inference.RunPolicy(restored)
     evaluator, mesh = evaluator_lib.run_evaluator(restored)
-    assert evaluator.sampling == policy.sampling
+    assert evaluator.predict.sampling == policy.sampling
     with jax.set_mesh(mesh):
         evaluated = evaluator.sample(restored.params)  # [draws, N, H, A]: the base of 3, else 2
     batch, rows = evaluator.chunks.batches[0], evaluator.chunks.batch_rows[0]
     observation = {k: v for k, v in batch.items() if k not in ("actions", "action_is_pad")}
-    noise = np.zeros((3, len(batch["actions"]), *evaluator.noise.shape[2:]), np.float32)
-    noise[:, :rows] = evaluator.noise[:3, :rows]  # the first draw's three noises
+    noise = np.zeros((3, len(batch["actions"]), *evaluator.predict.noise.shape[2:]), np.float32)
+    noise[:, :rows] = evaluator.predict.noise[:3, :rows]  # the first draw's three noises
     served = policy.sample(restored.params, None, observation, noise=noise.reshape(
         -1, *noise.shape[2:]))
     np.testing.assert_allclose(np.asarray(served)[:rows], evaluated[0, :rows], atol=1e-5)
@@ -365,7 +365,7 @@ def test_the_evaluator_and_the_served_policy_sample_a_chunk_alike(run):
     np.testing.assert_allclose(
         policy.sample(restored.params, key, observation),
         policy.sample(restored.params, None, observation, noise=policy.sampling.noise(
-            key, (3 * len(batch["actions"]), *evaluator.noise.shape[2:]))), atol=1e-6)
+            key, (3 * len(batch["actions"]), *evaluator.predict.noise.shape[2:]))), atol=1e-6)
 
 
 def test_a_wide_deadband_holds_the_previous_action_but_leaves_an_episodes_first_chunk_alone(run):

@@ -1,19 +1,20 @@
-"""Held-out evaluation with actions sampled by the policy (`Evaluator`): is an arm stagnating, and
-does the policy do better than doing nothing? (docs/evaluation.md) Run by training every
-`eval.every` steps and offline on a checkpoint by `python -m pi0_armfix.evaluate`
-(`evaluate_checkpoint`).
+"""Held-out evaluation (`Evaluator`): is an arm stagnating, and does the policy do better than
+doing nothing? (docs/evaluation.md) Run by training every `eval.every` steps and offline on a
+checkpoint by `python -m pi0_armfix.evaluate` (`run_evaluator`).
 
 The held-out set is the dataset's last `eval.episodes` episodes (never trained on). Its chunks
 tile each episode's timeline (`tiled_chunk_starts`: every switch event once), at most
-`eval.max_chunks` of them, the same chunks at every evaluation; the policy samples each from the
-same noise (`eval.num_steps` Euler steps), so two evaluations differ only by the params. The
-sampled chunks are turned back into absolute actions in the data's units (normalization and
-delta actions undone) and every dim is divided by the training split's std of the absolute
-actions (`evaluation_scale`): runs with different normalizations or action representations are
-measured in the same units. The metrics are `pi0_armfix.evaluation.metrics`'s, for the policy
-and for the do-nothing predictors of `pi0_armfix.evaluation.baselines` scored on the same chunks
-(keys `persistence/...`, `state_copy/...`); `skill/<g>` is the policy's error against holding the
-previous action. Figures: predicted vs true trajectories (data units) of the chunks that move the
+`eval.max_chunks` of them, the same chunks at every evaluation. The evaluator takes a prediction
+function (`Predict`): the flow policy's (`policies.batch_policy.BatchPolicy`: `eval.num_steps`
+Euler steps from the same noise every call, so two evaluations differ only by the params), or a
+regressor's (`pi0_armfix.tools.regressor_baseline`). The predicted chunks are turned back into
+absolute actions in the data's units (normalization and delta actions undone) and every dim is
+divided by the training split's std of the absolute actions (`evaluation_scale`): runs with
+different normalizations or action representations are measured in the same units. The metrics
+are `pi0_armfix.evaluation.metrics`'s, for the prediction and for the do-nothing predictors of
+`pi0_armfix.evaluation.baselines` scored on the same chunks (keys `persistence/...`,
+`state_copy/...`); `skill/<g>` is the prediction's error against holding the previous action.
+Figures: predicted vs true trajectories (data units) of the chunks that move the
 `eval.plot_groups` most, and the per-group loss curves of `metrics.jsonl`.
 """
 
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -36,10 +37,10 @@ from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import heldout as heldout_lib
 from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
-from pi0_armfix.model import flow_model
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.policies import execution, restore
+from pi0_armfix.policies.batch_policy import BatchPolicy
 from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.evaluation import figures
 from pi0_armfix import sharding as sharding_lib
@@ -115,83 +116,79 @@ class Evaluation(NamedTuple):
     chunk_sums: dict[str, np.ndarray]
 
 
-class Evaluator:
-    """Samples the fixed held-out chunks with given params and measures them.
+Predict = Callable[[Any, Mapping[str, np.ndarray], slice], np.ndarray]
+"""`predict(params, observation, rows) -> [M, B, H, D]`: the normalized chunks of a held-out
+batch of `B` observations (model batch keys without the actions), `M` draws each; `rows` are the
+held-out chunks the batch's first rows hold (the rest is padding). The policy's is
+`policies.batch_policy.BatchPolicy`; a deterministic regressor's gives M = 1."""
 
-    Built once per run (reads the held-out episodes, compiles the sampler on first use).
+
+class Evaluator:
+    """Scores a prediction function on the fixed held-out chunks (as big_vision's evaluators take
+    a `predict_fn`): its chunks are turned back into absolute actions, held still where the
+    execution's deadband would hold them, and measured against the truth and the do-nothing
+    references (`HeldOutChunks.score`).
 
     Args:
-      spec: the run's data spec (its layout, held-out split, normalization, seed).
-      eval_cfg: the run's `eval` section.
-      model_config: the run's model.
-      norm_stats: the run's `{"actions", "state"}` statistics.
-      tokenize: the run's prompt tokenizer.
-      mesh: the run's mesh; params_sharding: NamedShardings of the params.
-      source: the run's opened data source (None = open the one `spec` names).
-      noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
-      sampling: the policy's levers (`Sampling.for_run`), as a command executes it.
+      chunks: the run's held-out chunks (`heldout_chunks`).
+      predict: the prediction function (`Predict`).
+      plot_groups: the groups a trajectory figure shows (`eval_groups`).
+      bands: the execution's deadband per group (`execution.deadband_groups`; {} = none).
     """
 
-    def __init__(self, spec: DataSpec, eval_cfg: Mapping[str, Any],
-                 model_config: model_config_lib.Pi0Config,
-                 norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
-                 mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
-                 noise_factor: np.ndarray | None = None, sampling: Sampling):
+    def __init__(self, chunks: heldout_lib.HeldOutChunks, predict: Predict, *,
+                 plot_groups: Sequence[str], bands: Mapping[str, Any] | None = None):
+        self.chunks, self.predict = chunks, predict
+        self.layout = chunks.layout
+        self.plot_groups = tuple(plot_groups)
+        self.bands = bands or {}
+
+    @classmethod
+    def for_policy(cls, spec: DataSpec, eval_cfg: Mapping[str, Any],
+                   model_config: model_config_lib.Pi0Config,
+                   norm_stats: Mapping[str, stats_lib.NormStats], tokenize, *,
+                   mesh: jax.sharding.Mesh, params_sharding: Any, source=None,
+                   noise_factor: np.ndarray | None = None, sampling: Sampling) -> "Evaluator":
+        """The evaluator of a run's flow policy (`BatchPolicy`), built once per run (reads the
+        held-out episodes; the sampler compiles on first use).
+
+        Args:
+          spec: the run's data spec (its layout, held-out split, normalization, seed).
+          eval_cfg: the run's `eval` section.
+          model_config: the run's model.
+          norm_stats: the run's `{"actions", "state"}` statistics.
+          tokenize: the run's prompt tokenizer.
+          mesh: the run's mesh; params_sharding: NamedShardings of the params.
+          source: the run's opened data source (None = open the one `spec` names).
+          noise_factor: the correlated noise's Cholesky factor the run trains with, or None.
+          sampling: the policy's levers (`Sampling.for_run`), as a command executes them.
+        """
         layout = spec.layout
         check_eval_config(eval_cfg, layout, mesh.size)
-        self.layout = layout
-        self.eval_cfg = eval_cfg
-        self.groups = eval_groups(eval_cfg, layout)
-        self.chunks = heldout_chunks(spec, eval_cfg, model_config, norm_stats, tokenize, source)
-        self.batch_sharding = sharding_lib.batch_sharding(mesh)
-        self.sampling = sampling
-        self.draws, self.average = eval_cfg["num_draws"], self.sampling.most_draws
-        self.draw_counts = self.sampling.draw_counts(layout)
-        self.bands = execution.deadband_groups(
-            self.sampling, layout, stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
-                                                       "norm stats 'actions'").std)
-        # One noise per held-out chunk and draw, drawn once: a chunk's draws depend neither on
-        # the evaluation batch size nor on which batch it lands in.
-        shape = (self.draws * self.average, len(self.chunks.frames), model_config.action_horizon,
-                 model_config.action_dim)
-        self.noise = np.asarray(self.sampling.noise(
-            jax.random.key(spec.seed), (shape[0] * shape[1], *shape[2:]), noise_factor)
-        ).reshape(shape)
-        sample = self.sampling.sampler(model_config, num_draws=shape[0])
-        self._sample = jax.jit(
-            lambda params, noise, observation: sample(params, None, observation, noise=noise),
-            in_shardings=(params_sharding, None, self.batch_sharding),
-            out_shardings=sharding_lib.replicated(mesh))
-
-    def _global(self, x: np.ndarray) -> jax.Array:
-        """This process's rows of a host batch `x` as a global array."""
-        per_process = len(x) // jax.process_count()
-        start = jax.process_index() * per_process
-        return jax.make_array_from_process_local_data(self.batch_sharding,
-                                                      x[start:start + per_process], x.shape)
+        chunks = heldout_chunks(spec, eval_cfg, model_config, norm_stats, tokenize, source)
+        policy = BatchPolicy(sampling, model_config, layout, num_draws=eval_cfg["num_draws"],
+                             num_chunks=len(chunks.frames), seed=spec.seed,
+                             noise_factor=noise_factor, mesh=mesh,
+                             params_sharding=params_sharding)
+        bands = execution.deadband_groups(sampling, layout, stats_lib.fit_width(
+            norm_stats["actions"], layout.real_dim, "norm stats 'actions'").std)
+        return cls(chunks, policy, plot_groups=eval_groups(eval_cfg, layout)["plot_groups"],
+                   bands=bands)
 
     def sample(self, params: Any) -> np.ndarray:
-        """The policy's chunks `[M, N, H, D]` (normalized) of all held-out chunks: M =
-        `eval.num_draws` draws, each the mean of `eval.average_draws` (per dim with
-        `group_draws`; the same noise every call)."""
+        """The prediction function's chunks `[M, N, H, D]` (normalized) of all held-out chunks."""
         predicted, start = [], 0
         for batch, rows in zip(tqdm(self.chunks.batches, desc="eval", leave=False,
                                     disable=jax.process_index() != 0), self.chunks.batch_rows):
-            observation = jax.tree.map(self._global, {k: v for k, v in batch.items()
-                                                      if k not in ("actions", "action_is_pad")})
-            size = len(batch["actions"])
-            noise = np.zeros((len(self.noise), size, *self.noise.shape[2:]), np.float32)
-            noise[:, :rows] = self.noise[:, start:start + rows]
-            draws = self._sample(params, noise.reshape(-1, *noise.shape[2:]), observation)
-            predicted.append(np.asarray(draws)[:, :rows])
+            observation = {k: v for k, v in batch.items() if k not in ("actions", "action_is_pad")}
+            predicted.append(np.asarray(self.predict(params, observation,
+                                                     slice(start, start + rows)))[:, :rows])
             start += rows
-        draws = np.concatenate(predicted, axis=1)
-        draws = draws.reshape(self.draws, self.average, *draws.shape[1:]).swapaxes(0, 1)
-        return np.asarray(flow_model.mean_of_draws(draws, self.draw_counts))
+        return np.concatenate(predicted, axis=1)
 
     def absolute_draws(self, params: Any) -> np.ndarray:
-        """The policy's absolute chunks `[M, N, H, A]` of all held-out chunks in evaluation units
-        (`sample`'s draws, with the levers' deadband, comparable with `chunks.true`)."""
+        """The predicted absolute chunks `[M, N, H, A]` of all held-out chunks in evaluation units
+        (`sample`'s draws, with the execution's deadband, comparable with `chunks.true`)."""
         chunks = self.chunks
         draws = np.stack([chunks.transform.absolute_actions(d, chunks.frames)
                           for d in self.sample(params)])
@@ -201,7 +198,7 @@ class Evaluator:
         return draws / chunks.scale
 
     def __call__(self, params: Any) -> Evaluation:
-        """Samples the held-out chunks with `params` and scores them (`Evaluation`)."""
+        """Predicts the held-out chunks with `params` and scores them (`Evaluation`)."""
         draws = self.absolute_draws(params)
         metrics, sums = self.chunks.score(draws)
         return Evaluation(metrics, draws[0], self.chunks.true, sums)
@@ -209,7 +206,7 @@ class Evaluator:
     def plot(self, predicted: np.ndarray, true: np.ndarray, path: epath.PathLike,
              title: str) -> None:
         """Trajectory figure of the chunks whose `eval.plot_groups` move most in the data."""
-        plot_groups = self.groups["plot_groups"]
+        plot_groups = self.plot_groups
         dims = np.concatenate([self.layout.group_dims(g) for g in plot_groups])
         # The base and torso beside the groups of interest: stagnation is the contrast.
         shown = [g for g in self.layout.groups_with_role("base", "torso") if g not in plot_groups]
@@ -293,11 +290,11 @@ def run_evaluator(run: restore.RestoredRun) -> tuple[Evaluator, jax.sharding.Mes
     source = sources.open_source(spec.options, layout)
     tokenize = tokenizer_lib.make_tokenizer(config.model, prompts=source.tasks)
     with jax.set_mesh(mesh):
-        evaluator = Evaluator(spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
-                              params_sharding=sharding_lib.tree_shardings(run.params, mesh),
-                              source=source, noise_factor=restore.run_noise_factor(
-                                  run.workdir, config, layout, model_config),
-                              sampling=run.sampling)
+        evaluator = Evaluator.for_policy(
+            spec, config.eval, model_config, run.norm_stats, tokenize, mesh=mesh,
+            params_sharding=sharding_lib.tree_shardings(run.params, mesh), source=source,
+            noise_factor=restore.run_noise_factor(run.workdir, config, layout, model_config),
+            sampling=run.sampling)
     return evaluator, mesh
 
 

@@ -139,15 +139,12 @@ class ConfigData:
             video_access=self.video_access)
 
     def score(self, predict, params) -> dict[str, float]:
-        """The regressor's held-out metrics (`HeldOutChunks.score` of its one prediction per
+        """The regressor's held-out metrics (the held-out `Evaluator` of its one prediction per
         chunk: the single draw, the mean of draws and the energy score coincide)."""
-        chunks, predicted = self.chunks, []
-        for batch, rows in zip(chunks.batches, chunks.batch_rows):
-            predicted.append(np.asarray(predict(params, observation_of(batch)))[:rows])
-        normalized = np.concatenate(predicted)
-        absolute = chunks.transform.absolute_actions(normalized, chunks.frames) / chunks.scale
-        metrics, _ = chunks.score(absolute[None])
-        return metrics
+        evaluator = evaluator_lib.Evaluator(
+            self.chunks, lambda p, observation, rows: np.asarray(
+                predict(p, observation_of(observation)))[None], plot_groups=())
+        return evaluator(params).metrics
 
 
 class Network(NamedTuple):
