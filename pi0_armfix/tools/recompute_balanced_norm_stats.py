@@ -37,10 +37,10 @@ def run(config: ml_collections.ConfigDict, output: str | Path, max_scale: float 
     """max_scale: the cap on each group's change of scale; None = `data.balanced_max_scale`.
     episodes: "train" (all but the held-out ones, as training) or "all"."""
     layout = ActionLayout.from_config(config.layout)
-    if max_scale is None:
-        max_scale = float(config.data.get("balanced_max_scale", 10.0))
     horizon = model_config_lib.from_model_config(config.model).action_horizon
     spec = DataSpec.from_config(config, layout)
+    if max_scale is None:  # the config's, its default the base config's (one default)
+        max_scale = spec.statistics.balanced_max_scale
     source = sources.open_source(spec.options, layout)
     spec = dataset_lib.reading_spec(spec, episodes)
     chosen = dataset_lib.select_episodes(spec, source, episodes)
