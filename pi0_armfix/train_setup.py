@@ -96,8 +96,9 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     sharding_lib.check_batch_size(spec.train["batch_size"], mesh, "train.batch_size",
                                   spec.train["microbatches"])
     batch_sharding = sharding_lib.batch_sharding(mesh)
-    # The levers the commands will execute the run with by default, fit to this model.
-    sampling = spec.sampling
+    # The levers the commands will execute the run with by default, fit to this model, read
+    # from the resolved config (the config itself is read once, by RunSpec.resolve).
+    sampling = Sampling.for_run(spec.config_json, horizon=model_config.action_horizon)
     sampling.check(layout, model_config.action_horizon)
     if spec.evaluates:
         evaluator_lib.check_eval_config(spec.eval, layout, mesh.size)

@@ -31,7 +31,6 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.data.pipeline.data_spec import DataSpec
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import pretrained
-from pi0_armfix.policies.sampling import Sampling
 from pi0_armfix.training import fingerprint
 from pi0_armfix.training import optimizer as optimizer_lib
 from pi0_armfix.training import step as step_lib
@@ -56,7 +55,6 @@ class RunSpec:
     fsdp: int
     seed: int
     uses_chunk_stats: bool
-    sampling: Sampling  # how the commands execute it by default (`Sampling.for_run`)
 
     @classmethod
     def resolve(cls, config: ml_collections.ConfigDict) -> "RunSpec":
@@ -99,14 +97,12 @@ class RunSpec:
                       "fine-tune frozen random weights; point model.pretrained at the base "
                       "model's params (openpi's pi0_base / pi05_base)",)
         data = DataSpec.from_config(config, layout, norm=config.data.norm)
-        sampling = Sampling.for_run(config, horizon=model.action_horizon)
         return cls(
             config_json=json.loads(config.to_json_best_effort()), layout=layout, model=model,
             model_section=config.model.to_dict(), data=data, loss=loss, optim=optim, tx=tx,
             schedule=schedule, notes=notes, train=train,
             eval=config.eval.to_dict(), fsdp=int(config.sharding.fsdp), seed=int(config.seed),
-            uses_chunk_stats=bool(config.data.norm_per_timestep) or loss["noise_beta"] < 1.0,
-            sampling=sampling)
+            uses_chunk_stats=bool(config.data.norm_per_timestep) or loss["noise_beta"] < 1.0)
 
     @property
     def evaluates(self) -> bool:
