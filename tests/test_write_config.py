@@ -238,3 +238,9 @@ def test_the_readme_path_from_a_set_to_the_per_group_table(tmp_path):
     assert "left_arm" in table and "dual:uniform" in table
     study = json.loads((tmp_path / "runs" / "study" / "study.json").read_text())
     assert study
+
+
+def test_the_held_out_split_is_a_fifth_of_the_set_within_its_bounds_and_one_episode_of_a_tiny_set():
+    from pi0_armfix.recipe import recipe as recipe_lib
+    assert [recipe_lib.heldout_episodes(n) for n in (2, 4, 5, 10, 50, 100, 1000)] == [
+        1, 1, 2, 2, 10, 20, 20]

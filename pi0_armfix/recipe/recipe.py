@@ -189,9 +189,10 @@ def robot_settings(root: str, keys: Mapping[str, str], groups: Sequence[Group], 
     settings += [
         Setting("data.num_workers", 2, "reads off the training step's critical path"),
         Setting("eval.episodes", heldout_episodes(num_episodes),
-                f"held out: the last {HELDOUT_SHARE:.0%} of the {num_episodes} episodes, "
-                + (f"within [{MIN_HELDOUT}, {MAX_HELDOUT}]" if num_episodes >= 5 else
-                   "one episode: a set of fewer than 5 keeps the rest for training")),
+                (f"held out: the last {HELDOUT_SHARE:.0%} of the {num_episodes} episodes, "
+                 f"within [{MIN_HELDOUT}, {MAX_HELDOUT}]" if num_episodes >= 5 else
+                 f"held out: the last of the {num_episodes} episodes (a set of fewer than 5 "
+                 "keeps the rest for training)")),
         Setting("eval.evaluations", 4, "a held-out evaluation every quarter of the run"),
         Setting("loss.strategy", "uniform", "the baseline: openpi's plain mean over the dims"),
     ]
