@@ -244,3 +244,13 @@ def test_the_held_out_split_is_a_fifth_of_the_set_within_its_bounds_and_one_epis
     from pi0_armfix.recipe import recipe as recipe_lib
     assert [recipe_lib.heldout_episodes(n) for n in (2, 4, 5, 10, 50, 100, 1000)] == [
         1, 1, 2, 2, 10, 20, 20]
+
+
+@pytest.mark.parametrize("images", [True, False])
+def test_unfed_batch_cameras_are_warned_of_only_where_cameras_are_read(velocity_arm, images):
+    config = load(velocity_arm["output"])  # one `front` camera: the wrist slots unfed
+    config.data.images = images
+    layout = ActionLayout.from_config(config.layout)
+    spec = DataSpec.from_config(config, layout)
+    warnings = dataset_lib.check_data(spec, sources.open_source(spec.options, layout))
+    assert any("no camera feeds" in w for w in warnings) == images

@@ -224,7 +224,7 @@ def check_data(spec: DataSpec, source, *, images: bool = True) -> list[str]:
                 f"{list(phase.sources)} only); shorten the phases with the run (the config file "
                 "sets them from its own total_steps)")
             break
-    if images:
+    if images and spec.reading.images:  # with data.images=False no camera is wanted
         missing = cameras_lib.missing_cameras_message(
             source.cameras, getattr(source, "camera_names", ()), where)
         if missing:
