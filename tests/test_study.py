@@ -989,3 +989,16 @@ def test_every_printed_interval_level_is_the_level_computed(tmp_path):
     assert computed["b"] == pytest.approx(1 - 0.05 / 3)  # three secondary: a, b, c
     assert f"the primary comparison, `{primary}`, at 95.0%" in text
     assert "95 % interval per cell, uncorrected" in text
+
+
+def test_with_one_held_out_episode_the_report_says_its_intervals_hold_the_seeds_spread_alone(
+        tmp_path):
+    rng = np.random.default_rng(0)
+    results = [_with_replicates(_result(c, s, 0.1 * s), 0.0, rng)
+               for c in ("uniform", "fix") for s in range(2)]
+    for result in results:
+        result["episode_replicates"]["episodes"] = 1
+    study_main.write_reports(results, tmp_path, steps=10, command="python -m pi0_armfix.study")
+    text = (tmp_path / "study.md").read_text()
+    assert "one held-out episode gives no sampling error" in text
+    assert "(1 episodes" not in text

@@ -129,10 +129,16 @@ def markdown(study: Mapping[str, Any], *, steps: int, command: str) -> str:
         lines.append(f"| {label} | " + " | ".join(_value(m, f"gripper_switch/{k}")
                                                  for k in SWITCH_METRICS) + f" | {counts} |")
     resampled = study.get("episode_resampling")
-    sampling = (f"the seeds' spread and the held-out episodes' sampling error "
-                f"({resampled['episodes']} episodes, {resampled['replicates']} bootstrap resamples shared by every run)"
-                if resampled else "the seeds' spread only: some runs lack their per-chunk sums, "
-                "so the interval speaks for these held-out episodes alone")
+    if not resampled:
+        sampling = ("the seeds' spread only: some runs lack their per-chunk sums, so the "
+                    "interval speaks for these held-out episodes alone")
+    elif resampled["episodes"] < 2:  # one episode's resamples are itself: no spread to see
+        sampling = ("the seeds' spread only: one held-out episode gives no sampling error to "
+                    "estimate, so the interval speaks for that episode alone")
+    else:
+        sampling = (f"the seeds' spread and the held-out episodes' sampling error "
+                    f"({resampled['episodes']} episodes, {resampled['replicates']} bootstrap "
+                    "resamples shared by every run)")
     lines += ["", f"## Against `{study['baseline']}` (difference of means over seeds, Welch t "
               "interval)", "",
               f"Levels: the primary comparison, `{study['primary']}`, at "
