@@ -12,8 +12,8 @@ command (`data.delta_reference=previous_action`) reads the request's `previous_a
 action the client last executed); a request without it is answered relative to the action of
 this connection's last reply that the client executed last (the `--n_exec`-th, the chunk's last
 for 0), or, on a connection's first request, to the episode's start as training had it
-(`transforms.EpisodeStart`: the state, or the training split's mean action), and the reply says which (`"relative_to"`: `previous_action`,
-`executed` or `start`). Messages
+(`transforms.EpisodeStart`: the state and its mean offset, or the training split's mean action),
+and the reply says which (`"relative_to"`: `previous_action`, `executed` or `start`). Messages
 are msgpack with numpy arrays in openpi's encoding (`pack` / `unpack`). A request the policy cannot
 read (not msgpack, not a dict, a missing key, a wrong state width, ...) is answered by a text
 message naming the problem (openpi's client raises it as a RuntimeError); the connection and the

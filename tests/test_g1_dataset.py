@@ -14,6 +14,7 @@ from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import arm_focused, arm_focused_previous_action, arm_weights_3x, uniform
 from pi0_armfix.data.formats.sources import open_source
 from pi0_armfix.data.formats.video import keyframe_interval
+from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.policies import execution, inference
 from pi0_armfix.policies.sampling import Sampling
@@ -143,9 +144,12 @@ def test_a_previous_action_policy_is_relative_to_the_command_it_is_given(g1, pre
     given = {**observation, "previous_action": action[4]}
     np.testing.assert_array_equal(policy.reference([given], selected), action[4][None])
     # no command yet (an episode's first step): the episode's start, as in training: the state,
-    # which holds every group's joints as positions in the action order
-    np.testing.assert_allclose(policy.reference([observation], selected), state[5][None],
-                               rtol=1e-6)
+    # which holds every group's joints as positions in the action order, and the training
+    # split's mean offset of the command from it
+    stats = policy.run.norm_stats
+    offset = stats[stats_lib.ABSOLUTE_ACTIONS].mean - stats["state"].mean
+    np.testing.assert_allclose(policy.reference([observation], selected),
+                               (state[5] + offset)[None], rtol=1e-5)
     rng = jax.random.key(3)
     np.testing.assert_allclose(policy.infer([observation], rng=rng, previous=action[4][None]),
                                policy.infer([given], rng=rng), atol=1e-6)

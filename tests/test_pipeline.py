@@ -504,26 +504,47 @@ def test_previous_action_reference_is_the_command_one_frame_before_and_the_start
     table = arm_table()
     frames = np.array([0, 1, 6, 7, 8])  # episodes start at 0 and 7
     mean = table.actions.mean(0)
-    start = transforms.EpisodeStart.of(mean, LAYOUT, None)  # no state map: the mean action
+    start = transforms.EpisodeStart.of(_plain_stats(table), LAYOUT, None)  # no state map
     reference = transforms.delta_reference("previous_action", table.actions, table.state,
                                            frames, table.episode_starts, start)
     np.testing.assert_array_equal(reference[[1, 2, 4]], table.actions[[0, 5, 7]])
-    np.testing.assert_array_equal(reference[[0, 3]], np.stack([mean, mean]))
+    np.testing.assert_allclose(reference[[0, 3]], np.stack([mean, mean]), rtol=1e-5)
 
 
-def test_an_episode_starts_from_the_state_where_it_holds_the_joint_never_for_a_velocity_or_gripper():
+def _plain_stats(table):
+    """A previous-action run's plain stats: the means each episode starts from."""
+    stats = stats_lib.compute_norm_stats(stats_lib.table_blocks(table), progress=False)
+    return {**stats, stats_lib.ABSOLUTE_ACTIONS: stats["actions"]}
+
+
+def test_an_episode_starts_from_the_state_and_its_mean_offset_where_it_holds_the_joint_never_for_a_velocity_or_gripper():
     table = arm_table()
-    mean = table.actions.mean(0)
+    stats = _plain_stats(table)
+    mean = stats["actions"].mean
     # the state (20-D) in the action order: the base (a velocity command) and the left gripper (an
     # open/close command) are placed too, but only the joints start from it
     placed = {g: LAYOUT.groups[g] for g in ("base", "torso", "left_arm", "left_gripper")}
-    start = transforms.EpisodeStart.of(mean, LAYOUT, placed)
+    start = transforms.EpisodeStart.of(stats, LAYOUT, placed)
     reference = transforms.delta_reference("previous_action", table.actions, table.state,
                                            np.array([0, 7]), table.episode_starts, start)
     joints = np.r_[LAYOUT.group_dims("torso"), LAYOUT.group_dims("left_arm")]
     others = np.setdiff1d(np.arange(LAYOUT.real_dim), joints)
-    np.testing.assert_array_equal(reference[:, joints], table.state[[0, 7]][:, joints])
-    np.testing.assert_array_equal(reference[:, others], np.stack([mean, mean])[:, others])
+    offset = mean[joints] - stats["state"].mean[joints]
+    np.testing.assert_allclose(reference[:, joints], table.state[[0, 7]][:, joints] + offset,
+                               rtol=1e-6)
+    np.testing.assert_allclose(reference[:, others], np.stack([mean, mean])[:, others], rtol=1e-6)
+
+
+def test_an_arm_commanded_at_a_steady_offset_from_its_state_starts_at_its_first_command():
+    table = arm_table()  # the left arm idle, its command 0.5 rad from the measured position
+    table.actions[:, 7:14] = table.actions[0, 7:14]
+    table.state[:, 7:14] = table.actions[:, 7:14] - 0.5
+    start = transforms.EpisodeStart.of(_plain_stats(table), LAYOUT,
+                                       {"left_arm": LAYOUT.groups["left_arm"]})
+    firsts = table.episode_starts[:-1]
+    reference = transforms.delta_reference("previous_action", table.actions, table.state,
+                                           firsts, table.episode_starts, start)
+    np.testing.assert_allclose(reference[:, 7:14], table.actions[firsts, 7:14], atol=1e-5)
 
 
 def _previous_action_stats(table, block_frames=5):
@@ -556,8 +577,11 @@ def test_previous_action_delta_stats_are_over_the_chunk_steps_the_batches_hold()
     index, _ = transforms.chunk_indices(frames, table.episode_starts, HORIZON)
     previous = transforms.previous_frames(frames, table.episode_starts)
     first = previous == frames
-    # the state places the left arm: an episode starts from its state there
-    reference = np.where(first[:, None], table.state[:, 7:14], table.actions[previous, 7:14])
+    # the state places the left arm: an episode starts from its state and mean offset there
+    offset = table.actions[:, 7:14].mean(0, dtype=np.float64) - table.state[:, 7:14].mean(
+        0, dtype=np.float64)
+    reference = np.where(first[:, None], table.state[:, 7:14] + offset,
+                         table.actions[previous, 7:14])
     targets = (table.actions[index][..., 7:14] - reference[:, None]).reshape(-1, 7)
     np.testing.assert_allclose(stats["actions"].mean[7:14], targets.mean(0, dtype=np.float64),
                                atol=1e-5)
@@ -610,8 +634,9 @@ def test_the_statistics_of_previous_action_runs_have_their_own_cache_key():
                             "episode_lengths": np.diff(table.episode_starts), "root": ""})()
     keys = [dataset_lib.norm_stats_key(spec_of(data), source, action_horizon=HORIZON)
             for data in (ARM_DELTA, PREVIOUS)]
-    assert "data.delta_reference" not in keys[0]
+    assert "data.delta_reference" not in keys[0] and "episode_start" not in keys[0]
     assert keys[1]["data.delta_reference"] == "previous_action"
+    assert keys[1]["episode_start"] == transforms.EPISODE_START
 
 
 def test_an_unknown_delta_reference_is_an_error_naming_the_choices():

@@ -25,7 +25,6 @@ from train_fixtures import arm_delta_run, cache_dir, demo_root  # noqa: F401  (p
 from pi0_armfix.data.formats import sources
 from pi0_armfix.data.formats import video
 from pi0_armfix.data.pipeline import batching, transforms
-from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.evaluation import closed_loop as closed_loop_lib
 from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import outputs
@@ -522,8 +521,7 @@ def test_a_previous_action_run_never_answers_a_mid_episode_request_relative_to_t
     policy, twin = inference.RunPolicy.from_workdir(run), inference.RunPolicy.from_workdir(run)
     for p in (policy, twin):  # its actions relative to the previous command
         p.delta_reference = "previous_action"
-        p.start = transforms.EpisodeStart.of(stats_lib.start_reference(p.run.norm_stats, 23),
-                                             p.layout, None)
+        p.start = transforms.EpisodeStart.of(p.run.norm_stats, p.layout, None)
     server = _serve_in_thread(policy)
     client = WebsocketClientPolicy(host="127.0.0.1", port=server.port)
     assert client.get_server_metadata()["observation_keys"]["previous_action"] == (

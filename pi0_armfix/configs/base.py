@@ -201,8 +201,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # the action order: data.state_groups or a preset), or 'previous_action' (the action commanded
     # one frame before, which holding the previous action exploits where a command sits at an
     # offset from the measured state or is a velocity; at an episode's first frame, in the
-    # command's units, the state where data.state_groups places the joint, else the training
-    # split's mean action: transforms.EpisodeStart; no state map needed; a policy needs it at
+    # command's units, the state where data.state_groups places the joint plus the training
+    # split's mean offset of the command from it, else the training split's mean action:
+    # transforms.EpisodeStart; no state map needed; a policy needs it at
     # inference: the closed loop and the harness pass the last executed action, a server client
     # sends it: docs/serving.md).
     config.data.delta_reference = "state"

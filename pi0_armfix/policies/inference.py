@@ -19,8 +19,9 @@ A run whose actions are relative to the previous commanded action (`data.delta_r
 the last action they executed), else the observation's `previous_action` key (`ObservationKeys`;
 a server's client sends the last action it commanded), in the dataset's units `[real_dim]`. An
 observation without one where the caller has executed nothing yet (an episode's first step) is
-relative to the episode's start as in training (`transforms.EpisodeStart`: the state where the
-state map holds the joints as positions, else the training split's mean action).
+relative to the episode's start as in training (`transforms.EpisodeStart`: the state plus the
+training split's mean offset where the state map holds the joints as positions, else the
+training split's mean action).
 
 The checkpoint and what it needs to run come from `policies.restore`.
 """
@@ -137,7 +138,7 @@ class RunPolicy:
         self.delta_reference = config.data.get("delta_reference") or "state"
         # where an episode relative to the previous command starts (`transforms.EpisodeStart`)
         self.start = (transforms.EpisodeStart.of(
-            stats_lib.start_reference(run.norm_stats, layout.real_dim), layout,
+            run.norm_stats, layout,
             selection_lib.state_groups(config.data.to_dict())) if self.needs_previous_action
             else None)
         model_cfg, own = config.model, run_inputs.tokenizer_path(run.workdir)

@@ -221,8 +221,8 @@ def choose_lever(groups: Sequence[Group], mechanism: Mapping[str, Any],
         why = (f"the diagnosis: offset or lag on {sorted(set(offset))}"
                + (f", state copy on {copy}" if copy else "")
                + ": those groups relative to the command one frame before (at an episode's "
-               "first frame, the state where data.state_groups holds the joints as positions, "
-               "else the training split's mean action)")
+               "first frame, the state plus its mean offset where data.state_groups holds the "
+               "joints as positions, else the training split's mean action)")
         settings = (Setting("data.delta_action_mask", tuple(relative)),
                     Setting("data.delta_reference", "previous_action"))
     elif copy:

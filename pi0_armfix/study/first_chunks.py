@@ -1,11 +1,12 @@
 """study.md's section on the held-out episodes' first chunks and on the errors in the robot's units.
 
 An episode's first chunk is the one place where a run relative to the previous command has no
-command to be relative to (`transforms.EpisodeStart`: the state where the state map holds the
-joints as positions, else the training split's mean action), and where holding the previous
-action is the true first action. A per-group table that mixes it with the rest can be ruled by
-it: on the G1's idle arm, when the first chunk was made relative to the state vector's own dims
-whatever they held, those 20 chunks held most of the offset lever's error. So each
+command to be relative to (`transforms.EpisodeStart`: the state and its mean offset where the
+state map holds the joints as positions, else the training split's mean action), and where
+holding the previous action is the true first action. A per-group table that mixes it with
+the rest can be ruled by it: on the G1's idle arm, when the first chunk was made relative to the
+state vector's own dims whatever they held, those 20 chunks held most of the offset lever's
+error. So each
 trained config's per-group skill over holding is given with every chunk and without the
 episodes' first chunks (from each run's kept per-chunk sums, `chunk_sums_lib.CHUNK_SUMS_FILE`), with the
 first chunks' share of the single draw's squared error; and beside it the single draw's error

@@ -140,8 +140,7 @@ class BatchTransform:
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
         self.delta_reference = delta_reference
-        self.start = (transforms.EpisodeStart.of(
-            stats_lib.start_reference(norm_stats, layout.real_dim), layout, state_groups)
+        self.start = (transforms.EpisodeStart.of(norm_stats, layout, state_groups)
             if delta_mask is not None and delta_reference == "previous_action" else None)
         self.tokens = None if actions_only else PromptTokens(tokenize)
         self.actions_only = actions_only

@@ -256,9 +256,10 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
       spec: the run's data spec (its layout, delta mask and state groups).
       action_horizon: H of the model's chunks (`config.model.action_horizon` resolved against the
         preset by the caller).
-      absolute: for actions relative to the previous action, the plain per-frame stats of the
-        same blocks (a first pass): their mean action is where each episode starts
-        (`stats.start_reference`), and they are kept as the `ABSOLUTE_ACTIONS` entry.
+      absolute: for actions relative to the previous action, the plain per-frame stats
+        `{"actions", "state"}` of the same blocks (a first pass): their means are where each
+        episode starts (`transforms.EpisodeStart`), and the actions' are kept as the
+        `ABSOLUTE_ACTIONS` entry.
     """
     mask, layout = spec.delta_mask, spec.layout
     if mask is None:
@@ -289,8 +290,9 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
         if absolute is None:
             raise ValueError("statistics of actions relative to the previous action need the "
                              "plain stats of the same frames first (absolute=)")
-        start = transforms.EpisodeStart.of(stats_lib.start_reference(
-            {ABSOLUTE_ACTIONS: absolute["actions"]}, layout.real_dim), layout, spec.state_groups)
+        start = transforms.EpisodeStart.of({ABSOLUTE_ACTIONS: absolute["actions"],
+                                            "state": absolute["state"]}, layout,
+                                           spec.state_groups)
     stats = stats_lib.compute_norm_stats(
         stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
         total_frames=total_frames, transform=chunk_steps, progress=progress)
@@ -312,8 +314,10 @@ def dataset_norm_stats(spec: DataSpec, *, action_horizon: int, progress: bool = 
     chunks of H = `action_horizon`)."""
     absolute = None
     if spec.delta_mask is not None and spec.delta_reference == "previous_action":
-        blocks, total = training_blocks(spec, ("actions",), source=source, episodes=episodes)
-        absolute = stats_lib.compute_norm_stats(blocks, ("actions",), total_frames=total,
+        # the mean action and state, from which each episode starts (`EpisodeStart`)
+        blocks, total = training_blocks(spec, ("actions", "state"), source=source,
+                                        episodes=episodes)
+        absolute = stats_lib.compute_norm_stats(blocks, ("actions", "state"), total_frames=total,
                                                 progress=progress)
     blocks, total = training_blocks(spec, ("actions", "state"), source=source,
                                     episodes=episodes)
@@ -379,6 +383,9 @@ def norm_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str, 
         key["data.delta_action_mask"] = np.flatnonzero(mask).tolist()
         if spec.delta_reference != "state":  # the default adds no entry: existing caches hold
             key["data.delta_reference"] = spec.delta_reference
+            # what an episode starts from (`transforms.EpisodeStart`): stats of another rule
+            # hold other first-frame deltas
+            key["episode_start"] = transforms.EPISODE_START
         key["data.state_groups"] = _jsonable(spec.state_groups)
         key["model.action_horizon"] = int(action_horizon)
     return key

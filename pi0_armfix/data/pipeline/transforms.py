@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.data.statistics import stats as stats_lib
 
 
 def pad_last(x: np.ndarray, width: int) -> np.ndarray:
@@ -67,27 +68,37 @@ def previous_frames(frames: np.ndarray, episode_starts: np.ndarray) -> np.ndarra
 DELTA_REFERENCES = ("state", "previous_action")
 
 
+# The rule `EpisodeStart` follows, named in the norm-stats cache key.
+EPISODE_START = "state + mean offset where placed, else mean action"
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class EpisodeStart:
     """What a dim relative to the previous command is relative to at an episode's first frame,
-    where no command precedes, in the command's own units: the state, where the state map
+    where no command precedes, in the command's own units: where the state map
     (`data.state_groups`) places the dim's group at the same width and the group is a joint
     position (neither a velocity command nor a gripper's open/close command, whose state is not
-    in the command's units); else the training split's mean action (`stats.start_reference`).
-    The same in training, held-out evaluation, the closed loop and serving.
+    in the command's units), the state plus the training split's mean offset of the command from
+    it (mean action - mean state: a controller's steady-state error, which the state alone misses:
+    on the dual arm's idle arm the command sits 8.45 σ from the measured position); else the
+    training split's mean action (`stats.start_reference`). The same in training, held-out
+    evaluation, the closed loop and serving.
 
     Attributes:
       mean: `[A]` the training split's mean absolute action.
       state_dims: `[A]` int, the state dim holding each action dim's joint, -1 where none does.
+      offset: `[A]` the training split's mean action - mean state on the placed dims, 0 elsewhere.
     """
 
     mean: np.ndarray
     state_dims: np.ndarray
+    offset: np.ndarray
 
     @classmethod
-    def of(cls, mean: np.ndarray, layout: ActionLayout,
+    def of(cls, norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
            state_groups: Mapping[str, Sequence[int]] | None) -> "EpisodeStart":
-        mean = np.asarray(mean)
+        """From a run's norm stats (their `ABSOLUTE_ACTIONS` and `state` means)."""
+        mean = stats_lib.start_reference(norm_stats, layout.real_dim)
         dims = np.full(len(mean), -1, np.int64)
         others = {*layout.velocity_groups, *layout.groups_with_role("gripper")}
         for group, bounds in (state_groups or {}).items():
@@ -97,7 +108,12 @@ class EpisodeStart:
             action_dims = layout.group_dims(group)
             if stop - start == len(action_dims):
                 dims[action_dims] = np.arange(start, stop)
-        return cls(mean, dims)
+        offset = np.zeros(len(mean))
+        placed = dims >= 0
+        if placed.any():
+            state_mean = np.asarray(norm_stats["state"].mean, np.float64)
+            offset[placed] = mean[placed] - state_mean[dims[placed]]
+        return cls(mean, dims, offset)
 
     def reference(self, state: np.ndarray) -> np.ndarray:
         """`[..., A]` the start of episodes whose first frame's state is `state` `[..., S]`."""
@@ -106,8 +122,8 @@ class EpisodeStart:
         mean = np.broadcast_to(self.mean, (*state.shape[:-1], len(self.mean)))
         if not placed.any():
             return mean
-        return np.where(placed, np.take(state, np.where(placed, self.state_dims, 0), axis=-1),
-                        mean)
+        return np.where(placed, np.take(state, np.where(placed, self.state_dims, 0), axis=-1)
+                        + self.offset, mean)
 
 
 def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
