@@ -57,7 +57,7 @@ from etils import epath
 from ml_collections import config_flags
 from tqdm import tqdm
 
-from pi0_armfix import cache, console
+from pi0_armfix import cache, console, wall_time
 from pi0_armfix.action_space import MANIPULATION_ROLES, ActionLayout
 from pi0_armfix.data import background
 from pi0_armfix.data.pipeline import pipeline
@@ -147,7 +147,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                 "tiny model to minutes for pi0 on a loaded machine; "
                 + (f"kept in {cached} for the next run)" if cached else
                    "no compilation cache: PI0_ARMFIX_COMPILATION_CACHE=0)"))
-            compile_start = time.perf_counter()
+            compile_start = loop_start = time.perf_counter()
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 if stop.due(done):
                     break
@@ -167,8 +167,9 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                 state, step_metrics = run.train_step(state, batch)
                 if step == run.start + 1:
                     step_metrics["loss"].block_until_ready()
-                    say(f"first step compiled and ran in {time.perf_counter() - compile_start:.1f}"
-                         " s")
+                    first = time.perf_counter() - compile_start
+                    run.wall_time.add("first step (compiled)", first)
+                    say(f"first step compiled and ran in {first:.1f} s")
                 in_flight.append(step_metrics["loss"])
                 if len(in_flight) > STEPS_IN_FLIGHT:
                     in_flight.popleft().block_until_ready()
@@ -192,8 +193,13 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     finite.confirm_final(step)
                 if run.evaluator is not None and (step % spec.eval["every"] == 0 or last):
                     check_run_folder(workdir, step)
-                    _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
+                    with run.wall_time.part(f"evaluation at step {step}"):
+                        _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
+        evaluations = sum(s for name, s in run.wall_time.parts.items()
+                          if name.startswith("evaluation at"))
+        run.wall_time.add("other steps", time.perf_counter() - loop_start - evaluations
+                          - run.wall_time.parts.get("first step (compiled)", 0.0))
         if done < total_steps:  # stopped by a signal
             if train["save_on_preemption"] and done > finite.saved:
                 save(done, force=True)
@@ -226,6 +232,8 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
         return {}
     records = metrics_log.read_metrics(workdir / metrics_log.METRICS_FILE)
     figures.plot_group_losses(records, run.layout, _plots_dir(workdir) / "group_losses.png")
+    run.wall_time.save(workdir / wall_time.FILE)
+    say(run.wall_time.summary())
     return [r for r in records if "loss" in r][-1]
 
 

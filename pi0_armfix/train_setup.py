@@ -36,9 +36,7 @@ from pi0_armfix import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 from pi0_armfix.training.run_spec import RunSpec
-
-
-NORM_STATS_FILE = "norm_stats.json"
+from pi0_armfix.wall_time import WallTime
 
 
 class ConfigurationError(ValueError):
@@ -78,11 +76,15 @@ class Run:
     evaluator: evaluator_lib.Evaluator | None
     norm_stats_json: dict[str, Any]
     lock: Any = None  # the workdir's lock file (process 0), released by closing it
+    wall_time: WallTime = dataclasses.field(default_factory=WallTime)  # seconds by part so far
 
 
-def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
+def prepare(config: ml_collections.ConfigDict, workdir: str,
+            wall_time: WallTime | None = None) -> Run:
     """Resolves the config (`RunSpec`), opens the data, builds or restores the state, compiles
-    the step: everything a user can get wrong fails here, before any step."""
+    the step: everything a user can get wrong fails here, before any step. `wall_time`: where
+    the parts' seconds add up (the run's own)."""
+    wall_time = wall_time or WallTime()
     workdir = epath.Path(workdir).absolute()
     is_main = jax.process_index() == 0
     if workdir.exists() and not workdir.is_dir():
@@ -105,11 +107,12 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
 
     # Every data check runs here, on the metadata and a probe of a few episodes: nothing below
     # passes over the data before they all hold.
-    source = sources.open_source(data.options, layout)
-    for warning in dataset_lib.check_data(data, source):
-        say(f"warning: {warning}")
-    video_access, video_why = video_stream.run_access(data.reading, source)
-    tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
+    with wall_time.part("open and check the data"):  # the demo is generated on first use
+        source = sources.open_source(data.options, layout)
+        for warning in dataset_lib.check_data(data, source):
+            say(f"warning: {warning}")
+        video_access, video_why = video_stream.run_access(data.reading, source)
+        tokenize = tokenizer_lib.make_tokenizer(spec.model_section, prompts=source.tasks)
     for line in banner(spec, workdir, mesh, source, video_why, sampling):
         say(line)
 
@@ -119,7 +122,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         if lock is not None:
             on_error.callback(lock.close)
         holds_run = (checkpoint.has_checkpoints(workdir / "checkpoints")
-                     or (workdir / NORM_STATS_FILE).exists())
+                     or (workdir / dataset_lib.NORM_STATS_FILE).exists())
         for note in fingerprint.check_resume(workdir, spec.config_json, holds_run=holds_run,
                                              may_write=is_main):
             say(f"note: {note}")
@@ -138,41 +141,44 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
         if not holds_run:
             record_run()
         resuming = checkpoint.has_checkpoints(workdir / "checkpoints")
-        norm_stats = dataset_lib.load_or_compute_norm_stats(
-            data, action_horizon=model_config.action_horizon,
-            cache_path=workdir / NORM_STATS_FILE, progress=is_main, source=source,
-            resuming=resuming, keep_cached=resuming and spec.train["resume"] == "force")
-        noise_factor = None
-        if spec.uses_chunk_stats:
-            chunk = chunk_stats_lib.load_or_compute_chunk_stats(
-                data, action_horizon=model_config.action_horizon, folder=workdir,
-                constant=stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
-                                             "norm stats 'actions'").constant(data.norm),
-                start=(transforms.EpisodeStart.of(norm_stats, layout, data.state_groups)
-                       if data.delta_reference == "previous_action" else None),
-                source=source, resuming=resuming)
-            if data.statistics.norm_per_timestep:
-                norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}
-            if spec.loss["noise_beta"] < 1.0:
-                noise_factor = noise_lib.correlated_noise_factor(
-                    chunk.correlation, spec.loss["noise_beta"],
-                    horizon=model_config.action_horizon, real_dim=layout.real_dim,
-                    action_dim=layout.action_dim)
-        train_iter = pipeline.make_train_iterator(
-            data, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
-            global_batch_size=spec.train["batch_size"], sharding=batch_sharding,
-            tokenize=tokenize, source=source, image_size=model_config.image_resolution,
-            video_access=video_access)
+        with wall_time.part("statistics"):  # computed on a run's first start, then read
+            norm_stats = dataset_lib.load_or_compute_norm_stats(
+                data, action_horizon=model_config.action_horizon,
+                cache_path=workdir / dataset_lib.NORM_STATS_FILE, progress=is_main, source=source,
+                resuming=resuming, keep_cached=resuming and spec.train["resume"] == "force")
+            noise_factor = None
+            if spec.uses_chunk_stats:
+                chunk = chunk_stats_lib.load_or_compute_chunk_stats(
+                    data, action_horizon=model_config.action_horizon, folder=workdir,
+                    constant=stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
+                                                 "norm stats 'actions'").constant(data.norm),
+                    start=(transforms.EpisodeStart.of(norm_stats, layout, data.state_groups)
+                           if data.delta_reference == "previous_action" else None),
+                    source=source, resuming=resuming)
+                if data.statistics.norm_per_timestep:
+                    norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}
+                if spec.loss["noise_beta"] < 1.0:
+                    noise_factor = noise_lib.correlated_noise_factor(
+                        chunk.correlation, spec.loss["noise_beta"],
+                        horizon=model_config.action_horizon, real_dim=layout.real_dim,
+                        action_dim=layout.action_dim)
+        with wall_time.part("data pipeline and evaluator"):
+            train_iter = pipeline.make_train_iterator(
+                data, norm_stats=norm_stats, action_horizon=model_config.action_horizon,
+                global_batch_size=spec.train["batch_size"], sharding=batch_sharding,
+                tokenize=tokenize, source=source, image_size=model_config.image_resolution,
+                video_access=video_access)
 
-        abstract_state = jax.eval_shape(
-            lambda: _create_state(spec, flow_model.init_params(model_config, jax.random.key(0))))
-        state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
-        evaluator = None
-        if spec.evaluates:
-            evaluator = evaluator_lib.Evaluator.for_policy(
-                data, spec.eval, model_config, norm_stats, tokenize, mesh=mesh,
-                params_sharding=state_shardings.params, source=source, noise_factor=noise_factor,
-                sampling=sampling)
+            abstract_state = jax.eval_shape(
+                lambda: _create_state(spec, flow_model.init_params(model_config,
+                                                                   jax.random.key(0))))
+            state_shardings = sharding_lib.tree_shardings(abstract_state, mesh)
+            evaluator = None
+            if spec.evaluates:
+                evaluator = evaluator_lib.Evaluator.for_policy(
+                    data, spec.eval, model_config, norm_stats, tokenize, mesh=mesh,
+                    params_sharding=state_shardings.params, source=source,
+                    noise_factor=noise_factor, sampling=sampling)
         ckpts = checkpoint.Checkpoints(workdir / "checkpoints",
                                        every=spec.train["checkpoint_every"],
                                        keep=spec.train["keep_checkpoints"])
@@ -183,7 +189,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                 f"{spec.train['total_steps']}: nothing to train. Evaluate it (python -m "
                 f"pi0_armfix.evaluate --workdir={workdir}), or set train.total_steps above "
                 f"{latest} to train on")
-        with jax.set_mesh(mesh):
+        with wall_time.part("state (initialized or restored)"), jax.set_mesh(mesh):
             restored = ckpts.restore_latest(jax.tree.map(
                 lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
                 abstract_state, state_shardings), say=say)
@@ -216,7 +222,7 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                    evaluator=evaluator,
                    norm_stats_json={"norm_stats": {k: v.to_json()
                                                    for k, v in norm_stats.items()}},
-                   lock=lock)
+                   lock=lock, wall_time=wall_time)
 
 
 def levers(spec: RunSpec, sampling: Sampling) -> str:

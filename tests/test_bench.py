@@ -1,6 +1,7 @@
 """The data benchmarks run end to end at a small size and print their numbers (the real sizes
 are benchmark commands: RESULTS.md, "Benchmarks")."""
 
+import json
 import os
 import subprocess
 import sys
@@ -14,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 def _bench(tmp_path, *args: str) -> str:
     env = {**os.environ, "PI0_ARMFIX_CACHE": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
     result = subprocess.run([sys.executable, "-m", "pi0_armfix.bench", *args], cwd=REPO,
-                            env=env, capture_output=True, text=True, timeout=600)
+                            env=env, capture_output=True, text=True, timeout=1200)
     assert result.returncode == 0, result.stderr[-3000:]
     return result.stdout
 
@@ -156,3 +157,24 @@ def test_step_flops_count_the_whole_batch_with_or_without_microbatches():
         "uniform", preset="tiny", batch=4, changes=(f"train.microbatches={n}",))).flops(remat=False)
         for n in (1, 2)]
     assert flops[1] == pytest.approx(flops[0], rel=1e-3)
+
+
+@pytest.mark.slow  # eleven short processes: the slow lane
+def test_the_walltime_benchmark_times_each_part_of_a_run_with_and_without_the_cache(tmp_path):
+    from train_fixtures import write_tiny_demo
+
+    data = write_tiny_demo(tmp_path / "demo")
+    output = tmp_path / "walltime.json"
+    out = _bench(tmp_path, "walltime", "--config=configs/uniform.py", "--steps=2",
+                 "--evaluations=1", "--episodes=1", "--repeats=1", f"--output={output}",
+                 "--set=model.preset=tiny", f"--set=data.root={data}", "--set=eval.episodes=2",
+                 "--set=eval.max_chunks=8", "--set=train.batch_size=8")
+    for row in ("| train: whole process |", "| train: first step (compiled) |",
+                "| train: evaluation at step 2 |", "| closed loop: whole process |",
+                "| closed loop: 1 episodes (the first replan compiles) |",
+                "| server: start to /healthz (load, warm-up) |"):
+        assert row in out, row
+    measured = json.loads(output.read_text())
+    assert measured["demo_generation"] is None  # the run reads its own data
+    before, after = measured["passes"]["before"], measured["passes"]["after"]
+    assert len(before) == len(after) == 1 and before[0].keys() == after[0].keys()

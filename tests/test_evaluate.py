@@ -19,6 +19,8 @@ from pi0_armfix.evaluation import evaluator as evaluator_lib
 from pi0_armfix.evaluation import heldout
 from pi0_armfix.evaluation import chunk_sums as chunk_sums_lib
 from pi0_armfix.evaluation import metrics as eval_metrics
+from pi0_armfix.data.pipeline import transforms
+from pi0_armfix.policies import restore
 
 LAYOUT = ActionLayout(groups={"base": (0, 2), "arm": (2, 5), "gripper": (5, 6)}, real_dim=6,
                       action_dim=8, velocity_groups=("base",))
@@ -532,3 +534,20 @@ def test_the_evaluator_scores_any_prediction_function_chunk_for_chunk(trained):
                                  (2, len(chunks.frames), horizon, dim)))
     absolute = np.stack([chunks.transform.absolute_actions(d, chunks.frames) for d in sampled])
     np.testing.assert_equal(evaluator(None).metrics, chunks.score(absolute / chunks.scale)[0])
+
+
+@pytest.mark.parametrize("key, said", [
+    ({"data.delta_reference": "previous_action"}, "an earlier rule; its norm_stats.key.json"),
+    ({"data.delta_reference": "previous_action", "episode_start": "the state"}, "to the state;"),
+    ({"data.delta_reference": "previous_action", "episode_start": transforms.EPISODE_START},
+     None),
+    ({}, None),
+])
+def test_a_run_trained_under_another_episode_start_rule_is_named_when_it_is_restored(
+        tmp_path, key, said):
+    (tmp_path / "norm_stats.key.json").write_text(json.dumps(key))
+    warning = restore.episode_start_warning(tmp_path)
+    if said is None:
+        assert warning is None
+    else:
+        assert said in warning and f"today's rule ({transforms.EPISODE_START})" in warning

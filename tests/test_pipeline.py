@@ -639,6 +639,44 @@ def test_the_statistics_of_previous_action_runs_have_their_own_cache_key():
     assert keys[1]["episode_start"] == transforms.EPISODE_START
 
 
+def _keyed_cache(folder, key_changes):
+    """A run folder's norm stats beside a key of the previous-action statistics, changed."""
+    table = arm_table()
+    source = type("S", (), {"episode_index": np.arange(table.num_episodes),
+                            "episode_lengths": np.diff(table.episode_starts), "root": ""})()
+    key = dataset_lib.norm_stats_key(spec_of(PREVIOUS), source, action_horizon=HORIZON)
+    for entry, value in key_changes.items():
+        if value is None:
+            del key[entry]
+        else:
+            key[entry] = value
+    cache = folder / dataset_lib.NORM_STATS_FILE
+    stats_lib.save_norm_stats(cache, table_stats(table))
+    cache.with_name("norm_stats.key.json").write_text(json.dumps(key))
+    return cache, source
+
+
+def test_resuming_a_run_whose_statistics_predate_the_episode_start_rule_names_the_rule_and_fix(
+        tmp_path):
+    cache, source = _keyed_cache(tmp_path, {"episode_start": None})
+    with pytest.raises(ValueError, match=r"started from the state \(an earlier rule\); today it "
+                                         r"starts from .*--config.train.resume=force"):
+        dataset_lib.load_or_compute_norm_stats(spec_of(PREVIOUS), action_horizon=HORIZON,
+                                               cache_path=cache, source=source, resuming=True)
+
+
+@pytest.mark.parametrize("changes, rule", [
+    ({"episode_start": None}, ""),
+    ({}, transforms.EPISODE_START),
+    ({"data.delta_reference": None, "episode_start": None}, None),
+])
+def test_a_run_folder_names_the_episode_start_rule_its_statistics_were_computed_under(
+        tmp_path, changes, rule):
+    _keyed_cache(tmp_path, changes)
+    assert dataset_lib.run_episode_start(tmp_path) == rule
+    assert dataset_lib.run_episode_start(tmp_path / "elsewhere") is None
+
+
 def test_an_unknown_delta_reference_is_an_error_naming_the_choices():
     with pytest.raises(ValueError, match=r"data.delta_reference = 'goal' is not one of"):
         spec_of({**ARM_DELTA, "delta_reference": "goal"})

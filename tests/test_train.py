@@ -23,6 +23,7 @@ from pi0_armfix.model import flow_model
 from pi0_armfix.model import tokenizer as tokenizer_lib
 from pi0_armfix.training import checkpoint
 from pi0_armfix import train_setup as setup_lib
+from pi0_armfix import wall_time
 from pi0_armfix.training import step as step_lib
 
 B1K = ActionLayout.preset("b1k_r1pro")
@@ -68,6 +69,15 @@ def test_run_logs_metrics_evaluates_plots_and_prints_per_group_losses(tmp_path, 
         assert (workdir / "plots" / figure).stat().st_size > 10_000
     assert checkpoint.Checkpoints(workdir / "checkpoints", read_only=True).all_steps() == [2, 4]
     assert json.loads((workdir / "config.json").read_text())["loss"]["strategy"] == "per_group"
+
+    spent = wall_time.load(workdir / wall_time.FILE)
+    assert list(spent["parts"]) == [
+        "open and check the data", "statistics", "data pipeline and evaluator",
+        "state (initialized or restored)", "first step (compiled)", "evaluation at step 4",
+        "other steps"]
+    assert all(s >= 0 for s in spent["parts"].values())
+    assert sum(spent["parts"].values()) <= spent["total"]
+    assert "wall time by part (s): open and check the data " in result.stdout
 
 
 @pytest.mark.slow  # a whole training run: the slow lane

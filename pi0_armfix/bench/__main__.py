@@ -3,7 +3,7 @@
 import importlib
 import sys
 
-BENCHMARKS = ("data", "faults", "model", "serve", "sim", "step", "train", "video")
+BENCHMARKS = ("data", "faults", "model", "serve", "sim", "step", "train", "video", "walltime")
 
 
 USAGE = (f"usage: python -m pi0_armfix.bench {{{'|'.join(BENCHMARKS)}}} [flags]\n"

@@ -44,7 +44,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(argv[1:])
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -59,13 +59,14 @@ def _train_demo_run(folder: Path) -> Path:
     return workdir
 
 
-def start_server(workdir: Path, port: int, timeout: float = 300, protocol: str = "openpi"
-                 ) -> subprocess.Popen:
-    """`python -m pi0_armfix.serve` in its own process, returned once /healthz answers."""
+def start_server(workdir: Path, port: int, timeout: float = 300, protocol: str = "openpi",
+                 env: dict[str, str] | None = None) -> subprocess.Popen:
+    """`python -m pi0_armfix.serve` in its own process (`env`: its environment, default this
+    one's), returned once /healthz answers."""
     server = subprocess.Popen(
         [sys.executable, "-m", "pi0_armfix.serve", f"--workdir={workdir}", "--host=127.0.0.1",
          f"--port={port}", f"--protocol={protocol}"], cwd=REPO_ROOT,
-        env=dict(os.environ, PYTHONPATH=str(REPO_ROOT)),
+        env=dict(env or os.environ, PYTHONPATH=str(REPO_ROOT)),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -132,7 +133,7 @@ def main(argv: list[str]) -> None:
 
     with tempfile.TemporaryDirectory() as folder:
         workdir = Path(args.workdir) if args.workdir else _train_demo_run(Path(folder))
-        port = args.port or _free_port()
+        port = args.port or free_port()
         if args.protocol == "b1k":
             harness_latency(workdir, port, args.requests)
             return

@@ -26,6 +26,7 @@ from pi0_armfix.evaluation.outputs import strict_json, writable_folder
 from pi0_armfix.sim import env as env_lib
 from pi0_armfix.sim import rollout as rollout_lib
 from pi0_armfix.sim.world import DemoSpec
+from pi0_armfix import wall_time
 
 CLOSED_LOOP_STEM = "closed_loop"  # a closed-loop evaluation's files (`closed_loop_paths`)
 ROLLOUT_ROWS = 3  # episodes shown in the rollout figure
@@ -50,7 +51,9 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"--sim_seed = {sim_seed} must be >= 0 (a world seed)")
     if any(f <= 0 for f in tolerances):
         raise ValueError(f"--tolerances={list(tolerances)} must be factors > 0")
-    policy_ = inference.RunPolicy(restore.restore_run(workdir, step, params_name, levers))
+    wall = wall_time.WallTime()
+    with wall.part("restore the run"):
+        policy_ = inference.RunPolicy(restore.restore_run(workdir, step, params_name, levers))
     run, sampling = policy_.run, policy_.sampling
     replanning = execution.Replanner(policy_)  # its levers checked before any rollout
     n_exec = replanning.n_exec
@@ -62,8 +65,9 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
         raise ValueError(f"the run's actions have {run.layout.real_dim} dims; the demo world "
                          "takes the 23-D B1K action (layout b1k_r1pro)")
     spec = DemoSpec(seed=sim_seed)
-    records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
-                                  progress=progress and jax.process_index() == 0)
+    with wall.part(f"{episodes} episodes (the first replan compiles)"):
+        records = rollout_lib.rollout(replanning, range(episodes), spec=spec, n_exec=n_exec,
+                                      progress=progress and jax.process_index() == 0)
     summary = {"step": run.step, "params": run.params_name, "sim_seed": sim_seed,
                **sampling.describe(), "n_exec": n_exec,
                "results": str(results_path), "figure": str(figure_path),
@@ -73,13 +77,16 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
     if looser:
         summary["success_curve"] = {"1": {k: v for k, v in summary.items()
                                           if k.startswith(("success/", "phase_success/"))}}
+        with wall.part(f"{episodes} episodes x {len(looser)} looser tolerances"):
+            curve = rollout_lib.success_curve(
+                replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
+                progress=progress and jax.process_index() == 0)
         summary["success_curve"] |= {
             factor: {k: v for k, v in measured.items()
                      if k.startswith(("success/", "phase_success/")) or k == "episodes_detail"}
-            for factor, measured in rollout_lib.success_curve(
-                replanning, range(episodes), spec=spec, factors=looser, n_exec=n_exec,
-                progress=progress and jax.process_index() == 0).items()}
+            for factor, measured in curve.items()}
     json_files.write_json_atomic(results_path, strict_json(summary))
+    wall.save(wall_time_path(results_path))
     if looser:
         rollout_lib.plot_success_curves({"policy": summary["success_curve"]},
                                         figure_path.with_name(
@@ -92,6 +99,11 @@ def closed_loop(workdir: epath.PathLike, step: int | None = None, params_name: s
                               f"step {run.step}: closed loop, n_exec {n_exec}"
                               + (f", levers {tag}" if tag else ""))
     return run.step, summary
+
+
+def wall_time_path(results_path: epath.Path) -> epath.Path:
+    """Where a closed-loop evaluation's seconds by part go: beside its results, named alike."""
+    return results_path.with_name(results_path.stem + "." + wall_time.FILE)
 
 
 def closed_loop_paths(workdir: epath.PathLike, step: int, *, episodes: int,

@@ -19,6 +19,8 @@ from pi0_armfix import sharding as sharding_lib
 from pi0_armfix.action_space import ActionLayout
 from pi0_armfix.configs import base as base_config
 from pi0_armfix.data.pipeline import chunk_stats as chunk_stats_lib
+from pi0_armfix.data.pipeline import dataset as dataset_lib
+from pi0_armfix.data.pipeline import transforms
 from pi0_armfix.data.statistics import stats as stats_lib
 from pi0_armfix.model import config as model_config_lib
 from pi0_armfix.model import noise as noise_lib
@@ -88,6 +90,20 @@ class RestoredRun:
         return self.sampling.tag(closed_loop, against=own) + ("_params" if raw else "")
 
 
+def episode_start_warning(workdir: epath.PathLike) -> str | None:
+    """A line where a run's statistics (and so its training) predate today's episode-start rule
+    (`transforms.EPISODE_START`), which its evaluation, closed loop and server apply; None where
+    they match or nothing is relative to the previous command."""
+    rule = dataset_lib.run_episode_start(workdir)
+    if rule is None or rule == transforms.EPISODE_START:
+        return None
+    return (f"warning: {workdir} was trained with an episode's first chunk relative to "
+            f"{rule or 'the state (an earlier rule; its norm_stats.key.json names none)'}; it is "
+            f"evaluated and served under today's rule ({transforms.EPISODE_START}): episodes' "
+            "first chunks and a connection's first request differ from its training; retrain "
+            "to compare it like for like")
+
+
 def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: str = "ema",
                 levers: Mapping[str, Any] | None = None, client_executes: bool = False
                 ) -> RestoredRun:
@@ -127,6 +143,8 @@ def restore_run(workdir: epath.PathLike, step: int | None = None, params_name: s
                          "train on to write a new one")
     use_ema = params_name == "ema" and bool(state.get("ema_params"))
     config = with_current_keys(config)
+    if (warning := episode_start_warning(workdir)) is not None:
+        print(warning, file=sys.stderr)
     return RestoredRun(workdir, step, config, ActionLayout.from_config(config.layout),
                        model_config_lib.from_model_config(config.model),
                        state["ema_params"] if use_ema else state["params"],

@@ -5,7 +5,7 @@ any pass over it, and the passes that compute its statistics.
     source = sources.open_source(spec.options, spec.layout)  # once per run; pass it down
     check_data(spec, source, ...)                            # every check that can fail, no pass
     stats = load_or_compute_norm_stats(spec, source=source, action_horizon=H,
-                                       cache_path=workdir / "norm_stats.json")
+                                       cache_path=workdir / NORM_STATS_FILE)
 
 Split: the dataset's last `eval.episodes` episodes are held out (evaluation only); the rest train.
 The tools read `which="train"` (default) or `"all"` episodes and say which.
@@ -352,6 +352,10 @@ def balanced_dataset_norm_stats(spec: DataSpec, max_scale: float, *, action_hori
     return stats, reports
 
 
+# A run folder's statistics, beside `norm_stats.key.json` (what they were computed from).
+NORM_STATS_FILE = "norm_stats.json"
+
+
 def norm_stats_key(spec: DataSpec, source, *, action_horizon: int) -> dict[str, Any]:
     """What the run's statistics are computed from: the dataset's identity (root, metadata,
     episode ids and lengths), the feature selection, the training split and the stats options.
@@ -404,6 +408,17 @@ def _key_path(cache_path: Path) -> Path:
     return cache_path.with_name(cache_path.stem + ".key.json")
 
 
+def run_episode_start(workdir: str | Path) -> str | None:
+    """The episode-start rule (`transforms.EPISODE_START` when they were computed) a run
+    folder's statistics were computed under: '' where they make groups relative to the previous
+    command but their key predates the rule's entry; None where nothing is relative to the
+    previous command or the folder holds no key."""
+    key = read_key(_key_path(Path(workdir) / NORM_STATS_FILE))
+    if key is None or key.get("data.delta_reference") != "previous_action":
+        return None
+    return key.get("episode_start", "")
+
+
 def load_or_compute_norm_stats(spec: DataSpec, *, action_horizon: int,
                                cache_path: str | Path | None = None, progress: bool = True,
                                source=None, resuming: bool = False,
@@ -445,6 +460,14 @@ def load_or_compute_norm_stats(spec: DataSpec, *, action_horizon: int,
             json_files.write_json_atomic(_key_path(cache_path), key)
             return stats_lib.load_norm_stats(cache_path, widths, optional)
         if resuming:
+            if differing == ["episode_start"]:
+                raise ValueError(
+                    f"{cache_path} was computed when an episode's first chunk started from "
+                    f"{cached.get('episode_start') or 'the state (an earlier rule)'}; today it "
+                    f"starts from {transforms.EPISODE_START} (transforms.EpisodeStart), and the "
+                    "run's checkpoints were trained with the old statistics: resume with "
+                    "--config.train.resume=force to keep them (only episodes' first chunks "
+                    "differ), or start a new --workdir to train under today's rule")
             if cached is None:  # a run from before the key existed: keep what it trained with
                 logging.warning("%s has no key file; reusing it for the resumed run", cache_path)
                 json_files.write_json_atomic(_key_path(cache_path), key)
