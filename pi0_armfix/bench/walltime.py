@@ -2,7 +2,7 @@
 
     python -m pi0_armfix.bench walltime [--config=configs/arm_focused.py] [--steps=20] \
         [--evaluations=1] [--episodes=2] [--repeats=3] [--set=KEY=VALUE ...] [--cache=DIR] \
-        [--output=FILE.json]
+        [--no-prime] [--no-server] [--output=FILE.json]
 
 Each repeat runs, as separate processes and once in each mode, `python -m pi0_armfix.train`
 (`--steps` steps into a fresh run folder, `--evaluations` held-out evaluations, the last at the
@@ -10,7 +10,7 @@ end), `python -m pi0_armfix.evaluate --closed_loop --episodes=E` on that run (0 
 `python -m pi0_armfix.serve` until its `/healthz` answers (the server's load and warm-up). The
 modes: **before**, `PI0_ARMFIX_COMPILATION_CACHE=0` (every function compiled in every process);
 **after**, the project's compilation cache, filled by one untimed pass first (what a user's
-second run meets). The modes alternate within a repeat so that machine noise hits both alike. All
+second run meets; `--no-prime` where `--cache` holds it already). The modes alternate within a repeat so that machine noise hits both alike. All
 processes share one cache folder (`--cache`, default a temporary one) whose demo dataset is
 generated once, first, by its own timed process. Printed: each part's median over the repeats
 [min, max] in both modes and their ratio; the parts are the run's own `wall_time.json` and the
@@ -50,6 +50,9 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--server", action=argparse.BooleanOptionalAction, default=True,
                         help="time the server's start until /healthz answers")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--prime", action=argparse.BooleanOptionalAction, default=True,
+                        help="fill the compilation cache with one untimed pass first (--no-prime: "
+                        "--cache holds it already, from an earlier pass of the same programs)")
     parser.add_argument("--cache", default="", help="PI0_ARMFIX_CACHE for every process "
                         "('' = a temporary folder)")
     parser.add_argument("--output", default="", help="write every measurement to this JSON file")
@@ -90,15 +93,16 @@ def measure(args: argparse.Namespace, folder: Path, cache: Path, mode: str) -> d
         [sys.executable, "-m", "pi0_armfix.train", f"--config={args.config}",
          f"--workdir={workdir}", f"--config.train.total_steps={args.steps}",
          f"--config.eval.every={every}", *(f"--config.{o}" for o in args.set)], env)}
-    seconds |= {f"train: {name}": s
-                for name, s in wall_time.load(workdir / wall_time.FILE)["parts"].items()}
+    spent = wall_time.load(workdir / wall_time.FILE)
+    seconds |= {f"train: {name}": s for name, s in spent["parts"].items()}
+    seconds["train: outside the run (imports, flags, exit)"] = (
+        seconds["train: whole process"] - spent["total"])
     if args.episodes:
         seconds["closed loop: whole process"] = _timed(
             [sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={workdir}",
              "--closed_loop", f"--episodes={args.episodes}"], env)
-        found = sorted(workdir.glob(f"eval/step_*/*.{wall_time.FILE}"))
-        seconds |= {f"closed loop: {name}": s
-                    for name, s in wall_time.load(found[-1])["parts"].items()}
+        spent = wall_time.load(sorted(workdir.glob(f"eval/step_*/*.{wall_time.FILE}"))[-1])
+        seconds |= {f"closed loop: {name}": s for name, s in spent["parts"].items()}
     if args.server:
         start = time.perf_counter()
         server = bench_serve.start_server(workdir, bench_serve.free_port(), env=env)
@@ -138,7 +142,8 @@ def main(argv: list[str]) -> None:
                                  "demo; demo.demo_root()"], _env(cache, "before"))
             print(f"demo dataset (generated on first use, then read from {cache}): "
                   f"{generation:.1f} s (whole process)", flush=True)
-        measure(args, Path(scratch) / "prime", cache, "after")  # fills the compilation cache
+        if args.prime:
+            measure(args, Path(scratch) / "prime", cache, "after")  # fills the compilation cache
         passes: dict[str, list[dict[str, float]]] = {mode: [] for mode in MODES}
         for repeat in range(args.repeats):
             for mode in MODES:
