@@ -174,7 +174,10 @@ def test_the_walltime_benchmark_times_each_part_of_a_run_with_and_without_the_ca
                 "| closed loop: 1 episodes (the first replan compiles) |",
                 "| server: start to /healthz (load, warm-up) |"):
         assert row in out, row
+    assert ("| before: no compilation cache, median [min, max] s | first run: the cache filled, "
+            in out)
     measured = json.loads(output.read_text())
     assert measured["demo_generation"] is None  # the run reads its own data
-    before, after = measured["passes"]["before"], measured["passes"]["after"]
-    assert len(before) == len(after) == 1 and before[0].keys() == after[0].keys()
+    passes = measured["passes"]
+    assert [len(passes[mode]) for mode in ("before", "first", "after")] == [1, 1, 1]
+    assert passes["before"][0].keys() == passes["first"][0].keys() == passes["after"][0].keys()

@@ -1,21 +1,22 @@
 """Where a run's wall time goes, before and after the compilation cache: whole processes, by part.
 
     python -m pi0_armfix.bench walltime [--config=configs/arm_focused.py] [--steps=20] \
-        [--evaluations=1] [--episodes=2] [--repeats=3] [--set=KEY=VALUE ...] [--cache=DIR] \
-        [--no-prime] [--no-server] [--output=FILE.json]
+        [--evaluations=1] [--episodes=2] [--repeats=3] [--modes=before,first,after] \
+        [--set=KEY=VALUE ...] [--cache=DIR] [--no-server] [--output=FILE.json]
 
-Each repeat runs, as separate processes and once in each mode, `python -m pi0_armfix.train`
-(`--steps` steps into a fresh run folder, `--evaluations` held-out evaluations, the last at the
-end), `python -m pi0_armfix.evaluate --closed_loop --episodes=E` on that run (0 skips it), and
-`python -m pi0_armfix.serve` until its `/healthz` answers (the server's load and warm-up). The
-modes: **before**, `PI0_ARMFIX_COMPILATION_CACHE=0` (every function compiled in every process);
-**after**, the project's compilation cache, filled by one untimed pass first (what a user's
-second run meets; `--no-prime` where `--cache` holds it already). The modes alternate within a repeat so that machine noise hits both alike. All
+A pass runs, as separate processes, `python -m pi0_armfix.train` (`--steps` steps into a fresh
+run folder, `--evaluations` held-out evaluations, the last at the end), `python -m
+pi0_armfix.evaluate --closed_loop --episodes=E` on that run (0 skips it), and `python -m
+pi0_armfix.serve` until its `/healthz` answers (the server's load and warm-up). The modes:
+**before**, `PI0_ARMFIX_COMPILATION_CACHE=0` (every function compiled in every process);
+**first**, one pass with the project's compilation cache empty for these programs (it compiles
+them all and writes them: a user's first run); **after**, the cache warm (a user's next run).
+`--repeats` passes of before and after alternate so that machine noise hits both alike. All
 processes share one cache folder (`--cache`, default a temporary one) whose demo dataset is
-generated once, first, by its own timed process. Printed: each part's median over the repeats
-[min, max] in both modes and their ratio; the parts are the run's own `wall_time.json` and the
-closed loop's (`pi0_armfix.wall_time`), the whole-process seconds beside them (imports and start-up
-are the difference). Run it on quiet cores: the numbers are wall time.
+generated once, first, by its own timed process. Printed: each part's median over its passes
+[min, max] per mode and after over before; the parts are the run's own `wall_time.json` and the
+closed loop's (`pi0_armfix.wall_time`), the whole-process seconds beside them (imports and
+start-up are the difference). Run it on quiet cores: the numbers are wall time.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from pi0_armfix import wall_time
 from pi0_armfix.bench import serve as bench_serve
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-MODES = ("before", "after")
+MODES = ("before", "first", "after")
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
@@ -50,15 +51,19 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--server", action=argparse.BooleanOptionalAction, default=True,
                         help="time the server's start until /healthz answers")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--prime", action=argparse.BooleanOptionalAction, default=True,
-                        help="fill the compilation cache with one untimed pass first (--no-prime: "
-                        "--cache holds it already, from an earlier pass of the same programs)")
+    parser.add_argument("--modes", default="before,first,after",
+                        help="which of before (no cache), first (one run that fills the cache) "
+                        "and after (the cache warm) to measure; after without first needs a "
+                        "--cache that holds these programs already")
     parser.add_argument("--cache", default="", help="PI0_ARMFIX_CACHE for every process "
                         "('' = a temporary folder)")
     parser.add_argument("--output", default="", help="write every measurement to this JSON file")
     args = parser.parse_args(argv[1:])
     if args.steps < 1 or args.repeats < 1 or args.episodes < 0:
         parser.error("--steps and --repeats must be >= 1, --episodes >= 0")
+    unknown = set(args.modes.split(",")) - set(MODES)
+    if unknown or not args.modes:
+        parser.error(f"--modes={args.modes}: each must be one of {', '.join(MODES)}")
     if not 1 <= args.evaluations <= args.steps or args.steps % args.evaluations:
         parser.error(f"--evaluations={args.evaluations} must divide --steps={args.steps} "
                      "(evaluated every steps / evaluations steps)")
@@ -112,28 +117,37 @@ def measure(args: argparse.Namespace, folder: Path, cache: Path, mode: str) -> d
     return seconds
 
 
+MODE_NAMES = {"before": "before: no compilation cache", "first": "first run: the cache filled",
+              "after": "after: warm cache"}
+
+
 def table(passes: dict[str, list[dict[str, float]]]) -> str:
-    """Markdown: each part's median [min, max] over the passes in both modes, and after/before."""
-    parts = list(dict.fromkeys(p for mode in MODES for run in passes[mode] for p in run))
-    lines = [f"| part | before: no compilation cache, median [min, max] s | after: warm cache "
-             f"| after / before |", "|---|---|---|---|"]
+    """Markdown: each part's median [min, max] over the passes of each mode measured, and after
+    over before (over the first run where no pass ran without the cache)."""
+    modes = [m for m in MODES if passes.get(m)]
+    parts = list(dict.fromkeys(p for mode in modes for run in passes[mode] for p in run))
+    base = "before" if "before" in modes else "first"
+    lines = ["| part | " + " | ".join(f"{MODE_NAMES[m]}, median [min, max] s" for m in modes)
+             + f" | after / {base} |", "|---" * (len(modes) + 2) + "|"]
     for part in parts:
-        cells, medians = [], []
-        for mode in MODES:
+        cells, medians = [], {}
+        for mode in modes:
             values = [run[part] for run in passes[mode] if part in run]
             if not values:
                 cells.append("-")
-                medians.append(float("nan"))
                 continue
-            medians.append(statistics.median(values))
-            cells.append(f"{medians[-1]:.1f} [{min(values):.1f}, {max(values):.1f}]")
-        ratio = medians[1] / medians[0] if medians[0] > 0 else float("nan")
-        lines.append(f"| {part} | {cells[0]} | {cells[1]} | {ratio:.2f} |")
+            medians[mode] = statistics.median(values)
+            cells.append(f"{medians[mode]:.1f}" if len(values) == 1 else
+                         f"{medians[mode]:.1f} [{min(values):.1f}, {max(values):.1f}]")
+        ratio = (f"{medians['after'] / medians[base]:.2f}"
+                 if medians.get(base, 0) > 0 and "after" in medians else "-")
+        lines.append(f"| {part} | " + " | ".join(cells) + f" | {ratio} |")
     return "\n".join(lines)
 
 
 def main(argv: list[str]) -> None:
     args = _parse(argv)
+    modes = args.modes.split(",")
     with tempfile.TemporaryDirectory() as scratch:
         cache = Path(args.cache or Path(scratch) / "cache").absolute()
         generation = None
@@ -142,17 +156,21 @@ def main(argv: list[str]) -> None:
                                  "demo; demo.demo_root()"], _env(cache, "before"))
             print(f"demo dataset (generated on first use, then read from {cache}): "
                   f"{generation:.1f} s (whole process)", flush=True)
-        if args.prime:
-            measure(args, Path(scratch) / "prime", cache, "after")  # fills the compilation cache
-        passes: dict[str, list[dict[str, float]]] = {mode: [] for mode in MODES}
+        passes: dict[str, list[dict[str, float]]] = {mode: [] for mode in modes}
+        if "first" in modes:  # once: it fills the compilation cache the "after" passes read
+            passes["first"].append(measure(args, Path(scratch) / "first", cache, "after"))
+            _said("first run", passes["first"][-1])
         for repeat in range(args.repeats):
-            for mode in MODES:
+            for mode in (m for m in ("before", "after") if m in modes):
                 passes[mode].append(measure(args, Path(scratch) / f"{mode}_{repeat}", cache, mode))
-                print(f"repeat {repeat + 1}/{args.repeats} {mode}: train "
-                      f"{passes[mode][-1]['train: whole process']:.1f} s", flush=True)
+                _said(f"repeat {repeat + 1}/{args.repeats} {mode}", passes[mode][-1])
     print(f"\n{args.config}, {args.steps} steps, {args.evaluations} held-out evaluation(s)"
           + (f", {args.episodes} closed-loop episodes" if args.episodes else "")
           + f"; {args.repeats} repeats, {os.cpu_count()} cores:\n{table(passes)}")
     if args.output:
         Path(args.output).write_text(json.dumps(
             {"args": vars(args), "demo_generation": generation, "passes": passes}, indent=2))
+
+
+def _said(what: str, seconds: dict[str, float]) -> None:
+    print(f"{what}: train {seconds['train: whole process']:.1f} s", flush=True)
