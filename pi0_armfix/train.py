@@ -25,6 +25,7 @@ The run folder:
                         `eval.every`; tensorboard/ mirrors them
   plots/                group_losses.png, trajectories_<step>.png
   config.json           the config of the latest start (what a resume is checked against)
+  wall_time.json        seconds by part of the latest start (`pi0_armfix.wall_time`)
   run.lock              held while a run is on the folder
 
 Logged training metrics (means over the steps since the previous record): `loss`,
