@@ -149,6 +149,7 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                 + (f"kept in {cached} for the next run)" if cached else
                    "no compilation cache: PI0_ARMFIX_COMPILATION_CACHE=0)"))
             compile_start = loop_start = time.perf_counter()
+            timed_before = sum(run.wall_time.parts.values())  # the loop's own parts follow
             for step in range(run.start + 1, total_steps + 1):  # `step` steps done after this one
                 if stop.due(done):
                     break
@@ -197,10 +198,8 @@ def train_loop(run: Run, stop: preemption.StopRequest | None = None) -> dict[str
                     with run.wall_time.part(f"evaluation at step {step}"):
                         _evaluate(run.evaluator, state, step, writer, workdir, run.layout)
                     window_start = time.perf_counter()
-        evaluations = sum(s for name, s in run.wall_time.parts.items()
-                          if name.startswith("evaluation at"))
-        run.wall_time.add("other steps", time.perf_counter() - loop_start - evaluations
-                          - run.wall_time.parts.get("first step (compiled)", 0.0))
+        timed_in_loop = sum(run.wall_time.parts.values()) - timed_before  # first step, evaluations
+        run.wall_time.add("other steps", time.perf_counter() - loop_start - timed_in_loop)
         if done < total_steps:  # stopped by a signal
             if train["save_on_preemption"] and done > finite.saved:
                 save(done, force=True)

@@ -79,12 +79,10 @@ class Run:
     wall_time: WallTime = dataclasses.field(default_factory=WallTime)  # seconds by part so far
 
 
-def prepare(config: ml_collections.ConfigDict, workdir: str,
-            wall_time: WallTime | None = None) -> Run:
+def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
     """Resolves the config (`RunSpec`), opens the data, builds or restores the state, compiles
-    the step: everything a user can get wrong fails here, before any step. `wall_time`: where
-    the parts' seconds add up (the run's own)."""
-    wall_time = wall_time or WallTime()
+    the step: everything a user can get wrong fails here, before any step."""
+    wall_time = WallTime()
     workdir = epath.Path(workdir).absolute()
     is_main = jax.process_index() == 0
     if workdir.exists() and not workdir.is_dir():

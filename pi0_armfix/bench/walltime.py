@@ -34,7 +34,7 @@ from pathlib import Path
 from pi0_armfix import wall_time
 from pi0_armfix.bench import serve as bench_serve
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = bench_serve.REPO_ROOT
 MODES = ("before", "first", "after")
 
 
