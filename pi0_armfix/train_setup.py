@@ -150,8 +150,8 @@ def prepare(config: ml_collections.ConfigDict, workdir: str) -> Run:
                     data, action_horizon=model_config.action_horizon, folder=workdir,
                     constant=stats_lib.fit_width(norm_stats["actions"], layout.real_dim,
                                                  "norm stats 'actions'").constant(data.norm),
-                    start=(transforms.EpisodeStart.of(norm_stats, layout, data.state_groups)
-                           if data.delta_reference == "previous_action" else None),
+                    start=transforms.episode_start(data.delta_reference, norm_stats, layout,
+                                                   data.state_groups),
                     source=source, resuming=resuming)
                 if data.statistics.norm_per_timestep:
                     norm_stats = {**norm_stats, "actions_per_timestep": chunk.per_timestep}

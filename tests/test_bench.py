@@ -20,6 +20,7 @@ def _bench(tmp_path, *args: str) -> str:
     return result.stdout
 
 
+@pytest.mark.slow  # a whole benchmark
 def test_memory_benchmark_reports_each_process_and_the_growth(tmp_path):
     out = _bench(tmp_path, "data", "--part=memory", "--memory_frames=100000,300000",
                  "--memory_workers=1", "--steps=2", "--batch_size=8", "--horizon=10")
@@ -91,6 +92,7 @@ def test_model_benchmark_runs_every_part_and_k_flow_samples_cost_less_per_sample
     assert flops["K=1"] == 1.0 and flops["K=4"] < 0.6  # one prefix pass for four samples
 
 
+@pytest.mark.slow  # a whole benchmark
 def test_sim_benchmark_prints_the_expert_bound_and_the_step_rate(tmp_path):
     out = _bench(tmp_path, "sim", "--episodes=3", "--policies=expert")
     assert "== expert: 3 episodes" in out and "env steps/s" in out
@@ -151,6 +153,7 @@ def test_the_bench_dispatcher_prints_its_usage_on_help_and_exits_0(capsys):
         bench_main.main(["pi0-armfix-bench", "nope"])
 
 
+@pytest.mark.slow  # a whole benchmark
 def test_step_flops_count_the_whole_batch_with_or_without_microbatches():
     from pi0_armfix.bench import step as bench_step
     flops = [bench_step.Step(bench_step.load_config(

@@ -45,6 +45,7 @@ def demo_frames(default_demo):
                  for k in ("actions", "state", "episode_index"))
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_empty_root_is_the_default_demo_in_lerobot_v21(default_demo):
     assert default_demo.version == "v2.1"
     assert default_demo.num_episodes == demo.DemoSpec.num_episodes
@@ -52,6 +53,7 @@ def test_empty_root_is_the_default_demo_in_lerobot_v21(default_demo):
     assert set(default_demo.tasks) == {task.prompt for task in demo.TASKS}
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_actions_match_the_published_b1k_statistics(demo_frames):
     actions = demo_frames[0]
     published = json.loads(REFERENCE.read_text())["norm_stats"]["actions"]
@@ -64,6 +66,7 @@ def test_actions_match_the_published_b1k_statistics(demo_frames):
         assert 1 / 1.5 <= actions[:, d].std() / std <= 1.5, (d, actions[:, d].std(), std)
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_state_follows_the_baseline_state_order(demo_frames):
     actions, state, _ = demo_frames
     assert state.shape[1] == 23
@@ -73,6 +76,7 @@ def test_state_follows_the_baseline_state_order(demo_frames):
     assert np.abs(state[:, 14:21] - actions[:, 15:22]).mean() < 0.02
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_runs_read_the_embedded_demos_state_in_the_action_order(default_demo, demo_frames):
     actions, stored, _ = demo_frames
     source = open_source(ConfigDict({"root": "", "format": "lerobot"}), LAYOUT)
@@ -82,6 +86,7 @@ def test_runs_read_the_embedded_demos_state_in_the_action_order(default_demo, de
     np.testing.assert_array_equal(state[:, 14], first[:, 21])  # left gripper width at 14
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_the_base_drives_with_the_arms_still_and_stands_while_they_move(demo_frames):
     actions, _, episodes = demo_frames
     same_episode = episodes[1:] == episodes[:-1]
@@ -92,6 +97,7 @@ def test_the_base_drives_with_the_arms_still_and_stands_while_they_move(demo_fra
     assert (arm_speed[~driving] > 0.005).any()
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_arm_motion_inside_a_chunk_is_small_next_to_the_arm_spread(demo_frames):
     actions, _, episodes = demo_frames
     same = episodes[CHUNK - 1:] == episodes[:-CHUNK + 1]
@@ -101,6 +107,7 @@ def test_arm_motion_inside_a_chunk_is_small_next_to_the_arm_spread(demo_frames):
     assert (ratio < 0.4).all(), ratio
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_grippers_switch_rarely(demo_frames):
     actions, _, episodes = demo_frames
     for dim in (14, 22):
@@ -114,6 +121,7 @@ def _task_colour_mask(images: np.ndarray, colour) -> np.ndarray:
     return np.abs(images.astype(int) - colour).sum(-1) < 30
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_head_camera_shows_the_target_on_the_side_the_robot_turns_to(default_demo):
     table = default_demo.load_table(list(range(10)))
     agree = []
@@ -130,6 +138,7 @@ def test_head_camera_shows_the_target_on_the_side_the_robot_turns_to(default_dem
     assert len(agree) > 100 and np.mean(agree) > 0.9
 
 
+@pytest.mark.slow  # the full embedded demo (generated once per cache folder, ~1 min)
 def test_wrist_cameras_show_how_far_the_gripper_is_open(default_demo):
     table = default_demo.load_table(list(range(10)))
     frames = np.arange(0, table.num_frames, 2)

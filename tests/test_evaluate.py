@@ -278,6 +278,7 @@ def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
     assert (workdir / "eval" / "stagnation.png").stat().st_size > 10_000  # over the evaluations
 
 
+@pytest.mark.slow  # a second process of the evaluate command
 def test_offline_evaluation_is_quiet_by_default(trained, cache_dir):  # noqa: F811
     result = subprocess.run([sys.executable, "-m", "pi0_armfix.evaluate", f"--workdir={trained}"],
                             env=tf.env(cache_dir), cwd=tf.REPO_ROOT, capture_output=True,

@@ -232,6 +232,7 @@ def test_process_shards_of_an_epoch_are_disjoint_and_complete(tmp_path):
     assert set(together) <= set(range(offset))  # the first epoch: no frame twice
 
 
+@pytest.mark.slow  # several worker processes decoding video
 def test_a_resumed_iterator_with_video_workers_yields_the_identical_sequence(tmp_path):
     b1k_fixture.write_b1k_dataset(tmp_path / "b1k")
     options = dict(batch_size=4, num_workers=2, images=True, state_preset="b1k_r1pro")

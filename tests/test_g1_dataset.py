@@ -131,6 +131,7 @@ def _observation(written, frame, episode=2):
             "state": state[frame], "prompt": g1_fixture.TASK}
 
 
+@pytest.mark.slow  # a trained run of the G1 scale
 def test_a_previous_action_policy_is_relative_to_the_command_it_is_given(g1, previous_action_run):
     _, written = g1
     policy = inference.RunPolicy.from_workdir(previous_action_run, keys=KEYS)
@@ -155,6 +156,7 @@ def test_a_previous_action_policy_is_relative_to_the_command_it_is_given(g1, pre
                                policy.infer([given], rng=rng), atol=1e-6)
 
 
+@pytest.mark.slow  # a trained run of the G1 scale
 def test_a_malformed_previous_action_is_one_error_naming_the_key(g1, previous_action_run):
     _, written = g1
     policy = inference.RunPolicy.from_workdir(previous_action_run, keys=KEYS)

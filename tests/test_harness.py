@@ -101,6 +101,7 @@ def _observation(proprio, task_id, side=224, envs=0, seed=0):
     return obs
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_2025_harness_steps_get_one_command_each_after_unread_resets(run2025):
     workdir, data = run2025
     server = _serve(workdir)
@@ -113,6 +114,7 @@ def test_2025_harness_steps_get_one_command_each_after_unread_resets(run2025):
         assert reply["action"].shape == (23,) and np.isfinite(reply["action"]).all()
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_an_unknown_task_id_is_one_line_naming_it_and_prompt_overrides(run2025):
     workdir, data = run2025
     client = HarnessClient(_serve(workdir).port)
@@ -123,6 +125,7 @@ def test_an_unknown_task_id_is_one_line_naming_it_and_prompt_overrides(run2025):
     assert other.act(_observation(data[10]["state"][0], task_id=120))["action"].shape == (23,)
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_2026_batched_envs_replay_chunks_from_a_queue_per_env(run2026):
     workdir, data = run2026
     server = _serve(workdir)
@@ -134,6 +137,7 @@ def test_2026_batched_envs_replay_chunks_from_a_queue_per_env(run2026):
     assert not np.allclose(reply["action"][0], reply["action"][1])
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_the_same_seed_and_resets_give_the_same_actions(run2026):
     workdir, data = run2026
     proprio = data[0]["state"][0]
@@ -150,6 +154,7 @@ def test_the_same_seed_and_resets_give_the_same_actions(run2026):
     assert not np.array_equal(runs[0][0], runs[0][1])  # episode 2 draws other noise
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_a_request_without_proprio_is_one_line_and_the_server_keeps_serving(run2026):
     workdir, data = run2026
     client = HarnessClient(_serve(workdir).port)
@@ -272,6 +277,7 @@ def test_the_harness_grippers_commit_through_the_latch():
     assert [float(_step(session)[14]) for _ in range(4)] == [1.0, 1.0, 1.0, -1.0]
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_the_harness_image_sizes_are_compiled_before_healthz_says_ready(run2025):
     workdir, _ = run2025
     server = _serve(workdir)
@@ -282,6 +288,7 @@ def test_the_harness_image_sizes_are_compiled_before_healthz_says_ready(run2025)
     assert server.policy._to_model_images._cache_size() == compiled
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_a_batched_task_id_of_another_length_than_the_envs_is_one_error(run2026):
     workdir, data = run2026
     client = HarnessClient(_serve(workdir).port)
@@ -294,6 +301,7 @@ def test_a_batched_task_id_of_another_length_than_the_envs_is_one_error(run2026)
     assert client.act(observation)["action"].shape == (3, 23)
 
 
+@pytest.mark.slow  # a trained run of B1K's scale served to the harness
 def test_batched_cameras_beside_an_unbatched_proprio_are_blamed_on_the_proprio(run2026):
     workdir, data = run2026
     client = HarnessClient(_serve(workdir).port)

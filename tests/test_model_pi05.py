@@ -135,9 +135,9 @@ def test_pi05_loss_has_finite_gradients_for_every_parameter(params, strategy, kw
                  actions=rng.standard_normal((BATCH, TINY05.action_horizon, TINY05.action_dim)
                                              ).astype(np.float32),
                  action_is_pad=np.zeros((BATCH, TINY05.action_horizon), bool))
-    loss, grads = jax.value_and_grad(lambda p: flow_model.compute_loss(
+    loss, grads = jax.jit(jax.value_and_grad(lambda p: flow_model.compute_loss(
         p, jax.random.key(0), batch, config=TINY05, layout=LAYOUT, train=True, strategy=strategy,
-        flow_samples=2, **kwargs)[0])(params)
+        flow_samples=2, **kwargs)[0]))(params)
     assert np.isfinite(loss)
     assert all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
     assert float(jnp.abs(grads["time_mlp_in"]["kernel"]).sum()) > 0

@@ -443,6 +443,7 @@ def test_closed_loop_with_real_time_chunking_follows_the_tail(run, monkeypatch):
     assert (run / "eval" / "step_2" / "rollouts_1ep_rtc.png").exists()
 
 
+@pytest.mark.slow  # a whole benchmark
 def test_server_latency_benchmark_prints_percentiles(run, cache_dir):  # noqa: F811
     result = subprocess.run(
         [sys.executable, "-m", "pi0_armfix.bench", "serve", f"--workdir={run}", "--requests=4",

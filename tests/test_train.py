@@ -311,6 +311,7 @@ def test_per_group_effective_weights_keep_their_ratios_and_mean_one_over_all_dim
     assert (weights * sizes).sum() / B1K.action_dim == pytest.approx(1.0)
 
 
+@pytest.mark.slow  # two processes of the train command
 def test_print_config_shows_the_resolved_keys_and_help_points_to_them(tmp_path, cache_dir):
     command = tf.train_command("configs/arm_focused.py", None, {"train.total_steps": 7})
     printed = subprocess.run([*command, "--print_config"], env=tf.env(cache_dir),

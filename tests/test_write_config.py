@@ -202,6 +202,7 @@ def test_a_set_without_state_says_which_tests_could_not_run(tmp_path):
 
 
 @pytest.mark.parametrize("fixture", ["velocity_arm", "idle_dual_arm"])
+@pytest.mark.slow  # a whole training run per robot fixture
 def test_a_written_config_trains_and_evaluates_without_edits(fixture, request, tmp_path):
     result = request.getfixturevalue(fixture)
     config = load(result["output"])

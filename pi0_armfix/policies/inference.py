@@ -137,9 +137,9 @@ class RunPolicy:
         self.delta_mask = transforms.delta_action_mask(config.data.delta_action_mask, layout)
         self.delta_reference = config.data.get("delta_reference") or "state"
         # where an episode relative to the previous command starts (`transforms.EpisodeStart`)
-        self.start = (transforms.EpisodeStart.of(
-            run.norm_stats, layout, selection_lib.state_groups(config.data.to_dict()))
-            if self.needs_previous_action else None)
+        self.start = transforms.episode_start(
+            self.delta_reference, run.norm_stats, layout,
+            selection_lib.state_groups(config.data.to_dict()))
         model_cfg, own = config.model, run_inputs.tokenizer_path(run.workdir)
         if own is not None:  # the tokenizer it trained with, wherever model.tokenizer pointed
             model_cfg = {**model_cfg.to_dict(), "tokenizer": str(own)}

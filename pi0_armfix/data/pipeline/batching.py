@@ -140,8 +140,7 @@ class BatchTransform:
         self.horizon = int(action_horizon)
         self.delta_mask = delta_mask
         self.delta_reference = delta_reference
-        self.start = (transforms.EpisodeStart.of(norm_stats, layout, state_groups)
-            if delta_mask is not None and delta_reference == "previous_action" else None)
+        self.start = transforms.episode_start(delta_reference, norm_stats, layout, state_groups)
         self.tokens = None if actions_only else PromptTokens(tokenize)
         self.actions_only = actions_only
         state = stats_lib.fit_width(norm_stats["state"], state_width, "norm stats 'state'")

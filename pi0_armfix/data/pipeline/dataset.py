@@ -285,14 +285,12 @@ def block_norm_stats(blocks: Iterable[stats_lib.Block], spec: DataSpec, *, actio
                  for h in range(action_horizon))
         return {"actions": actions, "delta_actions": steps, "state": state}
 
-    start = None
-    if spec.delta_reference == "previous_action":
-        if absolute is None:
-            raise ValueError("statistics of actions relative to the previous action need the "
-                             "plain stats of the same frames first (absolute=)")
-        start = transforms.EpisodeStart.of({ABSOLUTE_ACTIONS: absolute["actions"],
-                                            "state": absolute["state"]}, layout,
-                                           spec.state_groups)
+    if spec.delta_reference == "previous_action" and absolute is None:
+        raise ValueError("statistics of actions relative to the previous action need the "
+                         "plain stats of the same frames first (absolute=)")
+    start = transforms.episode_start(
+        spec.delta_reference, {ABSOLUTE_ACTIONS: absolute["actions"], "state": absolute["state"]}
+        if absolute is not None else {}, layout, spec.state_groups)
     stats = stats_lib.compute_norm_stats(
         stats_lib.whole_episode_blocks(blocks), ("actions", "delta_actions", "state"),
         total_frames=total_frames, transform=chunk_steps, progress=progress)

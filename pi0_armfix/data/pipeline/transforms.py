@@ -126,6 +126,14 @@ class EpisodeStart:
                         + self.offset, mean)
 
 
+def episode_start(kind: str, norm_stats: Mapping[str, stats_lib.NormStats], layout: ActionLayout,
+                  state_groups: Mapping[str, Sequence[int]] | None) -> EpisodeStart | None:
+    """The episode's start a run whose `data.delta_reference` is `kind` needs: `EpisodeStart.of`
+    for "previous_action" (a config with that reference has relative dims: `data_spec`), None for
+    "state", whose reference exists at every frame."""
+    return EpisodeStart.of(norm_stats, layout, state_groups) if kind == "previous_action" else None
+
+
 def delta_reference(kind: str, actions: Any, state: Any, frames: np.ndarray,
                     episode_starts: np.ndarray, start: EpisodeStart | None = None
                     ) -> np.ndarray:
