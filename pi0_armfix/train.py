@@ -326,9 +326,6 @@ def main(argv: Sequence[str]) -> None:
         raise app.UsageError(f"unexpected arguments {argv[1:]}")
     console.quiet_library_logging()
     cache.use_compilation_cache()
-    # A run stopped by an error leaves batches of its data workers in shared memory; the
-    # resource tracker (a child started with these options) unlinks them, and need not say so.
-    sys.warnoptions.append("ignore:resource_tracker:UserWarning")
     if FLAGS.num_processes > 1:
         jax.distributed.initialize(FLAGS.coordinator_address, FLAGS.num_processes,
                                    FLAGS.process_id)

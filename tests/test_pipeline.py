@@ -355,6 +355,29 @@ def test_global_arrays_are_sharded_over_the_batch_axis():
     assert result.stdout.strip().endswith("ok")
 
 
+@pytest.mark.slow
+def test_data_workers_closed_with_batches_in_flight_end_without_a_resource_tracker_warning(
+        tmp_path):
+    script = tmp_path / "workers.py"
+    script.write_text(textwrap.dedent("""
+        from absl import flags
+        from tests.test_pipeline import frame_table, iterator_of
+
+        if __name__ == "__main__":  # the workers are spawned: they import this file
+            flags.FLAGS.mark_as_parsed()
+            run = iterator_of(frame_table(), num_workers=2)
+            for _ in range(2):
+                next(run)
+            run.close()
+            print("ok")
+    """))
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": f"{REPO}:{REPO / 'tests'}"}
+    result = subprocess.run([sys.executable, str(script)], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr[-3000:]
+    assert "resource_tracker" not in result.stderr, result.stderr[-3000:]
+
+
 # ---------------------------------------------------------------------- config-level entry points
 
 @pytest.fixture(scope="module")

@@ -117,3 +117,16 @@ def test_a_group_that_never_moves_reads_n_a_with_the_reason_not_nan():
               "seeds": {str(s): record(s) for s in range(3)}}
     text = regressor.report(result, layout, ())
     assert "hand n/a (it never moves in the held-out chunks" in text and "nan [" not in text
+
+
+def test_a_switch_f1_without_any_switch_reads_n_a_not_nan():
+    layout = ActionLayout({"arm": (0, 2), "gripper": (2, 3)}, real_dim=3, action_dim=4,
+                          roles={"arm": "arm", "gripper": "gripper"})
+    metrics = {"skill/arm": 0.1, "skill/gripper": 0.2, "motion_gain/arm": 0.5,
+               "gripper_switch/f1": float("nan")}
+    metrics |= {f"{who}/{k}": 0.0 for who in ("persistence", "state_copy")
+                for k in ("skill/arm", "skill/gripper", "motion_gain/arm")}
+    result = {"network": "cnn", "command": "c", "code": "x",
+              "seeds": {"0": [{"step": 10, "train_seconds": 1.0, "metrics": metrics}]}}
+    text = regressor.report(result, layout, ("gripper",))
+    assert "n/a (no switch, predicted or true)" in text and "nan" not in text

@@ -241,6 +241,12 @@ def _summary(values: Sequence[float]) -> str:
     return f"{np.mean(values):+.2f} ± {np.std(values, ddof=1):.2f}"
 
 
+def _switch_f1(values: Sequence[float]) -> str:
+    # F1 is undefined where neither the regressor nor the held-out chunks switch a gripper.
+    finite = [v for v in values if math.isfinite(v)]
+    return f"{np.mean(finite):.2f}" if finite else "n/a (no switch, predicted or true)"
+
+
 def report(result: Mapping[str, Any], layout: ActionLayout, gripper_groups: Sequence[str]
            ) -> str:
     """`regressor.md`: held-out skill over persistence per group at each evaluation, mean +- std
@@ -264,7 +270,7 @@ def report(result: Mapping[str, Any], layout: ActionLayout, gripper_groups: Sequ
         cells += [_summary([r["metrics"][f"skill/{g}"] for r in at]) for g in groups]
         cells.append(" / ".join(f"{np.mean([r['metrics'][f'motion_gain/{a}'] for r in at]):.2f}"
                                 for a in arms))
-        cells.append(f"{np.mean([r['metrics']['gripper_switch/f1'] for r in at]):.2f}"
+        cells.append(_switch_f1([r["metrics"]["gripper_switch/f1"] for r in at])
                      if gripper_groups else "")
         lines.append("| " + " | ".join(cells) + " |")
     metrics = runs[0][-1]["metrics"]

@@ -162,6 +162,14 @@ def stream_batches(table: EpisodeTable, spec: DataSpec, *,
 
 # ---------------------------------------------------------------------- the iterator
 
+def quiet_worker_teardown() -> None:
+    """Batches the data workers had in shared memory when their iterator closed (the run's end,
+    or an error) are unlinked by Python's resource tracker, a child started with this process's
+    warning options; it need not print a warning for each (a known Grain behaviour)."""
+    if "ignore:resource_tracker:UserWarning" not in sys.warnoptions:
+        sys.warnoptions.append("ignore:resource_tracker:UserWarning")
+
+
 def die_with_parent(worker_index: int, worker_count: int) -> None:
     """Grain worker init: the worker exits within a second of its parent's death. A killed run
     (SIGKILL, OOM killer) runs no cleanup, and a worker holds a copy of the pipeline's memory."""
@@ -207,6 +215,8 @@ class TrainIterator:
         self._iterator = None
 
     def _start(self) -> None:
+        if self._num_workers:
+            quiet_worker_teardown()
         options = grain.ReadOptions(num_threads=1 if self._num_workers else 2,
                                     prefetch_buffer_size=self._prefetch)
         dataset = self._batches[self.step:].to_iter_dataset(options)
@@ -266,6 +276,7 @@ class StreamTrainIterator(TrainIterator):
     def _start(self) -> None:
         dataset = self._batches
         if self._num_workers:
+            quiet_worker_teardown()
             dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(
                 num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)),
                 worker_init_fn=die_with_parent)
