@@ -52,6 +52,12 @@ def memory(pid: int | str = "self") -> dict[str, float]:
     return fields
 
 
+def is_resource_tracker(command: str) -> bool:
+    """Whether a process's command line (`/proc/<pid>/cmdline`) is Python's resource tracker. Its
+    module is matched as it runs it: every child carries the warning option that names it."""
+    return "multiprocessing.resource_tracker import main" in command
+
+
 def descendants(pid: int) -> list[int]:
     """The pids of a process's children, theirs, and so on."""
     children = []

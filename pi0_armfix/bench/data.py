@@ -278,7 +278,7 @@ def _memory_child(arg: str) -> None:
         workers_memory = []
         for pid in common.descendants(os.getpid()):
             command = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")
-            role = ("resource tracker" if "resource_tracker" in command else
+            role = ("resource tracker" if common.is_resource_tracker(command) else
                     "Grain worker" if "python" in command else command[:40])
             workers_memory.append({**common.memory(pid), "role": role})
         print(json.dumps({"main": common.memory(), "main_before": before,

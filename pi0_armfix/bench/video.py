@@ -241,7 +241,7 @@ def training_throughput(root: Path, size: int, batch_size: int, steps: int,
         shapes = {c: tuple(batch["image"][c].shape[1:]) for c in batch["image"]}
         seconds = common.timed_steps(iterator, steps, warmup=max(window_steps - 1, 0))
         workers = [pid for pid in common.descendants(os.getpid())
-                   if "resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_text()]
+                   if not common.is_resource_tracker(Path(f"/proc/{pid}/cmdline").read_text())]
         memory = {"main": common.memory()["VmRSS"],
                   "workers": [common.memory(pid)["VmHWM"] for pid in workers]}
         state = iterator.get_state()
