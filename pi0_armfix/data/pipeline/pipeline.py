@@ -214,17 +214,19 @@ class TrainIterator:
         self._prefetch = int(prefetch)
         self._iterator = None
 
+    def _in_workers(self, dataset: grain.IterDataset) -> grain.IterDataset:
+        """`dataset` read by `data.num_workers` worker processes (as is, without workers)."""
+        if not self._num_workers:
+            return dataset
+        quiet_worker_teardown()
+        return dataset.mp_prefetch(grain.MultiprocessingOptions(
+            num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)),
+            worker_init_fn=die_with_parent)
+
     def _start(self) -> None:
-        if self._num_workers:
-            quiet_worker_teardown()
         options = grain.ReadOptions(num_threads=1 if self._num_workers else 2,
                                     prefetch_buffer_size=self._prefetch)
-        dataset = self._batches[self.step:].to_iter_dataset(options)
-        if self._num_workers:
-            dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(
-                num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)),
-                worker_init_fn=die_with_parent)
-        self._iterator = iter(dataset)
+        self._iterator = iter(self._in_workers(self._batches[self.step:].to_iter_dataset(options)))
 
     def __iter__(self) -> "TrainIterator":
         return self
@@ -274,13 +276,7 @@ class StreamTrainIterator(TrainIterator):
         self._restore: Mapping[str, Any] | None = None
 
     def _start(self) -> None:
-        dataset = self._batches
-        if self._num_workers:
-            quiet_worker_teardown()
-            dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(
-                num_workers=self._num_workers, per_worker_buffer_size=max(self._prefetch, 1)),
-                worker_init_fn=die_with_parent)
-        self._iterator = iter(dataset)
+        self._iterator = iter(self._in_workers(self._batches))
         if self._restore is not None:
             self._iterator.set_state(self._restore)
             self._restore = None
