@@ -240,9 +240,8 @@ def test_b1k_scale_without_a_data_root_fails_before_any_work(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-# The fast lane trains a delta base here (a code path no other fast test trains); the main job
-# trains in the fast lane as test_evaluate's run, every config here in the slow lane.
-FAST_TRAINED = ("arm_focused_delta_base",)
+# The fast lane trains the main config once, here; every other config in the slow lane.
+FAST_TRAINED = ("arm_focused",)
 
 
 @pytest.mark.parametrize("name", [n if n in FAST_TRAINED else pytest.param(n, marks=pytest.mark.slow)

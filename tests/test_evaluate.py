@@ -248,11 +248,13 @@ def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, demo_root):  # noqa: F811
-    """A tiny run of configs/arm_focused.py with an EMA that moves (checkpoint at step 2)."""
+    """A tiny run of configs/arm_focused.py with an EMA that moves (checkpoint at step 2); its
+    tests are in the slow lane (the fast lane trains the main config once, in test_configs.py)."""
     return tf.trained_tiny_run("configs/arm_focused.py", tmp_path_factory.mktemp("run"),
                                demo_root, optim__ema_decay=0.5)
 
 
+@pytest.mark.slow
 def test_offline_evaluation_of_a_checkpoint_prints_metrics_and_writes_figures(
         trained, cache_dir):  # noqa: F811
     workdir = trained
@@ -407,6 +409,7 @@ def _evaluate_in_process(workdir, **eval_changes):
         return evaluator(run.params)
 
 
+@pytest.mark.slow
 def test_the_held_out_truth_is_the_stored_actions_on_every_dim_never_the_normalizers(trained):
     from pi0_armfix.policies import restore
     from pi0_armfix.data.pipeline import dataset as dataset_lib
@@ -424,6 +427,7 @@ def test_the_held_out_truth_is_the_stored_actions_on_every_dim_never_the_normali
                                   np.asarray(table.actions[index], np.float64) / chunks.scale)
 
 
+@pytest.mark.slow
 def test_a_held_out_set_smaller_than_a_batch_is_padded_and_scores_as_unpadded(trained):
     padded = _evaluate_in_process(trained, max_chunks=5, batch_size=32, num_draws=2)
     unpadded = _evaluate_in_process(trained, max_chunks=5, batch_size=5, num_draws=2)
@@ -433,6 +437,7 @@ def test_a_held_out_set_smaller_than_a_batch_is_padded_and_scores_as_unpadded(tr
         assert padded.metrics[key] == pytest.approx(value, rel=1e-4, abs=1e-6, nan_ok=True), key
 
 
+@pytest.mark.slow
 def test_a_trained_runs_output_on_a_constant_dim_is_the_constant(trained):
     from pi0_armfix.policies import inference
     policy = inference.RunPolicy.from_workdir(trained)
@@ -446,6 +451,7 @@ def test_a_trained_runs_output_on_a_constant_dim_is_the_constant(trained):
     assert np.ptp(actions[..., 5]) > 0  # its neighbour does
 
 
+@pytest.mark.slow
 def test_the_switch_timing_tool_times_the_evaluations_own_draws(trained):
     from pi0_armfix.tools import switch_timing
     _, metrics, _, _ = evaluate_command.evaluate_checkpoint(trained)
@@ -477,6 +483,7 @@ def test_the_expert_redraw_is_deterministic_and_differs_only_by_its_own_draws():
     assert np.abs(first[:, arm] - recorded[60:76, arm]).max() < 10 * spec.arm_jitter
 
 
+@pytest.mark.slow
 def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(trained):
     _, ema_metrics, _, ema_path = evaluate_command.evaluate_checkpoint(trained)
     _, raw_metrics, _, raw_path = evaluate_command.evaluate_checkpoint(trained,
@@ -487,6 +494,7 @@ def test_the_raw_params_of_a_run_with_an_ema_never_replace_the_ema_results(train
     assert (raw_path.parent / "chunk_sums_params.npz").is_file()
 
 
+@pytest.mark.slow
 def test_an_evaluation_names_the_chunks_it_scored(trained):
     _, metrics, _, path = evaluate_command.evaluate_checkpoint(trained)
     sums = chunk_sums_lib.load_chunk_sums(path.parent / chunk_sums_lib.CHUNK_SUMS_FILE)
@@ -512,6 +520,7 @@ def test_the_printed_table_says_n_a_and_why_for_a_constant_group_and_an_unmapped
     assert "state copy = persistence: the state maps to no action group" in text
 
 
+@pytest.mark.slow
 def test_the_evaluator_scores_any_prediction_function_chunk_for_chunk(trained):
     from pi0_armfix.policies import restore
     from pi0_armfix.data.pipeline.data_spec import DataSpec

@@ -23,6 +23,8 @@ from pi0_armfix.tools import export_openpi
 CONFIG = "configs/arm_delta.py"
 
 
+# Every test that reads the run is in the slow lane: the fast lane trains this run for serving only
+# (test_serve.py); a second pytest worker would train it again for the export.
 @pytest.fixture(scope="module")
 def run(arm_delta_run):  # noqa: F811
     return arm_delta_run
@@ -35,6 +37,7 @@ def exported(run, tmp_path_factory):
     return output, summary
 
 
+@pytest.mark.slow
 def test_a_run_openpi_cannot_build_is_refused_in_one_line_naming_the_key(run, tmp_path):
     with pytest.raises(ValueError, match=r"model\.preset = 'tiny': openpi builds only") as err:
         export_openpi.export(run, tmp_path / "out")
@@ -42,6 +45,7 @@ def test_a_run_openpi_cannot_build_is_refused_in_one_line_naming_the_key(run, tm
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_the_command_prints_the_refusal_and_exits_nonzero(run, tmp_path, cache_dir):  # noqa: F811
     done = subprocess.run([sys.executable, "-m", "pi0_armfix.tools.export_openpi",
                            f"--checkpoint={run}", f"--output={tmp_path / 'out'}"],
@@ -51,6 +55,7 @@ def test_the_command_prints_the_refusal_and_exits_nonzero(run, tmp_path, cache_d
         "pi0_armfix.tools.export_openpi: openpi cannot reproduce")
 
 
+@pytest.mark.slow
 def test_the_export_has_openpis_layout(exported):
     output, summary = exported
     assert (output / "params" / "_METADATA").is_file()
@@ -66,6 +71,7 @@ def test_the_export_has_openpis_layout(exported):
     assert saved["openpi_config"]["delta_action_mask"] == [-3, 11, -1, 7, -1]
 
 
+@pytest.mark.slow
 def test_params_restore_the_way_openpi_restores_them(run, exported):
     output, _ = exported
     with ocp.PyTreeCheckpointer() as checkpointer:
@@ -87,6 +93,7 @@ def _restore_args(tree):
         restore_type=np.ndarray) for k, v in tree.items()}
 
 
+@pytest.mark.slow
 def test_the_exported_folder_gives_the_runs_actions(run, exported):
     output, _ = exported
     original = restore.restore_run(run)
@@ -106,6 +113,7 @@ def test_the_exported_folder_gives_the_runs_actions(run, exported):
                                rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
     restored = restore.restore_run(run, levers={"average_draws": 4, "temperature": 0.5,
                                                   "group_draws": "base=2", "rtc": True,
@@ -120,6 +128,7 @@ def test_inference_levers_are_caveats_that_openpi_leaves_to_the_client(run):
                    for c in export_openpi.openpi_caveats(restore.restore_run(run)))
 
 
+@pytest.mark.slow
 def test_an_unwritable_output_is_refused_in_one_line_before_the_run_is_read(run, tmp_path,
                                                                           monkeypatch):
     (tmp_path / "a_file").write_text("")
@@ -130,6 +139,7 @@ def test_an_unwritable_output_is_refused_in_one_line_before_the_run_is_read(run,
         export_openpi.export(run, tmp_path / "a_file" / "export", force=True)
 
 
+@pytest.mark.slow
 def test_bfloat16_halves_the_params(run, tmp_path):
     summary = export_openpi.export(run, tmp_path / "bf16", dtype="bfloat16", force=True)
     with ocp.PyTreeCheckpointer() as checkpointer:
@@ -139,6 +149,7 @@ def test_bfloat16_halves_the_params(run, tmp_path):
     assert summary["dtype"] == "bfloat16"
 
 
+@pytest.mark.slow
 def test_an_output_folder_with_files_is_never_overwritten(run, tmp_path):
     (tmp_path / "kept.txt").write_text("mine")
     with pytest.raises(ValueError, match="is not empty"):
@@ -146,6 +157,7 @@ def test_an_output_folder_with_files_is_never_overwritten(run, tmp_path):
     assert (tmp_path / "kept.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_a_step_folder_names_its_run_and_step(run):
     assert export_openpi.resolve_checkpoint(run / "checkpoints" / "2") == (run, 2)
     with pytest.raises(ValueError, match="neither a run folder"):
@@ -191,6 +203,7 @@ def test_delta_masks_become_openpis_make_bool_mask_arguments():
     assert export_openpi.bool_mask_runs(np.array([True, True])) == (2,)
 
 
+@pytest.mark.slow
 def test_a_run_relative_to_the_previous_action_is_one_openpi_cannot_reproduce(run):
     restored = restore.restore_run(run)
     config = ml_collections.ConfigDict(restored.config.to_dict())
@@ -199,6 +212,7 @@ def test_a_run_relative_to_the_previous_action_is_one_openpi_cannot_reproduce(ru
     assert any(p.startswith("data.delta_reference = 'previous_action'") for p in problems)
 
 
+@pytest.mark.slow
 def test_an_output_that_is_a_file_is_refused_in_one_line(run, tmp_path):
     existing = tmp_path / "notes.txt"
     existing.write_text("kept")

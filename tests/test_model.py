@@ -314,6 +314,7 @@ def test_compiled_program_size_does_not_grow_with_depth():
     assert math.isclose(shallow, deep, rel_tol=0.05), (shallow, deep)
 
 
+@pytest.mark.slow  # two compilations of the whole tiny model
 def test_unrolled_layers_compute_what_the_scan_computes(params):
     unrolled = TINY.replace(unroll_layers=True)
     batch, rng = _batch(), jax.random.key(3)
@@ -338,6 +339,7 @@ def _plain_pi0_loss(params, rng, batch):
     return jnp.sum(per_step * valid) / jnp.sum(valid)
 
 
+@pytest.mark.slow  # two gradient compilations
 def test_one_flow_sample_is_the_plain_pi0_loss_bitwise(params):
     batch, rng = _batch(), jax.random.key(5)
     plain = jax.jit(jax.value_and_grad(lambda p: _plain_pi0_loss(p, rng, batch)))(params)
@@ -361,6 +363,7 @@ def test_k_flow_samples_share_the_prefix_and_never_see_each_other(params):
         np.testing.assert_allclose(together[rows], alone, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow  # k + 1 forward compilations
 def test_k_flow_samples_are_the_exact_mean_of_the_k_single_draw_losses_under_the_same_draws(
         params):
     batch, k = _batch(), 4

@@ -57,6 +57,7 @@ def test_the_baseline_writes_every_seed_and_evaluation_beside_the_do_nothing_row
     assert table.count("\n| 3 |") == 1 and table.count("\n| 6 |") == 1
 
 
+@pytest.mark.slow  # two trainings
 def test_the_same_seed_trains_the_same_regressor(demo_root, tmp_path):
     first, second = (regressor.run(tiny_config(demo_root), tmp_path / name, network="cnn",
                                    seeds=1, steps=3, evaluations=1, lr=1e-3)

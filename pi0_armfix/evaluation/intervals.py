@@ -38,7 +38,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats as scipy_stats
 
 CONFIDENCE = 0.95
 MIN_SEEDS = 5  # below this, a study's intervals are labelled as anecdotal
@@ -91,6 +90,7 @@ def _interval(estimate: float, parts: Sequence[tuple[float, float]], confidence:
     if total == 0:
         return estimate, estimate, estimate
     df = total ** 2 / sum(v ** 2 / d for v, d in parts if v > 0)
+    from scipy import stats as scipy_stats  # a second of every command's start; only this needs it
     half = scipy_stats.t.ppf(0.5 + confidence / 2, df) * math.sqrt(total)
     return estimate, float(estimate - half), float(estimate + half)
 

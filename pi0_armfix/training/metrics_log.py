@@ -3,10 +3,9 @@
 Only process 0 writes. A resumed run first drops the records of steps after its checkpoint (a
 killed run may have logged past it), so the file reads as if the run had never stopped.
 
-The TensorBoard events are written in the training thread, each record flushed (tensorboardX's
-events writer without its `SummaryWriter`, whose writer thread and exit hook print their own
-tracebacks when the disk fills): a failed write stops the mirror with one warning line, and
-`metrics.jsonl` goes on, or fails as the run's own error.
+The TensorBoard events are written in the training thread, each record on disk when written
+(`tensorboard_events`): a failed write stops the mirror with one warning line, and `metrics.jsonl`
+goes on, or fails as the run's own error.
 """
 
 from __future__ import annotations
@@ -14,13 +13,12 @@ from __future__ import annotations
 import json
 import logging
 import math
-import time
 from collections.abc import Mapping
 
 import jax
 from etils import epath
-from tensorboardX.event_file_writer import EventsWriter
-from tensorboardX.proto import event_pb2, summary_pb2
+
+from pi0_armfix.training.tensorboard_events import EventFile
 
 METRICS_FILE = "metrics.jsonl"
 
@@ -62,12 +60,12 @@ class MetricsWriter:
         kept = [r for r in read_metrics(self.path) if r["step"] <= resume_step]
         self.path.write_text("".join(json.dumps(r) + "\n" for r in kept))
         self._file = self.path.open("a")
-        self._tb: EventsWriter | None = None
+        self._tb: EventFile | None = None
         self._tensorboard(lambda: self._open_tensorboard(workdir / "tensorboard"))
 
     def _open_tensorboard(self, folder: epath.Path) -> None:
         folder.mkdir(parents=True, exist_ok=True)
-        self._tb = EventsWriter(str(folder / "events"))
+        self._tb = EventFile(str(folder))
 
     def _tensorboard(self, action) -> None:
         """`action()` on the TensorBoard mirror; an OSError (a full disk) stops the mirror."""
@@ -87,13 +85,10 @@ class MetricsWriter:
             record[name] = value if isinstance(value, str) else _json_number(value)
         self._file.write(json.dumps(record) + "\n")
         self._file.flush()
-        values = [summary_pb2.Summary.Value(tag=name, simple_value=float(value))
-                  for name, value in record.items()
-                  if name != "step" and not isinstance(value, str) and value is not None]
-        if self._tb is not None and values:
-            event = event_pb2.Event(wall_time=time.time(), step=int(step),
-                                    summary=summary_pb2.Summary(value=values))
-            self._tensorboard(lambda: (self._tb.write_event(event), self._tb.flush()))
+        scalars = {name: float(value) for name, value in record.items()
+                   if name != "step" and not isinstance(value, str) and value is not None}
+        if self._tb is not None and scalars:
+            self._tensorboard(lambda: self._tb.write_scalars(record["step"], scalars))
 
     def close(self) -> None:
         if self._active:
