@@ -27,6 +27,7 @@ def curves():
     return _curves(0.3)
 
 
+@pytest.mark.slow  # two calibrations of the demo world
 def test_calibration_rows_are_reproducible(curves):
     assert json.dumps(_curves(0.3)) == json.dumps(curves)  # NaN (nothing succeeded) included
 

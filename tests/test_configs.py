@@ -240,12 +240,8 @@ def test_b1k_scale_without_a_data_root_fails_before_any_work(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-# The fast lane trains the main config once, here; every other config in the slow lane.
-FAST_TRAINED = ("arm_focused",)
-
-
-@pytest.mark.parametrize("name", [n if n in FAST_TRAINED else pytest.param(n, marks=pytest.mark.slow)
-                                  for n in TRAINED])
+@pytest.mark.slow  # a training per config; the fast lane's training is test_serve.py's run
+@pytest.mark.parametrize("name", TRAINED)
 def test_config_trains_at_tiny_scale(name, tmp_path, demo_root):
     arm_heavy = tmp_path / "arm_heavy.json"
     arm_heavy.write_text(json.dumps({"episodes": [1, 3]}))  # the tiny demo is too short to filter

@@ -190,6 +190,7 @@ def test_a_base_checkpoint_starts_a_lora_model_with_its_adapters_from_the_init(t
         np.testing.assert_array_equal(value, init[key] if "lora" in key else base[key])
 
 
+@pytest.mark.slow  # a training
 def test_a_lora_checkpoint_restores_with_its_own_adapters(tmp_path):
     config = _config()
     params = _flat(flow_model.init_params(config, jax.random.key(3)))

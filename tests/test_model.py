@@ -167,6 +167,7 @@ def test_attention_mask_blocks():
     np.testing.assert_array_equal(mask[0], expected)
 
 
+@pytest.mark.slow  # a forward compilation per action input
 def test_prefix_and_state_outputs_do_not_depend_on_the_actions(params):
     noise, t = _noise_and_time()
     prefix_a, suffix_a, prefix_mask = _expert_outputs(params, _observation(), noise, t)
@@ -238,6 +239,7 @@ def _noise_of(rng, draws):
     return noise_lib.flow_noise(rng, (draws * BATCH, TINY.action_horizon, TINY.action_dim))
 
 
+@pytest.mark.slow  # a sampler compilation per draw count
 def test_every_draw_of_several_is_the_single_draw_from_its_own_noise(params):
     noise = _noise_of(jax.random.key(5), 3)
     draws = flow_model.sample_actions(params, jax.random.key(5), _observation(), config=TINY,
@@ -350,6 +352,7 @@ def test_one_flow_sample_is_the_plain_pi0_loss_bitwise(params):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow  # a forward compilation per sample count
 def test_k_flow_samples_share_the_prefix_and_never_see_each_other(params):
     obs = preprocess_observation(None, _observation(), config=TINY, train=False)
     rng = np.random.default_rng(0)

@@ -229,6 +229,7 @@ def test_without_the_state_the_model_sees_zeros_in_training_and_sampling():
     assert not _state_after(config, train=False, batch=8).any()
 
 
+@pytest.mark.slow  # a forward compilation per mode
 def test_state_dropout_zeroes_whole_samples_at_its_rate_in_training_only():
     config = TINY.replace(state_dropout=0.3)
     state = _state_after(config, train=True)
@@ -245,6 +246,7 @@ def test_state_noise_has_its_std_around_the_unchanged_state_in_training_only():
     assert (_state_after(config, train=False, batch=8) == 1.0).all()
 
 
+@pytest.mark.slow  # a forward compilation per mode
 def test_state_noise_leaves_the_padding_and_constant_dims_at_zero_as_at_inference():
     config = TINY.replace(state_noise=0.2)
     obs = fake_observation(config, 64)

@@ -40,7 +40,8 @@ def _preset(name):
     return get_preset(name)
 
 
-@pytest.fixture(scope="module", params=["tiny", "pi05_tiny", "tiny_conv_stem"])
+@pytest.fixture(scope="module", params=[  # the conv stem differs only before the first layer
+    "tiny", "pi05_tiny", pytest.param("tiny_conv_stem", marks=pytest.mark.slow)])
 def config(request):
     return _preset(request.param)
 
