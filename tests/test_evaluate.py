@@ -249,7 +249,7 @@ def test_unknown_group_in_eval_config_is_an_error_naming_the_key():
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, demo_root):  # noqa: F811
     """A tiny run of configs/arm_focused.py with an EMA that moves (checkpoint at step 2); its
-    tests are in the slow lane (the fast lane trains the main config once, in test_configs.py)."""
+    tests are in the slow lane (the fast lane's one training is test_serve.py's run)."""
     return tf.trained_tiny_run("configs/arm_focused.py", tmp_path_factory.mktemp("run"),
                                demo_root, optim__ema_decay=0.5)
 
