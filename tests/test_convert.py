@@ -160,6 +160,7 @@ def test_a_step_that_was_not_saved_is_a_value_error_listing_the_saved_ones(tmp_p
         checkpoint.read_checkpoint(str(tmp_path), step=9)
 
 
+@pytest.mark.slow  # a command in a subprocess: the slow lane
 def test_the_cli_says_which_step_it_converts_and_what_incomplete_step_it_passed_over(tmp_path,
                                                                                     params):
     _write_run_checkpoint(str(tmp_path / "run"), params, step=4)
@@ -172,6 +173,7 @@ def test_the_cli_says_which_step_it_converts_and_what_incomplete_step_it_passed_
     assert f"converting {tmp_path / 'run' / 'checkpoints' / '4'} (a run step)" in result.stdout
 
 
+@pytest.mark.slow  # a command in a subprocess: the slow lane
 def test_the_cli_reports_a_damaged_checkpoint_in_one_line_naming_it(tmp_path, params):
     _write_run_checkpoint(str(tmp_path / "run"), params, step=4)
     state = tmp_path / "run" / "checkpoints" / "4" / "state"
@@ -196,6 +198,7 @@ def test_a_damaged_latest_step_falls_back_to_the_last_good_one_as_evaluate_does(
         checkpoint.read_checkpoint(str(tmp_path / "run"), step=6)
 
 
+@pytest.mark.slow  # a command in a subprocess: the slow lane
 def test_the_cli_reports_a_missing_folder_in_one_line(tmp_path):
     result = _run_cli(f"--checkpoint={tmp_path / 'nothing'}", f"--output={tmp_path / 'torch'}")
     assert result.returncode == 1 and "Traceback" not in result.stderr

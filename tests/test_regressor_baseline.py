@@ -96,6 +96,7 @@ def test_a_stopped_run_keeps_its_finished_seeds_and_trains_only_the_rest(demo_ro
     assert "2 seed(s)" in table and "95 % t interval over the 2 seeds" in table
 
 
+@pytest.mark.slow  # a regressor run: the slow lane
 def test_an_output_of_other_settings_is_refused_before_any_training(demo_root, tmp_path):
     config = tiny_config(demo_root)
     regressor.run(config, tmp_path, network="cnn", seeds=1, steps=2, evaluations=1, lr=1e-3)

@@ -53,6 +53,7 @@ def _reading_modules(monkeypatch, config: ml_collections.ConfigDict) -> list[str
     return reads
 
 
+@pytest.mark.slow  # a training: the slow lane
 def test_a_training_run_reads_its_config_once_while_resolving_it(tmp_path, demo_root,
                                                                  monkeypatch):
     config = arm_focused.get_config()
