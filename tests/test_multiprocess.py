@@ -44,7 +44,11 @@ def test_two_processes_of_two_devices_reproduce_one_process_of_four(tmp_path, ca
             env=tf.env(cache_dir, devices=2),
             cwd=tf.REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for i in range(2)]
-    outputs = [p.communicate(timeout=600)[0] for p in processes]
+    try:
+        outputs = [p.communicate(timeout=600)[0] for p in processes]
+    finally:  # a pair that hangs must not outlive the test and starve the rest of the suite
+        for p in processes:
+            p.kill()
     for p, output in zip(processes, outputs):
         assert p.returncode == 0, output[-3000:]
 
