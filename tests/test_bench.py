@@ -101,8 +101,13 @@ def test_sim_benchmark_prints_the_expert_bound_and_the_step_rate(tmp_path):
 
 @pytest.mark.slow  # the slow lane: four short demo trainings
 def test_train_benchmark_prints_throughput_against_the_bounds_and_the_batch_sweep(tmp_path):
+    from train_fixtures import write_tiny_demo
+
+    data = write_tiny_demo(tmp_path / "demo")
     out = _bench(tmp_path, "train", "--rounds=1", "--steps=1", "--data_steps=50",
-                 "--batch_sizes=16")
+                 "--batch_sizes=16", "--set=model.preset=tiny", f"--set=data.root={data}",
+                 "--set=eval.episodes=2", "--set=train.batch_size=8")
+    assert "tiny train step, batch 8" in out and "tiny preset, batch 8" in out
     assert "ratio" in out
     for k in (4, 1):
         line = next(line for line in out.splitlines() if line.startswith(f"  K = {k}:"))

@@ -1,10 +1,36 @@
-"""What the data benchmarks share: the config of a bare data run, a one-device batch sharding, the
-memory of a process and its descendants."""
+"""What the benchmarks share: `--set` changes to a config, the config of a bare data run, a
+one-device batch sharding, the memory of a process and its descendants."""
 
 from __future__ import annotations
 
+import ast
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+
+def apply_changes(config: Any, changes: Sequence[str]) -> None:
+    """Sets each of `changes` ("key=value", the value a Python literal or else a string) in the
+    ConfigDict `config`; a key it does not hold is one error naming the change."""
+    import ml_collections
+
+    for change in changes:
+        key, sep, text = change.partition("=")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text
+        *path, field = key.split(".")
+        section = config
+        for part in path:
+            section = section.get(part) if isinstance(section, ml_collections.ConfigDict) else None
+        if not sep or not isinstance(section, ml_collections.ConfigDict) or field not in section:
+            raise ValueError(f"--set={change}: name a config key and its value, e.g. "
+                             "--set=model.attention=fused (pi0_armfix/configs/base.py has them)")
+        try:
+            section[field] = value
+        except TypeError as e:
+            raise ValueError(f"--set={change}: {e}") from None
 
 
 def data_config(root: str, num_workers: int) -> Any:

@@ -33,7 +33,6 @@ a GPU (docs/gpu.md).
 from __future__ import annotations
 
 import argparse
-import ast
 import functools
 import importlib
 import statistics
@@ -44,9 +43,9 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 
+from pi0_armfix.bench import common
 from pi0_armfix.data.pipeline import batching
 from pi0_armfix.data.statistics.stats import NormStats
 from pi0_armfix.model import config as model_config_lib
@@ -110,23 +109,7 @@ def load_config(name: str, preset: str = "", batch: int = 32, flow_samples: int 
     config.train.batch_size = batch
     if flow_samples:
         config.loss.flow_samples = flow_samples
-    for change in changes:
-        key, sep, text = change.partition("=")
-        try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text
-        *path, field = key.split(".")
-        section = config
-        for part in path:
-            section = section.get(part) if isinstance(section, ml_collections.ConfigDict) else None
-        if not sep or not isinstance(section, ml_collections.ConfigDict) or field not in section:
-            raise ValueError(f"--set={change}: name a config key and its value, e.g. "
-                             "--set=model.attention=fused (pi0_armfix/configs/base.py has them)")
-        try:
-            section[field] = value
-        except TypeError as e:
-            raise ValueError(f"--set={change}: {e}") from None
+    common.apply_changes(config, changes)
     return config
 
 

@@ -1,6 +1,7 @@
 """Training benchmarks: the cost of the arm-focused loss, and how long the step waits for data.
 
     python -m pi0_armfix.bench train [--rounds=10] [--steps=10] [--data_steps=300]
+        [--set=KEY=VALUE ...]
 
 1. Step time of `per_group` with delta weighting over `uniform`, on the `demo` preset and the demo
    config's batch: both jitted train steps (the real `train_step`, sharded and donated) run on the
@@ -18,6 +19,9 @@
    per-step overheads (dispatch, op launch) what holds the demo far below its bound, samples/s
    would rise with the batch; if they stay flat or fall, the per-sample work itself runs slowly
    (matrices 32-128 wide, a few FLOPs per byte moved).
+
+`--set` changes both configs alike (`--set=model.preset=tiny --set=data.root=DIR`: the same
+measurements of a smaller model on other data).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ import jax
 
 from pi0_armfix import train
 from pi0_armfix.action_space import ActionLayout
+from pi0_armfix.bench import common
 from pi0_armfix.bench import model as bench_model
 from pi0_armfix.configs import arm_focused, base
 from pi0_armfix.data.formats import sources
@@ -50,9 +55,12 @@ from pi0_armfix import sharding as sharding_lib
 from pi0_armfix.training import state as state_lib
 from pi0_armfix.training import step as step_lib
 
-def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
-    """Median seconds per step of (uniform, per_group + delta weighting) on one demo batch."""
+def step_time_ratio(rounds: int, steps: int, changes: Sequence[str] = ()
+                    ) -> tuple[float, float]:
+    """Median seconds per step of (uniform, per_group + delta weighting) on one batch of the
+    base config with `changes`."""
     config = base.get_config()
+    common.apply_changes(config, changes)
     config.data.norm = model_config_lib.norm_mode(config)
     layout = ActionLayout.from_config(config.layout)
     model_config = model_config_lib.from_model_config(config.model)
@@ -106,12 +114,13 @@ def step_time_ratio(rounds: int, steps: int) -> tuple[float, float]:
     return (statistics.median(runs["uniform"][2]), statistics.median(runs["per_group+delta"][2]))
 
 
-def main_job_throughput(steps: int, flow_samples: int, batch_size: int
-                        ) -> tuple[float, float]:
-    """(samples/s, data-wait fraction) of `pi0_armfix/configs/arm_focused.py` with K =
+def main_job_throughput(steps: int, flow_samples: int, batch_size: int,
+                        changes: Sequence[str] = ()) -> tuple[float, float]:
+    """(samples/s, data-wait fraction) of `pi0_armfix/configs/arm_focused.py` with `changes`, K =
     `flow_samples` and global batch `batch_size`, trained `steps` steps, the first logged window
     (the compilation) excluded."""
     config = arm_focused.get_config()
+    common.apply_changes(config, changes)
     config.update_from_flattened_dict({"train.total_steps": steps, "eval.every": 0,
                                        "train.checkpoint_every": steps,
                                        "loss.flow_samples": flow_samples,
@@ -127,10 +136,12 @@ def main_job_throughput(steps: int, flow_samples: int, batch_size: int
     return steps_run * config.train.batch_size / sum(durations), sum(waits) / sum(durations)
 
 
-def cost_per_sample(flow_samples: int) -> tuple[float, float]:
-    """(FLOPs, bytes accessed) of the main job's compiled train step per training sample (its K
-    draws included; bytes as XLA counts them after fusion, whether or not a cache serves them)."""
+def cost_per_sample(flow_samples: int, changes: Sequence[str] = ()) -> tuple[float, float]:
+    """(FLOPs, bytes accessed) of the main job's compiled train step (with `changes`) per training
+    sample (its K draws included; bytes as XLA counts them after fusion, whether or not a cache
+    serves them)."""
     config = arm_focused.get_config()
+    common.apply_changes(config, changes)
     model_config = model_config_lib.from_model_config(config.model)
     batch = config.train.batch_size
     cost = bench_model.lower_train_step(model_config, batch, flow_samples).compile().cost_analysis()
@@ -159,29 +170,33 @@ def main(argv: Sequence[str]) -> None:
     parser.add_argument("--batch_sizes", default="64,128",
                         help="further global batch sizes trained at K = 4 ('' = none): samples/s "
                              "that rise with the batch say per-step overheads bound the step")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a change to both configs (repeatable), e.g. model.preset=tiny")
     args = parser.parse_args(argv[1:])
-    batch = base.get_config().train.batch_size
-    uniform, weighted = step_time_ratio(args.rounds, args.steps)
-    print(f"demo train step, batch {batch}, "
+    demo = base.get_config()
+    common.apply_changes(demo, args.set)
+    batch, preset = demo.train.batch_size, demo.model.preset
+    uniform, weighted = step_time_ratio(args.rounds, args.steps, args.set)
+    print(f"{preset} train step, batch {batch}, "
           f"{jax.device_count()} {jax.default_backend()} device(s), median of {args.rounds} "
           f"rounds of {args.steps} steps:")
     print(f"  uniform                 {uniform * 1e3:8.1f} ms")
     print(f"  per_group + delta       {weighted * 1e3:8.1f} ms")
     print(f"  ratio                   {weighted / uniform:8.3f}   (target <= 1.03)")
     peak = matmul_flops_per_second()
-    print(f"main job (pi0_armfix/configs/arm_focused.py, demo preset, batch {batch}), "
+    print(f"main job (pi0_armfix/configs/arm_focused.py, {preset} preset, batch {batch}), "
           f"{args.data_steps} steps each; this machine's float32 matmul rate "
           f"{peak / 1e9:.1f} GFLOP/s:")
     for k in (4, 1):
-        rate, waiting = main_job_throughput(args.data_steps, k, batch)
-        flops, bytes_accessed = cost_per_sample(k)
+        rate, waiting = main_job_throughput(args.data_steps, k, batch, args.set)
+        flops, bytes_accessed = cost_per_sample(k, args.set)
         print(f"  K = {k}: {rate:7.1f} samples/s, {flops / 1e6:6.1f} MFLOP/sample -> "
               f"{rate * flops / 1e9:5.2f} GFLOP/s, {rate * flops / peak:5.1%} of the compute "
               f"bound ({peak / flops:7.0f} samples/s); {bytes_accessed / 1e6:5.1f} MB accessed "
               f"per sample ({flops / bytes_accessed:.1f} FLOP/byte); data wait {waiting:.1%} "
               "(target < 5%)")
     for size in (int(b) for b in args.batch_sizes.split(",") if b):
-        rate, _ = main_job_throughput(args.data_steps, 4, size)
+        rate, _ = main_job_throughput(args.data_steps, 4, size, args.set)
         print(f"  K = 4, batch {size}: {rate:7.1f} samples/s ({rate / size:.2f} steps/s)")
 
 
