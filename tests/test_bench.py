@@ -115,6 +115,14 @@ def test_train_benchmark_prints_throughput_against_the_bounds_and_the_batch_swee
     assert "  K = 4, batch 16:" in out
 
 
+def test_the_train_benchmark_refuses_a_change_to_a_key_no_config_holds_before_any_work(capsys):
+    from pi0_armfix.bench import train as train_bench
+
+    with pytest.raises(SystemExit):
+        train_bench.main(["bench train", "--set=model.nope=1"])
+    assert "--set=model.nope=1: name a config key" in capsys.readouterr().err
+
+
 @pytest.mark.slow  # a whole benchmark run: the slow lane
 def test_the_step_benchmark_times_the_projects_train_step_and_counts_its_flops():
     from pi0_armfix.bench import step as step_bench

@@ -174,7 +174,11 @@ def main(argv: Sequence[str]) -> None:
                         help="a change to both configs (repeatable), e.g. model.preset=tiny")
     args = parser.parse_args(argv[1:])
     demo = base.get_config()
-    common.apply_changes(demo, args.set)
+    try:  # both configs, before any work
+        common.apply_changes(demo, args.set)
+        common.apply_changes(arm_focused.get_config(), args.set)
+    except ValueError as e:
+        parser.error(str(e))
     batch, preset = demo.train.batch_size, demo.model.preset
     uniform, weighted = step_time_ratio(args.rounds, args.steps, args.set)
     print(f"{preset} train step, batch {batch}, "
